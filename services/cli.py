@@ -1,7 +1,10 @@
 """The ``archer`` command line.
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
-``run(args) -> int``; this table is the only place that lists them.
+``run(args) -> int`` (or ``add_<name>_arguments`` / ``run_<name>`` when one module
+serves several); this table is the only place that lists them. Only the chosen
+command's module is imported, so a slow import (MuJoCo, numba) costs only the
+commands that need it.
 """
 
 from __future__ import annotations
@@ -12,20 +15,30 @@ import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
-    "run": ("services.cmd_run", "run one service (estimator, control, planner, perception, hardware, twin, recorder, router)"),
+    "run": ("services.cmd_run", "run one service until SIGINT/SIGTERM"),
     "topics": ("services.cmd_introspect", "print the topic table"),
-    "echo": ("services.cmd_introspect", "print decoded live messages on a topic"),
+    "echo": ("services.cmd_introspect", "print decoded live messages of one topic"),
     "status": ("services.cmd_introspect", "list live services and their status"),
-    "bench": ("services.bench", "measure speed: messaging, control, estimator, mpc, planner, perception"),
+    "bench": ("services.bench", "measure speed and print figures"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _chosen_command(argv: list[str]) -> str | None:
+    for arg in argv:
+        if not arg.startswith("-"):
+            return arg if arg in COMMANDS else None
+    return None
+
+
+def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="archer", description="ARCHER hopping-robot onboard stack")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    chosen = _chosen_command(argv)
     for name, (module_name, help_text) in COMMANDS.items():
-        module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=help_text, description=help_text)
+        if name != chosen:
+            continue
+        module = importlib.import_module(module_name)
         adder = getattr(module, f"add_{name}_arguments", None) or module.add_arguments
         adder(p)
         p.set_defaults(_runner=getattr(module, f"run_{name}", None) or module.run)
@@ -33,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)
     try:
         return int(args._runner(args) or 0)
     except KeyboardInterrupt:

@@ -1,0 +1,170 @@
+"""Hard-rate loops: absolute deadlines, statistics, real-time scheduling.
+
+As openpilot's ``common/realtime.py``: deadlines advance by whole periods
+(``next += period``) so lateness never becomes drift, and a late tick is counted
+as an overrun instead of silently stretching the period. Waiting sleeps until
+``SPIN_S`` before the deadline, then spins, because the kernel's sleep granularity
+(tens of microseconds, worse under load) would otherwise be the jitter.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger("archer.realtime")
+
+SPIN_S = 150e-6  # spin this long before each deadline instead of sleeping
+STATS_CAPACITY = 1 << 16  # ring of recent ticks kept for percentiles (65 s at 1 kHz)
+RT_SWITCH_INTERVAL_S = 0.0005  # CPython GIL hand-over interval while a hard loop runs
+
+
+def make_realtime(priority: int | None = None, cpu: int | None = None) -> dict[str, str]:
+    """Best effort: SCHED_FIFO at ``priority`` and affinity to ``cpu``.
+
+    Returns what was applied or why not; a laptop or an unprivileged container
+    refuses, which is logged and skipped, never fatal.
+    """
+    applied: dict[str, str] = {}
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+            applied["cpu"] = str(cpu)
+        except (OSError, AttributeError) as exc:
+            applied["cpu"] = f"refused: {exc}"
+            log.warning("cpu affinity refused", extra={"fields": {"cpu": cpu, "error": str(exc)}})
+    if priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            applied["priority"] = f"SCHED_FIFO {priority}"
+        except (OSError, AttributeError) as exc:
+            applied["priority"] = f"refused: {exc}"
+            log.warning("real-time priority refused", extra={"fields": {"priority": priority, "error": str(exc)}})
+    return applied
+
+
+@dataclass
+class LoopStats:
+    ticks: int
+    overruns: int
+    period_jitter_us_p50: float
+    period_jitter_us_p99: float
+    period_jitter_us_max: float
+    tick_us_p50: float
+    tick_us_p99: float
+    tick_us_max: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: (round(v, 2) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+class LoopRecorder:
+    """Fixed-size rings of wake-up lateness and compute time: no allocation per tick."""
+
+    def __init__(self, capacity: int = STATS_CAPACITY) -> None:
+        self._late = np.zeros(capacity)
+        self._compute = np.zeros(capacity)
+        self._n = 0
+        self.overruns = 0
+
+    def record(self, late_s: float, compute_s: float, overrun: bool) -> None:
+        i = self._n % len(self._late)
+        self._late[i] = late_s
+        self._compute[i] = compute_s
+        self._n += 1
+        if overrun:
+            self.overruns += 1
+
+    def stats(self) -> LoopStats:
+        n = min(self._n, len(self._late))
+        if n == 0:
+            return LoopStats(0, self.overruns, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        late = np.abs(self._late[:n]) * 1e6
+        compute = self._compute[:n] * 1e6
+        return LoopStats(
+            ticks=self._n,
+            overruns=self.overruns,
+            period_jitter_us_p50=float(np.percentile(late, 50)),
+            period_jitter_us_p99=float(np.percentile(late, 99)),
+            period_jitter_us_max=float(late.max()),
+            tick_us_p50=float(np.percentile(compute, 50)),
+            tick_us_p99=float(np.percentile(compute, 99)),
+            tick_us_max=float(compute.max()),
+        )
+
+
+def wait_until(deadline_s: float, clock: Callable[[], float] = time.perf_counter) -> float:
+    """Sleep, then spin, until ``deadline_s``; returns the wake-up time."""
+    remaining = deadline_s - clock()
+    if remaining > SPIN_S:
+        time.sleep(remaining - SPIN_S)
+    now = clock()
+    while now < deadline_s:
+        now = clock()
+    return now
+
+
+class DeadlineLoop:
+    """Calls ``tick(deadline_s)`` every ``period_s`` on its own thread until stopped.
+
+    ``tick`` must not block on the network, allocate much or log; it reads
+    latest-value slots and publishes. A tick that ends after the next deadline is an
+    overrun: the loop skips the missed deadlines instead of bursting to catch up.
+    """
+
+    def __init__(self, period_s: float, tick: Callable[[float], None], name: str = "deadline-loop") -> None:
+        if period_s <= 0:
+            raise ValueError("period must be positive")
+        self.period_s = period_s
+        self._tick = tick
+        self._stop = threading.Event()
+        self.recorder = LoopRecorder()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 1.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def run_here(self) -> None:
+        """Run the loop on the calling thread (for a dedicated process)."""
+        self._run()
+
+    def _run(self) -> None:
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(RT_SWITCH_INTERVAL_S)  # other threads must not hold the GIL for 5 ms
+        period = self.period_s
+        clock = time.perf_counter
+        deadline = clock() + period
+        try:
+            while not self._stop.is_set():
+                woke = wait_until(deadline, clock)
+                self._tick(deadline)
+                done = clock()
+                next_deadline = deadline + period
+                overrun = done > next_deadline
+                self.recorder.record(woke - deadline, done - woke, overrun)
+                if overrun:  # skip the deadlines already missed; keep the phase
+                    missed = int((done - deadline) / period)
+                    next_deadline = deadline + (missed + 1) * period
+                deadline = next_deadline
+        except BaseException as exc:  # surfaced through .error; the owner disarms
+            self.error = exc
+            log.exception("deadline loop crashed")
+        finally:
+            sys.setswitchinterval(previous)

@@ -1,0 +1,489 @@
+"""The service runtime every service shares.
+
+A service module reads top to bottom as: what it subscribes (``setup``), what it
+computes with ``onboard`` and publishes, at what rate (``main``). This base gives it:
+
+- an asyncio lifecycle with clean SIGINT/SIGTERM shutdown that never hangs;
+- typed publishers and subscribers through the topic table, with strict decoding:
+  a malformed payload is rejected, counted and logged once per burst;
+- latest-value slots filled from Zenoh's threads (callbacks never block);
+- a liveliness token, a status queryable and a parameter queryable (get/set with
+  validation);
+- achieved-rate meters, counters and the last error for the status;
+- a clock (wall or simulated) so the same code runs in real time and against the twin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, ClassVar, Generic, TypeVar
+
+import msgspec
+import zenoh
+
+from onboard import messages as msgs
+from onboard.binary_messages import ENCODING as BINARY_ENCODING
+from onboard.params import SECTIONS, as_dict, with_overrides
+from onboard.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
+from services.clock import Clock, WallClock
+from services.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_session
+
+JSON_ENCODING = "application/json"
+REJECT_LOG_INTERVAL_S = 1.0  # one log line per burst of rejections per topic
+SHUTDOWN_GRACE_S = 2.0  # how long main() may take to notice ``stopping``
+ASYNC_QUEUE_DEPTH = 64  # per subscription; the oldest sample is dropped beyond it
+
+M = TypeVar("M")
+
+_RELIABILITY = {"reliable": zenoh.Reliability.RELIABLE, "best_effort": zenoh.Reliability.BEST_EFFORT}
+_CONGESTION = {"drop": zenoh.CongestionControl.DROP, "block": zenoh.CongestionControl.BLOCK}
+_PRIORITY = {
+    "real_time": zenoh.Priority.REAL_TIME,
+    "interactive_high": zenoh.Priority.INTERACTIVE_HIGH,
+    "data_high": zenoh.Priority.DATA_HIGH,
+    "data": zenoh.Priority.DATA,
+    "data_low": zenoh.Priority.DATA_LOW,
+    "background": zenoh.Priority.BACKGROUND,
+}
+
+
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object per line: easy to grep, easy for journald to forward."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {
+            "t": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        entry.update(getattr(record, "fields", {}))
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry)
+
+
+def setup_logging(level: str = "INFO") -> None:
+    root = logging.getLogger()
+    if not any(isinstance(h.formatter, JsonLogFormatter) for h in root.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(JsonLogFormatter())
+        root.addHandler(handler)
+    root.setLevel(level)
+
+
+class Counters:
+    """Thread-safe named counters (Zenoh callbacks run on Zenoh's threads)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values: dict[str, int] = {}
+
+    def add(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0) + n
+
+    def get(self, name: str) -> int:
+        return self._values.get(name, 0)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._values)
+
+
+class RateMeter:
+    """Achieved rate over the last window, cheap enough to tick at 1 kHz."""
+
+    def __init__(self, clock: Clock, window_s: float = 1.0) -> None:
+        self._clock = clock
+        self._window_ns = int(window_s * 1e9)
+        self._count = 0
+        self._start_ns = clock.now_ns()
+        self._rate = 0.0
+        self.last_ns = 0
+
+    def tick(self) -> None:
+        now = self._clock.now_ns()
+        self.last_ns = now
+        self._count += 1
+        elapsed = now - self._start_ns
+        if elapsed >= self._window_ns:
+            self._rate = self._count * 1e9 / elapsed
+            self._count = 0
+            self._start_ns = now
+
+    @property
+    def hz(self) -> float:
+        elapsed = self._clock.now_ns() - self._start_ns
+        if elapsed > 2 * self._window_ns:  # nothing ticked for a while: report the decay
+            return self._count * 1e9 / elapsed
+        return self._rate
+
+
+class LatestSlot(Generic[M]):
+    """Latest-value input: written by a Zenoh thread, read by a loop without waiting.
+
+    A single tuple assignment is atomic under CPython, so no lock is needed.
+    """
+
+    def __init__(self) -> None:
+        self._value: tuple[M, int] | None = None
+        self._taken_seq = -1
+        self._writes = 0
+
+    def put(self, msg: M, recv_ns: int) -> None:
+        self._writes += 1
+        self._value = (msg, recv_ns)
+
+    def get(self) -> tuple[M, int] | None:
+        return self._value
+
+    def take(self) -> tuple[M, int] | None:
+        """The latest value if it was not returned by ``take`` before, else None."""
+        writes = self._writes
+        if writes == self._taken_seq:
+            return None
+        self._taken_seq = writes
+        return self._value
+
+
+class TypedPublisher(Generic[M]):
+    """Publishes one topic's messages: fills ``seq`` and, when zero, ``stamp_ns``."""
+
+    def __init__(self, session: zenoh.Session, topic: Topic, ns: str, clock: Clock) -> None:
+        self.topic = topic
+        self.key = topic.key(ns)
+        self._clock = clock
+        self._seq = 0
+        self._pub = session.declare_publisher(
+            self.key,
+            encoding=zenoh.Encoding(BINARY_ENCODING if topic.binary else JSON_ENCODING),
+            congestion_control=_CONGESTION[topic.congestion],
+            priority=_PRIORITY[topic.priority],
+            express=topic.express,
+            reliability=_RELIABILITY[topic.reliability],
+        )
+
+    def put(self, msg: msgspec.Struct) -> None:
+        if self.topic.msg_type is None or not isinstance(msg, self.topic.msg_type):
+            raise TypeError(f"{self.key} carries {self.topic.msg_type}, not {type(msg).__name__}")
+        self._seq += 1
+        msg.seq = self._seq
+        if msg.stamp_ns == 0:
+            msg.stamp_ns = self._clock.now_ns()
+        self._pub.put(msgs.encode(msg))
+
+    def put_bytes(self, payload: bytes) -> None:
+        """For binary topics, whose encoder already wrote stamp and sequence."""
+        if not self.topic.binary:
+            raise TypeError(f"{self.key} is a JSON topic")
+        self._seq += 1
+        self._pub.put(payload)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class Service:
+    """Base class of every service; see the module docstring."""
+
+    name: ClassVar[str] = "service"
+    params_sections: ClassVar[tuple[str, ...]] = ()
+    zenoh_mode: ClassVar[Mode] = "peer"
+
+    def __init__(
+        self,
+        *,
+        ns: str | None = None,
+        endpoint: str | None = None,
+        session: zenoh.Session | None = None,
+        clock: Clock | None = None,
+        params: dict[str, Any] | None = None,
+        config_file: str | None = None,
+    ) -> None:
+        self.ns = ns or namespace()
+        self.endpoint = endpoint or default_endpoint()
+        self.clock: Clock = clock or WallClock()
+        self.log = logging.getLogger(f"archer.{self.name}")
+        self.counters = Counters()
+        self.stopping = asyncio.Event()
+        self.state = "starting"
+        self.last_error = ""
+        self.contract_state = "unknown"
+        self.params: dict[str, Any] = {s: SECTIONS[s]() for s in self.params_sections}
+        for section, obj in (params or {}).items():
+            self.params[section] = obj
+        self._params_lock = threading.Lock()
+        self._own_session = session is None
+        self._zenoh_config_file = config_file
+        self.session: zenoh.Session = session  # type: ignore[assignment]  # opened in run()
+        self._rates: dict[str, RateMeter] = {}
+        self._declared: list[Any] = []
+        self._tasks: list[asyncio.Task] = []
+        self._last_reject_log: dict[str, float] = {}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._started_ns = 0
+
+    # --- what subclasses override -------------------------------------------------
+
+    async def setup(self) -> None:
+        """Declare subscriptions and publishers."""
+
+    async def main(self) -> None:
+        """Run until ``self.stopping`` is set."""
+        await self.stopping.wait()
+
+    async def teardown(self) -> None:
+        """Release what ``setup`` acquired beyond Zenoh entities (those go automatically)."""
+
+    def status_extra(self) -> dict[str, float]:
+        return {}
+
+    def on_params_changed(self, section: str) -> None:
+        """Called (on a Zenoh thread) after a validated parameter change."""
+
+    # --- messaging ----------------------------------------------------------------
+
+    def publisher(self, topic_name: str) -> TypedPublisher:
+        pub = TypedPublisher(self.session, TOPICS[topic_name], self.ns, self.clock)
+        self._declared.append(pub)
+        return pub
+
+    def _decoder(self, topic: Topic) -> Callable[[zenoh.Sample], Any]:
+        if topic.binary:
+            from onboard import binary_messages as bm
+
+            decode_binary = {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary]
+            return lambda sample: decode_binary(sample.payload.to_bytes())
+        msg_type = topic.msg_type
+        return lambda sample: msgs.decode(sample.payload.to_bytes(), msg_type)
+
+    def _reject(self, topic: Topic, exc: Exception) -> None:
+        self.counters.add(f"rejected.{topic.name}")
+        now = time.monotonic()
+        if now - self._last_reject_log.get(topic.name, 0.0) >= REJECT_LOG_INTERVAL_S:
+            self._last_reject_log[topic.name] = now
+            total = self.counters.get(f"rejected.{topic.name}")
+            self.log.warning("rejected payload", extra={"fields": {"topic": topic.name, "error": str(exc), "rejected_total": total}})
+
+    def latest(self, topic_name: str) -> LatestSlot:
+        """A latest-value slot kept current by a Zenoh subscription."""
+        topic = TOPICS[topic_name]
+        slot: LatestSlot = LatestSlot()
+        decode = self._decoder(topic)
+        rate = self.rate(f"rx.{topic_name}")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                msg = decode(sample)
+            except msgs.MessageError as exc:
+                self._reject(topic, exc)
+                return
+            rate.tick()
+            slot.put(msg, self.clock.now_ns())
+
+        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+        return slot
+
+    def subscribe(self, topic_name: str, callback: Callable[[Any], Awaitable[None]]) -> None:
+        """Deliver each decoded message to ``callback`` on the asyncio loop."""
+        topic = TOPICS[topic_name]
+        decode = self._decoder(topic)
+        rate = self.rate(f"rx.{topic_name}")
+        queue: asyncio.Queue = asyncio.Queue(ASYNC_QUEUE_DEPTH)
+        loop = self._loop
+        assert loop is not None, "subscribe() belongs in setup()"
+
+        def offer(msg: Any) -> None:  # on the loop thread
+            if queue.full():
+                queue.get_nowait()
+                self.counters.add(f"dropped.{topic_name}")
+            queue.put_nowait(msg)
+
+        def on_sample(sample: zenoh.Sample) -> None:  # on a Zenoh thread: never blocks
+            try:
+                msg = decode(sample)
+            except msgs.MessageError as exc:
+                self._reject(topic, exc)
+                return
+            rate.tick()
+            loop.call_soon_threadsafe(offer, msg)
+
+        async def consume() -> None:
+            while True:
+                msg = await queue.get()
+                try:
+                    await callback(msg)
+                except Exception as exc:  # a bad message must not kill the service
+                    self.fail(f"{topic_name} handler: {exc!r}")
+                    self.log.exception("handler failed", extra={"fields": {"topic": topic_name}})
+
+        self._tasks.append(loop.create_task(consume(), name=f"{self.name}.{topic_name}"))
+        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+
+    # --- health -----------------------------------------------------------------------
+
+    def rate(self, name: str) -> RateMeter:
+        meter = self._rates.get(name)
+        if meter is None:
+            meter = self._rates[name] = RateMeter(self.clock)
+        return meter
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.counters.add(name, n)
+
+    def fail(self, message: str) -> None:
+        self.last_error = message
+        self.counters.add("errors")
+
+    def status(self) -> msgs.ServiceStatus:
+        now = self.clock.now_ns()
+        return msgs.ServiceStatus(
+            stamp_ns=now,
+            service=self.name,
+            state=self.state,
+            uptime_s=(now - self._started_ns) / 1e9,
+            rates_hz={name: round(m.hz, 2) for name, m in self._rates.items()},
+            counters=self.counters.snapshot(),
+            last_error=self.last_error,
+            contract=self.contract_state,
+            extra={k: float(v) for k, v in self.status_extra().items()},
+        )
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        query.reply(query.key_expr, msgs.encode(self.status()), encoding=zenoh.Encoding(JSON_ENCODING))
+
+    def _on_params_query(self, query: zenoh.Query) -> None:
+        error = ""
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if payload:
+            try:
+                request = msgspec.json.decode(payload, type=msgs.ParamRequest)
+                self.set_params(request.set)
+            except (msgspec.DecodeError, msgspec.ValidationError, ValueError) as exc:
+                error = str(exc)
+                self.count("rejected.params")
+        reply = msgs.ParamReply(params=self.flat_params(), error=error)
+        query.reply(query.key_expr, msgspec.json.encode(reply), encoding=zenoh.Encoding(JSON_ENCODING))
+
+    def flat_params(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for section, obj in self.params.items():
+            for key, value in as_dict(obj).items():
+                if isinstance(value, (int, float, bool, str)):
+                    out[f"{section}.{key}"] = value
+        return out
+
+    def set_params(self, changes: dict[str, Any]) -> None:
+        """Apply ``{"section.name": value}``, all or nothing, validated."""
+        by_section: dict[str, dict[str, Any]] = {}
+        for dotted, value in changes.items():
+            section, _, name = dotted.partition(".")
+            if section not in self.params or not name:
+                raise ValueError(f"{self.name} has no parameter {dotted!r}")
+            by_section.setdefault(section, {})[name] = value
+        with self._params_lock:
+            updated = {s: with_overrides(self.params[s], ch) for s, ch in by_section.items()}
+            self.params.update(updated)
+        for section in updated:
+            self.log.info("parameters changed", extra={"fields": {"section": section, "changes": by_section[section]}})
+            self.on_params_changed(section)
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def _open_session(self) -> zenoh.Session:
+        mode = self.zenoh_mode
+        if mode == "peer" and not self._zenoh_config_file and not endpoint_in_use(self.endpoint):
+            # No router yet: this service serves the well-known endpoint itself.
+            try:
+                return open_session(self.endpoint, "router")
+            except zenoh.ZError:
+                pass  # another process won the race; join it as a peer
+        return open_session(self.endpoint, mode, self._zenoh_config_file)
+
+    async def run(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._started_ns = self.clock.now_ns()
+        if self.session is None:
+            self.session = await asyncio.to_thread(self._open_session)
+        try:
+            self._declared.append(self.session.liveliness().declare_token(liveliness_key(self.ns, self.name)))
+            self._declared.append(self.session.declare_queryable(status_key(self.ns, self.name), self._on_status_query))
+            self._declared.append(self.session.declare_queryable(params_key(self.ns, self.name), self._on_params_query))
+            await self.setup()
+            self.state = "running"
+            self.log.info("started", extra={"fields": {"ns": self.ns, "endpoint": self.endpoint}})
+            main = asyncio.create_task(self.main(), name=f"{self.name}.main")
+            stop = asyncio.create_task(self.stopping.wait())
+            done, _ = await asyncio.wait({main, stop}, return_when=asyncio.FIRST_COMPLETED)
+            if main in done:
+                main.result()  # re-raise a crash of main()
+            else:
+                try:
+                    await asyncio.wait_for(main, SHUTDOWN_GRACE_S)
+                except asyncio.TimeoutError:
+                    self.log.warning("main() ignored stop; cancelled")
+            stop.cancel()
+        except Exception as exc:
+            self.state = "error"
+            self.fail(repr(exc))
+            raise
+        finally:
+            self.state = "stopping"
+            await self._close()
+
+    async def _close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        try:
+            await self.teardown()
+        finally:
+            for entity in reversed(self._declared):
+                try:
+                    entity.undeclare()
+                except zenoh.ZError:
+                    pass  # already gone with a closed session
+            self._declared.clear()
+            if self._own_session and self.session is not None:
+                await asyncio.to_thread(self.session.close)
+            self.log.info("stopped")
+
+    def request_stop(self) -> None:
+        """Thread-safe stop request."""
+        if self._loop is not None:
+            self._loop.call_soon_threadsafe(self.stopping.set)
+
+
+def add_service_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="TOML file overriding parameters by section")
+    parser.add_argument("--endpoint", help="Zenoh endpoint (default tcp/127.0.0.1:7447 or $ARCHER_ZENOH_ENDPOINT)")
+    parser.add_argument("--zenoh-config", help="Zenoh JSON5 config file (see deploy/zenoh/)")
+    parser.add_argument("--namespace", help="key namespace (default archer/robot0 or $ARCHER_NAMESPACE)")
+    parser.add_argument("--log-level", default="INFO")
+
+
+def run_service(service: Service) -> int:
+    """Run ``service`` until SIGINT/SIGTERM; returns the process exit code."""
+
+    async def runner() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, service.stopping.set)
+        await service.run()
+
+    try:
+        asyncio.run(runner())
+    except Exception:
+        service.log.exception("service crashed")
+        return 1
+    return 0

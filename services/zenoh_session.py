@@ -1,0 +1,77 @@
+"""Zenoh sessions with a loopback default.
+
+Every session has multicast scouting off and binds or dials nothing beyond what its
+config names. The stack serves one well-known local endpoint
+(``tcp/127.0.0.1:7447``, or ``$ARCHER_ZENOH_ENDPOINT``) from a session in router
+mode that it opens itself; services and any stock client connect to it. Config files
+for other deployments live in ``deploy/zenoh/`` and are passed with ``config_file``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+
+from onboard.params import MessagingParams
+
+ENDPOINT_ENV = "ARCHER_ZENOH_ENDPOINT"
+CONFIG_ENV = "ARCHER_ZENOH_CONFIG"
+LOOPBACK = "127.0.0.1"
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "deploy" / "zenoh"
+
+Mode = Literal["router", "peer", "client"]
+
+
+def default_endpoint() -> str:
+    return os.environ.get(ENDPOINT_ENV) or MessagingParams().endpoint
+
+
+def free_endpoint() -> str:
+    """A TCP endpoint on loopback with a port free right now (for tests and benches)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((LOOPBACK, 0))
+        return f"tcp/{LOOPBACK}:{s.getsockname()[1]}"
+
+
+def loopback_config(mode: Mode, endpoint: str) -> zenoh.Config:
+    """Config for ``mode`` around ``endpoint``: a router listens on it, others dial it.
+
+    Peers listen on an ephemeral loopback port so that peers can link directly
+    (gossip through the router) without passing every sample through it.
+    """
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if mode == "router":
+        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("connect/endpoints", "[]")
+    else:
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        listen = [f"tcp/{LOOPBACK}:0"] if mode == "peer" else []
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    return conf
+
+
+def open_session(
+    endpoint: str | None = None,
+    mode: Mode = "peer",
+    config_file: str | os.PathLike | None = None,
+) -> zenoh.Session:
+    """Open a session. ``config_file`` (or ``$ARCHER_ZENOH_CONFIG``) overrides the default."""
+    config_file = config_file or os.environ.get(CONFIG_ENV)
+    if config_file:
+        return zenoh.open(zenoh.Config.from_file(str(config_file)))
+    return zenoh.open(loopback_config(mode, endpoint or default_endpoint()))
+
+
+def endpoint_in_use(endpoint: str) -> bool:
+    """True when something accepts TCP connections on ``endpoint`` (a running router)."""
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.settimeout(0.2)
+        return s.connect_ex((host, int(port))) == 0
