@@ -1,0 +1,150 @@
+"""The service runtime on real Zenoh sessions over loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+import threading
+import time
+
+import msgspec
+import pytest
+
+from onboard import messages as m
+from onboard.topics import TOPICS, liveliness_key, params_key, status_key
+from services.cmd_introspect import live_services, query_status
+from services.runtime import Service
+from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
+
+NS = "archer/test"
+TIMEOUT_S = 10.0
+
+
+class RelayService(Service):
+    """Relays IMU gyro z into a torque command: enough to exercise every runtime path."""
+
+    name = "relay"
+    params_sections = ("safety",)
+
+    async def setup(self) -> None:
+        self.imu_slot = self.latest("imu")
+        self.cmd = self.publisher("torque_cmd")
+        self.subscribe("imu", self.on_imu)
+
+    async def on_imu(self, msg: m.ImuSample) -> None:
+        limit = self.params["safety"].wheel_torque_max
+        self.cmd.put(m.TorqueCommand(wheel_torque=[0.0, 0.0, min(msg.gyro[2], limit)], foot_torque=0.0, armed=True))
+        self.count("relayed")
+
+
+async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.02)
+
+
+def _imu(gz: float) -> m.ImuSample:
+    return m.ImuSample(quat=[1.0, 0, 0, 0], gyro=[0.0, 0.0, gz], accel=[0.0, 0.0, 9.81])
+
+
+def test_service_relays_rejects_and_reports(zenoh_router):
+    async def scenario() -> None:
+        service = RelayService(ns=NS, endpoint=zenoh_router)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        received: list[m.TorqueCommand] = []
+        sub = client.declare_subscriber(TOPICS["torque_cmd"].key(NS), lambda s: received.append(m.decode(s.payload.to_bytes(), m.TorqueCommand)))
+        try:
+            await _wait_for(lambda: service.state == "running")
+            await asyncio.sleep(0.3)  # let the subscription reach the service
+            imu_key = TOPICS["imu"].key(NS)
+            client.put(imu_key, m.encode(_imu(0.5)))
+            for bad in (b"garbage", b'{"quat":[1,0,0,0]}', m.encode(_imu(float("nan")))):
+                client.put(imu_key, bad)
+            client.put(imu_key, m.encode(_imu(99.0)))  # clamped by the safety parameter
+            await _wait_for(lambda: len(received) == 2)
+            assert received[0].wheel_torque[2] == pytest.approx(0.5)
+            assert received[1].wheel_torque[2] == pytest.approx(1.5)
+            assert [r.seq for r in received] == [1, 2]
+            # each bad payload counted once per subscription (slot and async handler)
+            await _wait_for(lambda: service.counters.get("rejected.imu") == 6)
+            assert service.imu_slot.get()[0].gyro[2] == 99.0
+
+            # a second session sees the liveliness token and gets the status
+            names = await asyncio.to_thread(live_services, client, NS)
+            assert "relay" in names
+            status = await asyncio.to_thread(query_status, client, NS, "relay")
+            assert status.state == "running"
+            assert status.counters["relayed"] == 2 and status.counters["rejected.imu"] == 6
+
+            # parameters: a valid set applies, an invalid one is refused whole
+            def ask(payload: bytes) -> m.ParamReply:
+                replies = list(client.get(params_key(NS, "relay"), payload=payload, timeout=5.0))
+                return msgspec.json.decode(replies[0].ok.payload.to_bytes(), type=m.ParamReply)
+
+            reply = await asyncio.to_thread(ask, b'{"set": {"safety.wheel_torque_max": 1.0}}')
+            assert reply.error == "" and reply.params["safety.wheel_torque_max"] == 1.0
+            reply = await asyncio.to_thread(ask, b'{"set": {"safety.wheel_torque_max": "lots"}}')
+            assert "expected a number" in reply.error and reply.params["safety.wheel_torque_max"] == 1.0
+            reply = await asyncio.to_thread(ask, b'{"set": {"safety.no_such": 1}}')
+            assert "no parameter" in reply.error
+        finally:
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 5.0)
+            # the token is gone once the service stopped
+            names = await asyncio.to_thread(live_services, client, NS)
+            client.close()
+        assert "relay" not in names
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
+def test_shutdown_leaves_no_thread_or_session(zenoh_router):
+    before = set(threading.enumerate())
+
+    async def scenario() -> Service:
+        service = RelayService(ns=NS, endpoint=zenoh_router)
+        task = asyncio.create_task(service.run())
+        await _wait_for(lambda: service.state == "running")
+        service.request_stop()
+        await asyncio.wait_for(task, 5.0)
+        return service
+
+    service = asyncio.run(scenario())
+    assert service.session.is_closed()
+    leaked = [t for t in set(threading.enumerate()) - before if t.is_alive()]
+    assert leaked == []
+
+
+def test_sigterm_stops_a_service_process():
+    """`archer run router` serves the endpoint; a client finds it; SIGTERM ends it cleanly."""
+    endpoint = free_endpoint()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "run", "router", "--endpoint", endpoint, "--namespace", NS],
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + TIMEOUT_S
+    while not endpoint_in_use(endpoint):
+        assert time.monotonic() < deadline, "router never listened"
+        time.sleep(0.05)
+    client = open_session(endpoint, "client")
+    try:
+        deadline = time.monotonic() + TIMEOUT_S
+        while "router" not in live_services(client, NS):
+            assert time.monotonic() < deadline, "service never announced itself"
+            time.sleep(0.1)
+        proc.terminate()
+        assert proc.wait(timeout=5.0) == 0
+    finally:
+        client.close()
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_keys_come_from_the_table():
+    assert liveliness_key(NS, "x") == "archer/test/alive/x"
+    assert status_key(NS, "x").startswith(NS + "/")
