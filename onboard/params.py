@@ -35,12 +35,49 @@ class MessagingParams:
     status_period_s: float = 0.5  # how often a service refreshes its rate figures
 
 
+@dataclass(frozen=True)
+class HardwareParams:
+    """The ``hardware`` service and its drivers (ELMO drives over CAN, Teensy over serial).
+
+    Joint order everywhere: wheel 0, wheel 1, wheel 2, foot. Per-joint tuples are
+    drive settings (motor torque constant, current clamp, gearbox) of the real
+    robot; the emulators use the same values.
+    """
+
+    backend: str = "can"  # "can": ELMO drives over CANopen; "teensy": framed serial
+    rate_hz: float = 1000.0  # exchange rate with the drives / the Teensy [Hz]
+    # CAN (python-can arguments; the emulator prints them)
+    can_interface: str = "socketcand"
+    can_channel: str = "can0"
+    can_host: str = "127.0.0.1"  # socketcand only
+    can_port: int = 29536  # socketcand only
+    can_bitrate: int = 1_000_000  # [bit/s]
+    node_ids: tuple[int, ...] = (1, 2, 3, 4)  # CANopen node of each joint
+    host_node_id: int = 127  # the host's heartbeat identifier 0x700 + id
+    host_heartbeat_period_s: float = 0.025  # drives fault after SafetyLimits.heartbeat_timeout_s
+    drive_heartbeat_period_s: float = 0.050  # drive heartbeat producer time (0x1017)
+    position_every: int = 10  # position PDO on every n-th SYNC (bus budget)
+    sdo_timeout_s: float = 0.5  # [s] per SDO response
+    enable_timeout_s: float = 1.0  # [s] to reach OPERATION ENABLED
+    torque_constant: tuple[float, ...] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
+    current_max: tuple[float, ...] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
+    gear_ratio: tuple[float, ...] = (1.0, 1.0, 1.0, 3.0)  # motor turns per joint turn
+    joint_sign: tuple[int, ...] = (1, 1, 1, 1)  # motor direction vs joint direction
+    # Teensy
+    serial_port: str = ""  # e.g. /dev/ttyACM0 or the pty the emulator prints
+    teensy_mode: str = "torque"  # "torque" or "attitude" (the Teensy runs the PD)
+    reconnect_min_s: float = 0.05  # [s] first retry after the port vanished
+    reconnect_max_s: float = 1.0  # [s] backoff ceiling
+    link_timeout_s: float = 0.1  # [s] no sensor frame for this long: link lost
+
+
 # Sections owned by each layer follow; each is registered in SECTIONS below.
 
 
 SECTIONS: dict[str, type] = {
     "safety": SafetyLimits,
     "messaging": MessagingParams,
+    "hardware": HardwareParams,
 }
 
 
