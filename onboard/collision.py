@@ -1,0 +1,724 @@
+"""Exact collision tests between Bezier control-point hulls and convex planar sets.
+
+The graph cut (thesis 3149-3181) removes every edge whose curve could touch an
+obstacle. By the convex hull property (Property 2.43) a Bezier curve lies in the hull
+of its control points, so an edge is safe when that hull keeps a distance larger than
+``margin`` (robot radius plus the low level's tube) from every obstacle.
+
+Obstacles are inflated by a disk of radius ``margin`` (the exact Minkowski sum, not
+an offset polygon), and the test is exact for that set: the distance between two
+convex polygons is the largest gap ``min_P n.p - max_O n.o`` over the axes ``n``
+that can carry it -- the obstacle's face normals, the normals of the directions
+between control points (which include the hull's faces), and the directions between
+a control point and an obstacle vertex (vertex-vertex closest pairs). The hull is
+kept iff some axis has a gap above ``margin``: the separating axis test with a
+margin, no QP needed. A bounding-box grid broad phase and a bounding-circle test
+discard most pairs before the compiled (numba) kernel runs.
+
+Free-space mode (thesis "union of convex free spaces") keeps an edge iff every
+control point lies, ``margin`` deep, inside one convex free cell.
+
+The thesis's Cut-QP is kept only where no closed form is used: hulls and polytopes in
+dimension other than 2 or polytopes known only by ``A x <= b``
+(:func:`hull_polytope_distance_qp`, OSQP). Two-dimensional H-polytopes get their
+vertices exactly from :func:`polygon_from_halfspaces` instead.
+
+Frames and units: world frame, metres. Polygons are ``(k, 2)`` vertex arrays; they
+are stored counter-clockwise.
+
+The numba kernels are compiled on first use and cached next to this module by numba
+(a compiler cache, not program I/O).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+POLYGON_AREA_TOL = 1e-9  # [m^2] below this a polygon is degenerate
+VERTEX_MERGE_TOL = 1e-9  # [m] consecutive vertices closer than this are a repeated vertex
+GAP_EPS = 1e-9  # [m] a gap must beat the margin by this much (float round-off)
+QP_TOL = 1e-7  # OSQP absolute/relative tolerance for the distance QP
+QP_MARGIN_SLACK = 1e-4  # [m] the QP answer is trusted only this far from the margin
+EMPTY_CELL_SIZE = 1.0  # [m] broad-phase cell when there is nothing to size it by
+
+
+class PolygonError(ValueError):
+    """A polygon that is not a finite, non-degenerate convex polygon."""
+
+
+# --- polygons ---------------------------------------------------------------------
+
+
+def validate_polygon(points: object) -> np.ndarray:
+    """The polygon as a counter-clockwise ``(k, 2)`` float array, or :class:`PolygonError`.
+
+    Rejected: non-finite coordinates, fewer than 3 vertices, repeated consecutive
+    vertices, zero area, and non-convex polygons (a reflex corner, or a boundary that
+    winds more than once).
+    """
+    try:
+        pts = np.asarray(points, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise PolygonError(f"polygon is not an array of [x, y] points: {exc}") from None
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise PolygonError(f"polygon must be a list of [x, y] points, got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise PolygonError("polygon has a non-finite coordinate")
+    if len(pts) < 3:
+        raise PolygonError(f"polygon needs at least 3 vertices, got {len(pts)}")
+    edges = np.roll(pts, -1, axis=0) - pts
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    if np.any(lengths <= VERTEX_MERGE_TOL):
+        raise PolygonError("polygon has a repeated vertex")
+    area2 = float(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
+    if abs(area2) / 2 <= POLYGON_AREA_TOL:
+        raise PolygonError("polygon has zero area")
+    if area2 < 0:
+        pts = pts[::-1].copy()
+        edges = np.roll(pts, -1, axis=0) - pts
+        lengths = np.hypot(edges[:, 0], edges[:, 1])
+    nxt = np.roll(edges, -1, axis=0)
+    cross = edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
+    # Relative tolerance: collinear vertices are allowed, reflex ones are not.
+    if np.any(cross < -1e-12 * lengths * np.roll(lengths, -1)):
+        raise PolygonError("polygon is not convex")
+    turning = float(np.sum(np.arctan2(cross, np.sum(edges * nxt, axis=1))))
+    if abs(turning - 2 * math.pi) > 1e-6:
+        raise PolygonError("polygon is not simple (its boundary winds more than once)")
+    return pts
+
+
+def polygon_from_halfspaces(A: np.ndarray, b: np.ndarray, bounds: np.ndarray | None = None) -> np.ndarray:
+    """Vertices (CCW) of ``{x : A x <= b}`` in the plane, clipped to ``bounds`` if given.
+
+    ``bounds`` is ``[[xmin, ymin], [xmax, ymax]]``; without it the set must be bounded
+    (a large box is used for clipping and any vertex on it raises). Raises
+    :class:`PolygonError` when the set is empty or degenerate.
+    """
+    A = np.asarray(A, dtype=float)
+    b = np.asarray(b, dtype=float)
+    if A.ndim != 2 or A.shape[1] != 2 or b.shape != (A.shape[0],):
+        raise PolygonError(f"halfspaces must be A (k, 2) and b (k,), got {A.shape} and {b.shape}")
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        raise PolygonError("halfspaces have a non-finite entry")
+    big = bounds is None
+    if big:
+        scale = 1e6
+        box = np.array([[-scale, -scale], [scale, -scale], [scale, scale], [-scale, scale]])
+    else:
+        (x0, y0), (x1, y1) = np.asarray(bounds, dtype=float)
+        box = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    poly = clip_polygon(box, A, b)
+    if big and len(poly) and np.max(np.abs(poly)) >= 1e6 * (1 - 1e-9):
+        raise PolygonError("halfspaces do not bound a polygon")
+    return validate_polygon(poly)
+
+
+def clip_polygon(poly: np.ndarray, A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``poly`` (CCW) intersected with every halfspace ``A_i x <= b_i`` (Sutherland-Hodgman)."""
+    out = np.asarray(poly, dtype=float)
+    for a, c in zip(np.asarray(A, dtype=float), np.asarray(b, dtype=float)):
+        if len(out) == 0:
+            break
+        s = out @ a - c
+        keep: list[np.ndarray] = []
+        n = len(out)
+        for i in range(n):
+            j = (i + 1) % n
+            if s[i] <= 0:
+                keep.append(out[i])
+            if (s[i] < 0 < s[j]) or (s[j] < 0 < s[i]):
+                t = s[i] / (s[i] - s[j])
+                keep.append(out[i] + t * (out[j] - out[i]))
+        out = np.array(keep).reshape(-1, 2)
+    return out
+
+
+def polygon_halfspaces(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(A, b)`` with unit outward rows such that ``poly = {x : A x <= b}`` (poly CCW)."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
+    normals /= np.hypot(normals[:, 0], normals[:, 1])[:, None]
+    return normals, np.einsum("ij,ij->i", normals, poly)
+
+
+@dataclass(frozen=True)
+class PolygonSet:
+    """Convex polygons packed for the kernels (see :func:`pack_polygons`)."""
+
+    vertices: np.ndarray  # (V, 2) CCW vertices, polygon after polygon [m]
+    offsets: np.ndarray  # (M + 1,) polygon i is vertices[offsets[i]:offsets[i+1]]
+    normals: np.ndarray  # (V, 2) unit outward normal of the face from vertex v to v+1
+    face_offsets: np.ndarray  # (V,) normals[v] . vertices[v]: the polygon is normals x <= face_offsets
+    aabb: np.ndarray  # (M, 4) xmin, ymin, xmax, ymax [m]
+    center: np.ndarray  # (M, 2) bounding-circle centre [m]
+    radius: np.ndarray  # (M,) bounding-circle radius [m]
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def polygon(self, i: int) -> np.ndarray:
+        return self.vertices[self.offsets[i]:self.offsets[i + 1]]
+
+
+def pack_polygons(polygons: list[np.ndarray] | tuple[np.ndarray, ...]) -> PolygonSet:
+    """Validate and pack convex polygons (any orientation) for the kernels."""
+    polys = [validate_polygon(p) for p in polygons]
+    counts = np.array([len(p) for p in polys], dtype=np.int64)
+    offsets = np.zeros(len(polys) + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    if polys:
+        vertices = np.ascontiguousarray(np.concatenate(polys))
+        halfspaces = [polygon_halfspaces(p) for p in polys]
+        normals = np.ascontiguousarray(np.concatenate([h[0] for h in halfspaces]))
+        face_offsets = np.concatenate([h[1] for h in halfspaces])
+        aabb = np.array([[p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()] for p in polys])
+    else:
+        vertices = np.zeros((0, 2))
+        normals = np.zeros((0, 2))
+        face_offsets = np.zeros(0)
+        aabb = np.zeros((0, 4))
+    center = (aabb[:, :2] + aabb[:, 2:]) / 2
+    radius = np.array([np.max(np.hypot(*(p - c).T)) for p, c in zip(polys, center)]) if polys else np.zeros(0)
+    return PolygonSet(vertices, offsets, normals, face_offsets, aabb, center, radius)
+
+
+# --- control-point hulls -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HullSet:
+    """Control-point sets of many curves, with what the kernels precompute once.
+
+    Built once per graph: the cut then only touches obstacle data.
+    """
+
+    points: np.ndarray  # (E, K, 2) position control points [m]
+    aabb: np.ndarray  # (E, 4) xmin, ymin, xmax, ymax [m]
+    center: np.ndarray  # (E, 2) bounding-circle centre [m]
+    radius: np.ndarray  # (E,) bounding-circle radius [m]
+    axes: np.ndarray  # (E, K (K-1) / 2, 2) unit normals to the directions between control points; 0 if coincident
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def hull_set(points: np.ndarray) -> HullSet:
+    """Precompute boxes, circles and candidate axes for ``(E, K, 2)`` control points."""
+    pts = np.ascontiguousarray(points, dtype=float)
+    if pts.ndim != 3 or pts.shape[2] != 2 or pts.shape[1] < 1:
+        raise ValueError(f"control points must be (E, K, 2), got {pts.shape}")
+    lo = pts.min(axis=1)
+    hi = pts.max(axis=1)
+    aabb = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
+    center = (lo + hi) / 2
+    radius = np.sqrt(np.max(np.sum((pts - center[:, None, :]) ** 2, axis=2), axis=1)) if len(pts) else np.zeros(0)
+    i, j = np.triu_indices(pts.shape[1], k=1)
+    d = pts[:, j, :] - pts[:, i, :]
+    length = np.hypot(d[..., 0], d[..., 1])
+    safe = np.where(length > VERTEX_MERGE_TOL, length, 1.0)
+    axes = np.stack([-d[..., 1], d[..., 0]], axis=-1) / safe[..., None]
+    axes[length <= VERTEX_MERGE_TOL] = 0.0
+    return HullSet(pts, aabb, np.ascontiguousarray(center), radius, np.ascontiguousarray(axes))
+
+
+# --- compiled kernels ------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline="always")
+def _hull_clear_of_polygon(pts, axes, verts, norms, offs, margin):  # pragma: no cover - compiled
+    """True iff dist(conv(pts), polygon) > margin (exact; see the module docstring)."""
+    K = pts.shape[0]
+    n = verts.shape[0]
+    thresh = margin + GAP_EPS
+    # Obstacle faces. Also note whether a curve end point (on the curve) is inside.
+    first_in = -np.inf
+    last_in = -np.inf
+    for f in range(n):
+        nx = norms[f, 0]
+        ny = norms[f, 1]
+        c = offs[f]
+        mn = np.inf
+        for k in range(K):
+            s = nx * pts[k, 0] + ny * pts[k, 1]
+            if s < mn:
+                mn = s
+        if mn - c > thresh:
+            return True
+        s0 = nx * pts[0, 0] + ny * pts[0, 1] - c
+        s1 = nx * pts[K - 1, 0] + ny * pts[K - 1, 1] - c
+        if s0 > first_in:
+            first_in = s0
+        if s1 > last_in:
+            last_in = s1
+    if first_in <= 0.0 or last_in <= 0.0:
+        return False  # a point of the curve itself is inside the obstacle
+    # Directions between control points (hull faces among them), both sides.
+    for a in range(axes.shape[0]):
+        ax = axes[a, 0]
+        ay = axes[a, 1]
+        if ax == 0.0 and ay == 0.0:
+            continue
+        pmin = np.inf
+        pmax = -np.inf
+        for k in range(K):
+            s = ax * pts[k, 0] + ay * pts[k, 1]
+            pmin = min(pmin, s)
+            pmax = max(pmax, s)
+        omin = np.inf
+        omax = -np.inf
+        for v in range(n):
+            s = ax * verts[v, 0] + ay * verts[v, 1]
+            omin = min(omin, s)
+            omax = max(omax, s)
+        if pmin - omax > thresh or omin - pmax > thresh:
+            return True
+    # Vertex-vertex directions.
+    for k in range(K):
+        for v in range(n):
+            dx = pts[k, 0] - verts[v, 0]
+            dy = pts[k, 1] - verts[v, 1]
+            d = math.sqrt(dx * dx + dy * dy)
+            if d <= thresh:
+                return False  # a control point and an obstacle point are within the margin
+            dx /= d
+            dy /= d
+            pmin = np.inf
+            for kk in range(K):
+                pmin = min(pmin, dx * pts[kk, 0] + dy * pts[kk, 1])
+            omax = -np.inf
+            for vv in range(n):
+                omax = max(omax, dx * verts[vv, 0] + dy * verts[vv, 1])
+            if pmin - omax > thresh:
+                return True
+    return False
+
+
+@nb.njit(cache=True)
+def _bin_boxes(aabb, x0, y0, h, nx, ny):  # pragma: no cover - compiled
+    """Uniform-grid bins of boxes: CSR (start, items) over cells, and each box's cell range."""
+    m = aabb.shape[0]
+    ranges = np.empty((m, 4), dtype=np.int64)
+    counts = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(m):
+        ix0 = min(max(int(math.floor((aabb[i, 0] - x0) / h)), 0), nx - 1)
+        iy0 = min(max(int(math.floor((aabb[i, 1] - y0) / h)), 0), ny - 1)
+        ix1 = min(max(int(math.floor((aabb[i, 2] - x0) / h)), 0), nx - 1)
+        iy1 = min(max(int(math.floor((aabb[i, 3] - y0) / h)), 0), ny - 1)
+        ranges[i, 0] = ix0
+        ranges[i, 1] = iy0
+        ranges[i, 2] = ix1
+        ranges[i, 3] = iy1
+        for cy in range(iy0, iy1 + 1):
+            for cx in range(ix0, ix1 + 1):
+                counts[cy * nx + cx + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    items = np.empty(start[-1], dtype=np.int64)
+    for i in range(m):
+        for cy in range(ranges[i, 1], ranges[i, 3] + 1):
+            for cx in range(ranges[i, 0], ranges[i, 2] + 1):
+                c = cy * nx + cx
+                items[fill[c]] = i
+                fill[c] += 1
+    return start, items, ranges
+
+
+@nb.njit(cache=True, parallel=True)
+def _cut_obstacles_kernel(pts, aabb, center, radius, axes, active,
+                          verts, offsets, norms, face_offs, oaabb, ocenter, oradius,
+                          start, items, oranges, x0, y0, h, nx, ny, margin):  # pragma: no cover - compiled
+    E = pts.shape[0]
+    blocked = np.zeros(E, dtype=np.bool_)
+    for e in nb.prange(E):
+        if not active[e]:
+            continue
+        ex0 = int(math.floor((aabb[e, 0] - margin - x0) / h))
+        ey0 = int(math.floor((aabb[e, 1] - margin - y0) / h))
+        ex1 = int(math.floor((aabb[e, 2] + margin - x0) / h))
+        ey1 = int(math.floor((aabb[e, 3] + margin - y0) / h))
+        ex0 = min(max(ex0, 0), nx - 1)
+        ey0 = min(max(ey0, 0), ny - 1)
+        ex1 = min(max(ex1, 0), nx - 1)
+        ey1 = min(max(ey1, 0), ny - 1)
+        hit = False
+        for cy in range(ey0, ey1 + 1):
+            if hit:
+                break
+            for cx in range(ex0, ex1 + 1):
+                if hit:
+                    break
+                c = cy * nx + cx
+                for k in range(start[c], start[c + 1]):
+                    o = items[k]
+                    # Test each pair once: in the first cell both ranges share.
+                    if cx != max(ex0, oranges[o, 0]) or cy != max(ey0, oranges[o, 1]):
+                        continue
+                    if (aabb[e, 0] - oaabb[o, 2] > margin or oaabb[o, 0] - aabb[e, 2] > margin
+                            or aabb[e, 1] - oaabb[o, 3] > margin or oaabb[o, 1] - aabb[e, 3] > margin):
+                        continue
+                    dx = center[e, 0] - ocenter[o, 0]
+                    dy = center[e, 1] - ocenter[o, 1]
+                    reach = radius[e] + oradius[o] + margin
+                    if dx * dx + dy * dy > reach * reach:
+                        continue
+                    a = offsets[o]
+                    b = offsets[o + 1]
+                    if not _hull_clear_of_polygon(pts[e], axes[e], verts[a:b], norms[a:b], face_offs[a:b], margin):
+                        hit = True
+                        break
+        blocked[e] = hit
+    return blocked
+
+
+@nb.njit(cache=True, parallel=True)
+def _cut_free_kernel(pts, active, norms, face_offs, offsets, start, items, x0, y0, h, nx, ny, margin):  # pragma: no cover
+    E = pts.shape[0]
+    K = pts.shape[1]
+    blocked = np.zeros(E, dtype=np.bool_)
+    for e in nb.prange(E):
+        if not active[e]:
+            continue
+        cx = int(math.floor((pts[e, 0, 0] - x0) / h))
+        cy = int(math.floor((pts[e, 0, 1] - y0) / h))
+        inside_any = False
+        if 0 <= cx < nx and 0 <= cy < ny:
+            c = cy * nx + cx
+            for kk in range(start[c], start[c + 1]):
+                o = items[kk]
+                inside = True
+                for f in range(offsets[o], offsets[o + 1]):
+                    lim = face_offs[f] - margin - GAP_EPS
+                    for k in range(K):
+                        if norms[f, 0] * pts[e, k, 0] + norms[f, 1] * pts[e, k, 1] > lim:
+                            inside = False
+                            break
+                    if not inside:
+                        break
+                if inside:
+                    inside_any = True
+                    break
+        blocked[e] = not inside_any
+    return blocked
+
+
+@nb.njit(cache=True, inline="always")
+def _point_polygon_distance(px, py, verts, norms, offs):  # pragma: no cover - compiled
+    """Signed distance [m] from a point to a convex polygon (negative inside)."""
+    n = verts.shape[0]
+    worst = -np.inf
+    for f in range(n):
+        s = norms[f, 0] * px + norms[f, 1] * py - offs[f]
+        if s > worst:
+            worst = s
+    if worst <= 0.0:
+        return worst
+    best = np.inf
+    for f in range(n):
+        ax = verts[f, 0]
+        ay = verts[f, 1]
+        g = (f + 1) % n
+        bx = verts[g, 0] - ax
+        by = verts[g, 1] - ay
+        t = ((px - ax) * bx + (py - ay) * by) / (bx * bx + by * by)
+        t = min(max(t, 0.0), 1.0)
+        dx = px - ax - t * bx
+        dy = py - ay - t * by
+        d = math.sqrt(dx * dx + dy * dy)
+        if d < best:
+            best = d
+    return best
+
+
+@nb.njit(cache=True, parallel=True)
+def _samples_clearance_kernel(samples, verts, offsets, norms, face_offs, oaabb, start, items, x0, y0, h, nx, ny, reach):  # pragma: no cover
+    """Per curve, the smallest signed distance of its samples to any polygon within ``reach``."""
+    E = samples.shape[0]
+    S = samples.shape[1]
+    out = np.full(E, np.inf)
+    for e in nb.prange(E):
+        best = np.inf
+        for s in range(S):
+            px = samples[e, s, 0]
+            py = samples[e, s, 1]
+            cx = min(max(int(math.floor((px - x0) / h)), 0), nx - 1)
+            cy = min(max(int(math.floor((py - y0) / h)), 0), ny - 1)
+            # The polygons near a point are in the cells within ``reach`` of it.
+            r = int(math.ceil(reach / h))
+            for yy in range(max(cy - r, 0), min(cy + r, ny - 1) + 1):
+                for xx in range(max(cx - r, 0), min(cx + r, nx - 1) + 1):
+                    c = yy * nx + xx
+                    for k in range(start[c], start[c + 1]):
+                        o = items[k]
+                        if (px < oaabb[o, 0] - reach or px > oaabb[o, 2] + reach
+                                or py < oaabb[o, 1] - reach or py > oaabb[o, 3] + reach):
+                            continue
+                        a = offsets[o]
+                        b = offsets[o + 1]
+                        d = _point_polygon_distance(px, py, verts[a:b], norms[a:b], face_offs[a:b])
+                        if d < best:
+                            best = d
+        out[e] = best
+    return out
+
+
+@nb.njit(cache=True)
+def _best_axis(pts, axes, verts, norms, offs):  # pragma: no cover - compiled
+    """The axis with the largest gap between conv(pts) and the polygon: (nx, ny, gap, h_O)."""
+    K = pts.shape[0]
+    n = verts.shape[0]
+    best_gap = -np.inf
+    bx = 0.0
+    by = 0.0
+    bh = 0.0
+    for f in range(n):
+        nx = norms[f, 0]
+        ny = norms[f, 1]
+        mn = np.inf
+        for k in range(K):
+            mn = min(mn, nx * pts[k, 0] + ny * pts[k, 1])
+        if mn - offs[f] > best_gap:
+            best_gap = mn - offs[f]
+            bx, by, bh = nx, ny, offs[f]
+    for a in range(axes.shape[0]):
+        for sign in (-1.0, 1.0):
+            ax = sign * axes[a, 0]
+            ay = sign * axes[a, 1]
+            if ax == 0.0 and ay == 0.0:
+                continue
+            pmin = np.inf
+            for k in range(K):
+                pmin = min(pmin, ax * pts[k, 0] + ay * pts[k, 1])
+            omax = -np.inf
+            for v in range(n):
+                omax = max(omax, ax * verts[v, 0] + ay * verts[v, 1])
+            if pmin - omax > best_gap:
+                best_gap = pmin - omax
+                bx, by, bh = ax, ay, omax
+    for k in range(K):
+        for v in range(n):
+            dx = pts[k, 0] - verts[v, 0]
+            dy = pts[k, 1] - verts[v, 1]
+            d = math.sqrt(dx * dx + dy * dy)
+            if d <= 0.0:
+                continue
+            dx /= d
+            dy /= d
+            pmin = np.inf
+            for kk in range(K):
+                pmin = min(pmin, dx * pts[kk, 0] + dy * pts[kk, 1])
+            omax = -np.inf
+            for vv in range(n):
+                omax = max(omax, dx * verts[vv, 0] + dy * verts[vv, 1])
+            if pmin - omax > best_gap:
+                best_gap = pmin - omax
+                bx, by, bh = dx, dy, omax
+    return bx, by, best_gap, bh
+
+
+@nb.njit(cache=True)
+def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, oradius, margin, count, reach):  # pragma: no cover
+    """For each hull, halfspaces ``a.x <= b`` from its ``count`` nearest polygons (within reach)."""
+    S = pts.shape[0]
+    M = offsets.shape[0] - 1
+    out = np.zeros((S, count, 3))
+    out[:, :, 2] = np.inf  # unused rows: 0.x <= inf
+    gaps = np.empty(M)
+    for s in range(S):
+        cxs = 0.0
+        cys = 0.0
+        K = pts.shape[1]
+        for k in range(K):
+            cxs += pts[s, k, 0] / K
+            cys += pts[s, k, 1] / K
+        rs = 0.0
+        for k in range(K):
+            rs = max(rs, math.hypot(pts[s, k, 0] - cxs, pts[s, k, 1] - cys))
+        for o in range(M):
+            gaps[o] = math.hypot(cxs - ocenter[o, 0], cys - ocenter[o, 1]) - oradius[o] - rs
+        order = np.argsort(gaps)
+        filled = 0
+        for i in range(M):
+            o = order[i]
+            if filled == count or gaps[o] > reach:
+                break
+            a = offsets[o]
+            b = offsets[o + 1]
+            nx, ny, gap, ho = _best_axis(pts[s], axes[s], verts[a:b], norms[a:b], face_offs[a:b])
+            # Robot positions must satisfy n.x >= h_O(n) + margin, i.e. -n.x <= -(h_O + margin).
+            out[s, filled, 0] = -nx
+            out[s, filled, 1] = -ny
+            out[s, filled, 2] = -(ho + margin)
+            filled += 1
+    return out
+
+
+# --- public entry points ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Grid:
+    x0: float
+    y0: float
+    h: float
+    nx: int
+    ny: int
+
+
+def _grid_for(boxes: np.ndarray, cell: float, pad: float) -> _Grid:
+    if len(boxes) == 0:
+        return _Grid(0.0, 0.0, EMPTY_CELL_SIZE, 1, 1)
+    x0 = float(boxes[:, 0].min() - pad)
+    y0 = float(boxes[:, 1].min() - pad)
+    x1 = float(boxes[:, 2].max() + pad)
+    y1 = float(boxes[:, 3].max() + pad)
+    h = max(cell, 1e-6)
+    # Bound the cell count (memory) for very sparse, very wide scenes.
+    while (x1 - x0) / h * (y1 - y0) / h > 4e6:
+        h *= 2
+    return _Grid(x0, y0, h, int((x1 - x0) // h) + 1, int((y1 - y0) // h) + 1)
+
+
+def _typical_extent(boxes: np.ndarray) -> float:
+    if len(boxes) == 0:
+        return EMPTY_CELL_SIZE
+    return float(np.median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])))
+
+
+def cut_obstacles(hulls: HullSet, obstacles: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
+    """``blocked[e]``: the hull of curve ``e`` comes within ``margin`` [m] of an obstacle.
+
+    Exact for the disk-inflated obstacles (no false "free"). ``active`` restricts the
+    test to some curves (the others are reported free); default all.
+    """
+    if margin < 0 or not math.isfinite(margin):
+        raise ValueError(f"margin must be finite and >= 0, got {margin}")
+    E = len(hulls)
+    act = np.ones(E, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
+    if len(obstacles) == 0 or E == 0:
+        return np.zeros(E, dtype=np.bool_)
+    cell = max(_typical_extent(obstacles.aabb) + 2 * margin, _typical_extent(hulls.aabb))
+    grid = _grid_for(obstacles.aabb, cell, margin)
+    start, items, oranges = _bin_boxes(obstacles.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
+    return _cut_obstacles_kernel(
+        hulls.points, hulls.aabb, hulls.center, hulls.radius, hulls.axes, act,
+        obstacles.vertices, obstacles.offsets, obstacles.normals, obstacles.face_offsets,
+        obstacles.aabb, obstacles.center, obstacles.radius,
+        start, items, oranges, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
+
+
+def cut_free_cells(hulls: HullSet, cells: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
+    """``blocked[e]``: no single free cell holds every control point of curve ``e`` ``margin`` deep."""
+    if margin < 0 or not math.isfinite(margin):
+        raise ValueError(f"margin must be finite and >= 0, got {margin}")
+    E = len(hulls)
+    act = np.ones(E, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
+    if len(cells) == 0:
+        return act.copy()
+    grid = _grid_for(cells.aabb, max(_typical_extent(hulls.aabb), _typical_extent(cells.aabb) / 4), 0.0)
+    start, items, _ = _bin_boxes(cells.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
+    return _cut_free_kernel(hulls.points, act, cells.normals, cells.face_offsets, cells.offsets,
+                            start, items, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
+
+
+def samples_clearance(samples: np.ndarray, obstacles: PolygonSet, reach: float) -> np.ndarray:
+    """Per curve, the least signed distance [m] from its sample points ``(E, S, 2)`` to any obstacle.
+
+    Polygons farther than ``reach`` [m] are ignored (the result is then ``inf``).
+    For checks against dense sampling of the true curve (tests, benchmark).
+    """
+    samples = np.ascontiguousarray(samples, dtype=float)
+    if len(obstacles) == 0:
+        return np.full(len(samples), np.inf)
+    grid = _grid_for(obstacles.aabb, max(_typical_extent(obstacles.aabb), reach), reach)
+    start, items, _ = _bin_boxes(obstacles.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
+    return _samples_clearance_kernel(samples, obstacles.vertices, obstacles.offsets, obstacles.normals,
+                                     obstacles.face_offsets, obstacles.aabb, start, items,
+                                     grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(reach))
+
+
+def separating_halfspaces(points: np.ndarray, obstacles: PolygonSet, margin: float, count: int,
+                          reach: float) -> np.ndarray:
+    """Halfspaces that keep each control-point set clear of its nearest obstacles.
+
+    ``points`` is ``(S, K, 2)``. Returns ``(S, count, 3)`` rows ``[a_x, a_y, b]``: a
+    position ``x`` with ``a . x <= b`` is at least ``margin`` [m] from that obstacle.
+    The plane is the one on which the hull's gap to the obstacle is largest (the
+    thesis's adjacentHyperplane). Obstacles whose bounding circle is farther than
+    ``reach`` [m] from the hull's are skipped; unused rows are ``[0, 0, inf]``.
+    """
+    hulls = hull_set(points)
+    if len(obstacles) == 0 or count <= 0:
+        out = np.zeros((len(hulls), max(count, 0), 3))
+        out[:, :, 2] = np.inf
+        return out
+    return _halfspaces_kernel(hulls.points, hulls.axes, obstacles.vertices, obstacles.offsets,
+                              obstacles.normals, obstacles.face_offsets, obstacles.center,
+                              obstacles.radius, float(margin), int(count), float(reach))
+
+
+def hull_polygon_distance(points: np.ndarray, polygon: np.ndarray) -> float:
+    """Exact distance [m] between conv(points) ``(K, 2)`` and a convex polygon (0 if they meet)."""
+    hulls = hull_set(np.asarray(points, dtype=float)[None])
+    polys = pack_polygons([polygon])
+    _, _, gap, _ = _best_axis(hulls.points[0], hulls.axes[0], polys.vertices, polys.normals, polys.face_offsets)
+    return max(float(gap), 0.0)
+
+
+# --- Cut-QP (general dimension, H-polytopes) ---------------------------------------------
+
+
+def hull_polytope_distance_qp(points: np.ndarray, A: np.ndarray, b: np.ndarray) -> float:
+    """Distance [m] between conv(points) ``(K, d)`` and ``{y : A y <= b}`` by a QP (OSQP).
+
+    ``min |P lam - y|^2  s.t.  A y <= b, lam >= 0, sum(lam) = 1``. Used where no closed
+    form is used (``d != 2``, or polytopes known only in H-form); in the plane the
+    separating-axis kernels answer the same question exactly. Raises ``RuntimeError``
+    when OSQP does not solve the problem.
+    """
+    P = np.asarray(points, dtype=float)
+    A = np.asarray(A, dtype=float)
+    b = np.asarray(b, dtype=float)
+    K, d = P.shape
+    if A.shape[1] != d:
+        raise ValueError(f"polytope dimension {A.shape[1]} != point dimension {d}")
+    # Variables z = [lam (K), y (d)]; residual r = P^T lam - y.
+    M = np.hstack([P.T, -np.eye(d)])
+    H = sp.csc_matrix(2 * M.T @ M + 1e-10 * np.eye(K + d))
+    q = np.zeros(K + d)
+    rows = [np.hstack([np.zeros((A.shape[0], K)), A]),  # A y <= b
+            np.hstack([np.eye(K), np.zeros((K, d))]),  # lam >= 0
+            np.hstack([np.ones((1, K)), np.zeros((1, d))])]  # sum lam = 1
+    C = sp.csc_matrix(np.vstack(rows))
+    lo = np.concatenate([np.full(A.shape[0], -np.inf), np.zeros(K), [1.0]])
+    hi = np.concatenate([b, np.full(K, np.inf), [1.0]])
+    solver = osqp.OSQP()
+    solver.setup(H, q, C, lo, hi, eps_abs=QP_TOL, eps_rel=QP_TOL, max_iter=20000, polishing=True, verbose=False)
+    res = solver.solve(raise_error=False)
+    if res.info.status_val not in (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
+        raise RuntimeError(f"Cut-QP: OSQP status {res.info.status}")
+    z = res.x
+    return float(np.linalg.norm(M @ z))
+
+
+def cut_qp(points: np.ndarray, polytopes: list[tuple[np.ndarray, np.ndarray]], margin: float) -> np.ndarray:
+    """``blocked[e]`` for hulls ``(E, K, d)`` against H-polytopes ``[(A, b), ...]`` by Cut-QP.
+
+    Sound: a pair is kept free only when the QP distance beats ``margin`` by
+    ``QP_MARGIN_SLACK`` (solver tolerance). Bounding boxes are not available for
+    H-polytopes, so every pair is solved: this is the slow path.
+    """
+    pts = np.asarray(points, dtype=float)
+    blocked = np.zeros(len(pts), dtype=bool)
+    for e in range(len(pts)):
+        for A, b in polytopes:
+            if hull_polytope_distance_qp(pts[e], A, b) <= margin + QP_MARGIN_SLACK:
+                blocked[e] = True
+                break
+    return blocked
