@@ -74,10 +74,60 @@ class HardwareParams:
 # Sections owned by each layer follow; each is registered in SECTIONS below.
 
 
+@dataclass(frozen=True)
+class EstimatorParams:
+    """The state estimator (:mod:`onboard.estimator`) and its ``estimator`` service.
+
+    Noise figures are the filter's model of its sensors (tune them to the hardware's
+    datasheets or to the twin's sensor configuration); densities are per square root
+    of a hertz so they do not depend on the sample rate.
+    """
+
+    rate_hz: float = 1000.0  # [Hz] state estimate publication rate
+    # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
+    pose_delay_s: float = 0.025  # [s] fusion horizon: covers the pose sensor's latency
+    compensate_latency: bool = True  # False: fuse each pose as if it were current
+    pose_pos_std_m: float = 0.002  # [m] position noise per axis
+    pose_att_std_rad: float = 0.01  # [rad] attitude noise per axis
+    pose_timeout_s: float = 0.1  # [s] no pose for this long: status reports an outage
+    pose_future_tolerance_s: float = 0.002  # [s] pose stamped later than the last IMU sample
+    # Mahalanobis gating of pose and leg-kinematics measurements.
+    gate_probability: float = 0.9995  # chi-square acceptance probability
+    gate_reset_after: int = 20  # consecutive gated poses: re-initialize on the next one
+    # CoM process model: white acceleration noise around projectile / stance dynamics.
+    accel_psd_flight: float = 0.05  # [(m/s^2)^2/Hz] flight (projectile model error)
+    accel_psd_stance: float = 2.0  # [(m/s^2)^2/Hz] stance (accelerometer-driven)
+    leg_vel_std_m_s: float = 0.03  # [m/s] stance CoM velocity from leg kinematics
+    impact_vel_std_m_s: float = 0.1  # [m/s] CoM velocity uncertainty added at touchdown
+    # Attitude: gyro propagation with bias, pose and gravity corrections.
+    gyro_noise_density: float = 0.003  # [rad/s/sqrt(Hz)]
+    gyro_bias_walk: float = 1e-4  # [rad/s^2/sqrt(Hz)] bias random walk
+    tilt_std_rad: float = 0.03  # [rad] accelerometer gravity direction, when quasi-static
+    static_accel_tol_m_s2: float = 0.3  # [m/s^2] | |accel| - g | below this: quasi-static
+    static_gyro_max_rad_s: float = 0.2  # [rad/s] body rate below this: quasi-static
+    # Initial uncertainty (before the first pose).
+    init_pos_std_m: float = 10.0
+    init_vel_std_m_s: float = 2.0
+    init_att_std_rad: float = 1.0
+    init_bias_std_rad_s: float = 0.02
+    # Contact and phase: switch debounce (hysteresis in time).
+    contact_on_samples: int = 2  # consecutive contact readings to enter stance
+    contact_off_samples: int = 3  # consecutive no-contact readings to enter flight
+    # Input sanity and validity.
+    gyro_range_rad_s: float = 35.0  # [rad/s] beyond the gyro's range: rejected
+    accel_range_m_s2: float = 160.0  # [m/s^2] beyond the accelerometer's range: rejected
+    imu_timeout_s: float = 0.005  # [s] IMU older than this: estimate not valid
+    max_extrapolation_s: float = 0.005  # [s] estimate() predicts at most this far past the IMU
+    valid_pos_std_m: float = 0.05  # [m] position std above this: estimate not valid
+    valid_att_std_rad: float = 0.05  # [rad] attitude std above this: estimate not valid
+    kf_backend: str = "lean"  # CoM filter arithmetic: "lean" (floats) or "filterpy" (reference)
+
+
 SECTIONS: dict[str, type] = {
     "safety": SafetyLimits,
     "messaging": MessagingParams,
     "hardware": HardwareParams,
+    "estimator": EstimatorParams,
 }
 
 
