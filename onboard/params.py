@@ -123,7 +123,56 @@ class EstimatorParams:
     kf_backend: str = "lean"  # CoM filter arithmetic: "lean" (floats) or "filterpy" (reference)
 
 
+@dataclass(frozen=True)
+class ControlParams:
+    """The hard-rate low level (:mod:`onboard.low_level`) and its ``control`` service.
+
+    Attitude gains act on the body torque per body axis; the attitude error is a
+    rotation vector (see :mod:`onboard.attitude_control`).
+    """
+
+    rate_hz: float = 1000.0  # control loop rate [Hz]
+    auto_arm: bool = True  # arm on the first valid estimate (else wait for an arm request)
+    # flight: quaternion PD (thesis 2201-2216)
+    kp_tilt: float = 10.0  # [N m/rad] roll and pitch
+    kd_tilt: float = 0.9  # [N m s/rad]
+    kp_yaw: float = 2.0  # [N m/rad]
+    kd_yaw: float = 0.25  # [N m s/rad]
+    attitude_log: bool = False  # error map: False = 2 Im(q_d^-1 q) (thesis default), True = Log
+    # ground: flywheel spin-down u = -gamma * wheel speed (thesis 2723-2731)
+    spin_down_gamma: float = 0.01  # [N m s/rad]
+    # foot: hop-height regulator (preload in flight, release at touchdown)
+    hop_height: float = 0.10  # CoM rise from touchdown to apex [m]
+    hop_gain: float = 0.5  # fraction of the hop-energy error corrected per hop
+    loss_adapt: float = 0.2  # per-hop gain of the energy-loss estimate
+    preload_max: float = 0.05  # [m] spring compression the cable may hold
+    spool_kp: float = 3.0  # spool position gain [N m/rad]
+    spool_kd: float = 0.08  # spool damping [N m s/rad]
+    release_slack: float = 0.015  # unwind this far [m of cable] past the foot at release
+    # phases
+    min_flight_s: float = 0.05  # ignore a touchdown earlier than this after lift-off [s]
+    min_stance_s: float = 0.02  # ignore a lift-off earlier than this after touchdown [s]
+    # Zero Dynamics Policy (thesis 2377-2777)
+    policy: str = "zdp"  # "zdp" (eq. 5.44, clipped), "lqr" (plain gain, unclipped), "raibert", "mlp"
+    zdp_q_pos: float = 1.0  # LQR state weight on position error [1/m^2]
+    zdp_q_vel: float = 0.5  # on velocity error [s^2/m^2]
+    zdp_q_tilt: float = 2.0  # on the impact attitude [1/rad^2]
+    zdp_r: float = 2.0  # on the attitude command [1/rad^2]
+    raibert_kp: float = 0.25  # eq. 5.48 gains: tilt per position error [rad/m]
+    raibert_kd: float = 0.30  # tilt per velocity error [rad s/m]
+    tilt_cmd_max: float = 0.12  # clip on the commanded impact tilt [rad]
+    pos_err_max: float = 0.30  # clip on the position error the policy sees [m]
+    vel_err_max: float = 0.60  # clip on the velocity error the policy sees [m/s]
+    mlp_weights: str = "zdp_mlp.npz"  # file under onboard/data/ for policy = "mlp"
+    # tracking certificate
+    tube_window: int = 100  # impacts in the published tube statistics
+    # supervisor
+    estimate_fault_disarm_s: float = 0.05  # a bad estimate for this long disarms (latched) [s]
+    arm_tilt_max: float = 0.35  # refuse to arm beyond this tilt [rad]
+
+
 SECTIONS: dict[str, type] = {
+    "control": ControlParams,
     "safety": SafetyLimits,
     "messaging": MessagingParams,
     "hardware": HardwareParams,
