@@ -171,12 +171,95 @@ class ControlParams:
     arm_tilt_max: float = 0.35  # refuse to arm beyond this tilt [rad]
 
 
+@dataclass(frozen=True)
+class TwinParams:
+    """The digital twin's sensors (:mod:`sim_twin.sensors`) and pacing.
+
+    Every sensor has seeded white noise, a constant bias drawn once per run (std given),
+    a delivery latency and a dropout probability. Noise densities are per square root of
+    a hertz (the per-sample std is density * sqrt(rate)), as in :class:`EstimatorParams`.
+    """
+
+    noise: bool = True  # False: every sensor reads the true state (no noise, bias, dropouts)
+    control_rate_hz: float = 1000.0  # [Hz] sensor frames out, torque commands in
+    # IMU (orientation from the IMU's own filter, gyro, accelerometer), body frame at the IMU site
+    imu_rate_hz: float = 1000.0
+    imu_latency_s: float = 0.0
+    imu_dropout: float = 0.0  # probability a sample is lost
+    gyro_noise_density: float = 0.001  # [rad/s/sqrt(Hz)]
+    gyro_bias_std: float = 0.005  # [rad/s]
+    accel_noise_density: float = 0.003  # [m/s^2/sqrt(Hz)]
+    accel_bias_std: float = 0.05  # [m/s^2]
+    imu_att_std: float = 0.005  # [rad] per axis, the IMU's orientation output
+    # Wheel encoders, foot deflection and contact (one joint frame per control tick)
+    joints_latency_s: float = 0.0
+    joints_dropout: float = 0.0
+    encoder_counts_per_rev: int = 16384  # wheel and spool encoders: angles are quantized
+    wheel_vel_std: float = 0.2  # [rad/s] speed from the drive
+    wheel_torque_std: float = 0.02  # [N m] current-derived torque
+    foot_pos_std: float = 0.0003  # [m]
+    foot_vel_std: float = 0.01  # [m/s]
+    contact_threshold_n: float = 10.0  # [N] foot load above which the contact switch reads true
+    # Pose sensor (motion capture / tracking camera): body origin and orientation in world
+    pose_rate_hz: float = 100.0
+    pose_latency_s: float = 0.010  # [s] delivered this long after capture (stamp = capture time)
+    pose_dropout: float = 0.0
+    pose_pos_std: float = 0.001  # [m] per axis
+    pose_att_std: float = 0.005  # [rad] per axis
+    pose_source: str = "mocap"
+    # Depth camera by ray casting (site "depth_camera" of the MJCF)
+    depth_rate_hz: float = 5.0
+    depth_latency_s: float = 0.030
+    depth_dropout: float = 0.0
+    depth_width: int = 64  # [px]
+    depth_height: int = 48  # [px]
+    depth_hfov_deg: float = 87.0  # [deg] horizontal field of view (D435 depth)
+    depth_max_range_m: float = 6.0  # [m] no return beyond (reads 0)
+    depth_noise_per_m2: float = 0.005  # [1/m] depth std = this * depth^2
+    # Real-time twin service
+    realtime_status_period_s: float = 1.0  # [s] real-time factor / overrun figures refreshed
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    """High-level planner (thesis ch. 6-7, :mod:`onboard.graph_planner`) and its ``planner`` service.
+
+    Planning model: the CoM double integrator in the horizontal plane, state
+    ``[x, y, vx, vy]`` (world frame). Limits are per axis (infinity norm).
+    """
+
+    v_max: float = 0.5  # [m/s] planned CoM speed bound per axis
+    a_max: float = 1.0  # [m/s^2] planned CoM acceleration (virtual input) bound per axis
+    segment_s: float = 1.5  # [s] duration of one graph edge (one Bezier segment)
+    nodes: int = 5000  # graph nodes over the planning region
+    sampling: str = "uniform"  # "uniform" (random positions and velocities) or "grid"
+    grid_velocities: int = 3  # "grid": velocity values per axis (odd keeps 0)
+    seed: int = 0  # node sampling seed
+    tube: float = 0.05  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
+    tube_growth: float = 1.25  # on a broken promise, plan with the achieved tube times this
+    robot_radius: float = 0.0  # [m] robot footprint radius; 0: read from the MJCF
+    bounds_padding: float = 1.5  # [m] planning region around start, goal and obstacles
+    bounds_quantum: float = 1.0  # [m] region corners snap to this grid (graph cache hits)
+    goal_speed_tol: float = 0.05  # [m/s] graph nodes this slow near the goal may end a path
+    start_speed_tol: float = 0.1  # [m/s] velocity part of "the node contains the state"
+    replan_hz: float = 10.0  # [Hz] cut and search when the world or the goal changed
+    refine_hz: float = 100.0  # [Hz] MPC refinement (one SQP iteration per tick)
+    mpc_horizon: int = 50  # MPC knots (thesis: 50)
+    mpc_dt: float = 0.1  # [s] MPC knot spacing (thesis: 0.1 s)
+    mpc_trust: float = 0.5  # [m] trust region of each MPC knot around the graph path (L1)
+    halfspaces: int = 4  # separating halfspaces per MPC segment (nearest obstacles)
+    halfspace_reach: float = 2.0  # [m] obstacles farther than this from a segment are ignored
+    reference_horizon_s: float = 20.0  # [s] longest reference published (tail of the path dropped)
+
+
 SECTIONS: dict[str, type] = {
+    "planner": PlannerParams,
     "control": ControlParams,
     "safety": SafetyLimits,
     "messaging": MessagingParams,
     "hardware": HardwareParams,
     "estimator": EstimatorParams,
+    "twin": TwinParams,
 }
 
 

@@ -1,0 +1,299 @@
+"""The twin's sensors: what the hardware service would publish, read from the physics.
+
+One :class:`SensorSuite` per run. Each control tick the runner calls :meth:`SensorSuite.tick`
+with the physics data and the simulated time; the suite captures every sensor that is due
+(IMU and joint frame every tick at 1 kHz, pose at ``pose_rate_hz``, depth at ``depth_rate_hz``),
+adds seeded noise and a per-run bias, drops samples with the configured probability, holds each
+sample back for its latency, and returns the messages whose delivery time has come. ``stamp_ns``
+is always the capture time, as on the robot.
+
+Sensors (all from :class:`onboard.params.TwinParams`):
+- ``imu``: :class:`ImuSample`. Orientation and body rate from the torso's state (the IMU site
+  sits at the torso origin with the torso's axes); specific force from MuJoCo's accelerometer
+  at that site (evaluated at the start of the last physics step). Gyro and accelerometer carry
+  white noise (density * sqrt(rate)) plus a constant bias; the orientation carries white noise.
+- ``joints``: :class:`JointSensors`. Wheel and spool angles quantized by the encoder resolution;
+  wheel speed, current-derived torque, foot compression and rate with white noise; foot contact
+  is the foot's normal load (MuJoCo touch sensor) over ``contact_threshold_n``.
+- ``pose``: :class:`PoseMeasurement` of the torso origin (motion capture / tracking camera).
+- ``depth``: :class:`onboard.binary_messages.DepthImage` by ray casting (``mujoco.mj_multiRay``)
+  from the MJCF site ``depth_camera`` against world geoms (group 0) only; z-depth with noise
+  growing with depth squared; 0 = no return.
+
+With ``noise=False`` every sensor reads the true state (no noise, bias, quantization or dropouts);
+latencies still apply.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from onboard import messages as m
+from onboard.binary_messages import DepthImage
+from onboard.params import TwinParams
+from sim_twin import model as tm
+
+NS = 1_000_000_000
+_BLOCK = 4096  # noise samples drawn per refill: per-tick work stays a list index
+_DEPTH_GROUPS = np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8)  # world geoms only
+# Optical frame (x right, y down, z forward) in the camera site frame (x forward, y left, z up).
+_SITE_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+class _Gauss:
+    """Seeded unit normals in rows of ``width``, drawn in blocks."""
+
+    def __init__(self, rng: np.random.Generator, width: int) -> None:
+        self._rng = rng
+        self._width = width
+        self._rows: list[list[float]] = []
+        self._i = 0
+
+    def row(self) -> list[float]:
+        if self._i >= len(self._rows):
+            self._rows = self._rng.standard_normal((_BLOCK, self._width)).tolist()
+            self._i = 0
+        r = self._rows[self._i]
+        self._i += 1
+        return r
+
+
+class _Dropout:
+    def __init__(self, rng: np.random.Generator, probability: float) -> None:
+        self._rng = rng
+        self._p = probability
+        self._u: list[float] = []
+        self._i = 0
+
+    def lost(self) -> bool:
+        if self._p <= 0.0:
+            return False
+        if self._i >= len(self._u):
+            self._u = self._rng.random(_BLOCK).tolist()
+            self._i = 0
+        u = self._u[self._i]
+        self._i += 1
+        return u < self._p
+
+
+def _qmul_small(q: tuple[float, float, float, float] | list[float], dx: float, dy: float, dz: float) -> list[float]:
+    """``q * exp([dx, dy, dz])`` for a small rotation vector (body-frame perturbation), normalized."""
+    w, x, y, z = q
+    bw, bx, by, bz = 1.0, 0.5 * dx, 0.5 * dy, 0.5 * dz
+    rw = w * bw - x * bx - y * by - z * bz
+    rx = w * bx + x * bw + y * bz - z * by
+    ry = w * by - x * bz + y * bw + z * bx
+    rz = w * bz + x * by - y * bx + z * bw
+    n = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    return [rw * n, rx * n, ry * n, rz * n]
+
+
+@dataclass
+class _Stream:
+    """One sensor's schedule, latency queue and dropout."""
+
+    period_ns: int
+    latency_ns: int
+    dropout: _Dropout
+    next_ns: int = 0
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        self.queue: deque[tuple[int, object]] = deque()
+
+    def due(self, now_ns: int) -> bool:
+        if now_ns < self.next_ns:
+            return False
+        self.next_ns += self.period_ns
+        if self.next_ns <= now_ns:  # fell behind (a long tick): resynchronize, never burst
+            self.next_ns = now_ns + self.period_ns
+        return True
+
+    def push(self, now_ns: int, msg: object) -> None:
+        self.queue.append((now_ns + self.latency_ns, msg))
+
+    def pop_ready(self, now_ns: int, out: list[tuple[str, object]], topic: str) -> None:
+        q = self.queue
+        while q and q[0][0] <= now_ns:
+            out.append((topic, q.popleft()[1]))
+
+
+def _period_ns(rate_hz: float) -> int:
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise ValueError(f"sensor rate must be positive, got {rate_hz}")
+    return int(round(NS / rate_hz))
+
+
+def _latency_ns(latency_s: float) -> int:
+    if not (latency_s >= 0 and math.isfinite(latency_s)):
+        raise ValueError(f"sensor latency must be >= 0, got {latency_s}")
+    return int(round(latency_s * NS))
+
+
+class SensorSuite:
+    """All the twin's sensors for one run, seeded by ``seed``."""
+
+    def __init__(self, model: mujoco.MjModel, params: TwinParams | None = None, seed: int = 0) -> None:
+        p = params or TwinParams()
+        self.params = p
+        self.model = model
+        noisy = p.noise
+        streams = np.random.SeedSequence(seed).spawn(8)
+        rngs = [np.random.default_rng(s) for s in streams]
+
+        def drop(rng: np.random.Generator, prob: float) -> _Dropout:
+            if not 0.0 <= prob < 1.0:
+                raise ValueError(f"dropout probability must be in [0, 1), got {prob}")
+            return _Dropout(rng, prob if noisy else 0.0)
+
+        self.imu = _Stream(_period_ns(p.imu_rate_hz), _latency_ns(p.imu_latency_s), drop(rngs[0], p.imu_dropout))
+        self.joints = _Stream(_period_ns(p.control_rate_hz), _latency_ns(p.joints_latency_s), drop(rngs[1], p.joints_dropout))
+        self.pose = _Stream(_period_ns(p.pose_rate_hz), _latency_ns(p.pose_latency_s), drop(rngs[2], p.pose_dropout))
+        self.depth = _Stream(_period_ns(p.depth_rate_hz), _latency_ns(p.depth_latency_s), drop(rngs[3], p.depth_dropout))
+
+        scale = 1.0 if noisy else 0.0
+        self._gyro_std = scale * p.gyro_noise_density * math.sqrt(p.imu_rate_hz)
+        self._accel_std = scale * p.accel_noise_density * math.sqrt(p.imu_rate_hz)
+        self._imu_att_std = scale * p.imu_att_std
+        bias_rng = rngs[4]
+        self.gyro_bias = (scale * p.gyro_bias_std * bias_rng.standard_normal(3)).tolist()
+        self.accel_bias = (scale * p.accel_bias_std * bias_rng.standard_normal(3)).tolist()
+        self._imu_noise = _Gauss(rngs[0], 9)
+        self._joint_noise = _Gauss(rngs[1], 8)
+        self._pose_noise = _Gauss(rngs[2], 6)
+        self._depth_rng = rngs[3]
+        self._wheel_vel_std = scale * p.wheel_vel_std
+        self._wheel_torque_std = scale * p.wheel_torque_std
+        self._foot_pos_std = scale * p.foot_pos_std
+        self._foot_vel_std = scale * p.foot_vel_std
+        self._pose_pos_std = scale * p.pose_pos_std
+        self._pose_att_std = scale * p.pose_att_std
+        self._depth_noise = scale * p.depth_noise_per_m2
+        if p.encoder_counts_per_rev <= 0:
+            raise ValueError("encoder_counts_per_rev must be positive")
+        self._enc_res = 2 * math.pi / p.encoder_counts_per_rev if noisy else 0.0
+
+        # Addresses into qpos / qvel / sensordata / actuator_force.
+        root = model.joint(tm.ROOT_JOINT)
+        self._qp = int(root.qposadr[0])
+        self._qv = int(root.dofadr[0])
+        self._wheel_qp = [int(model.joint(n).qposadr[0]) for n in tm.WHEEL_JOINTS]
+        self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
+        self._wheel_act = [int(model.actuator(n).id) for n in tm.WHEEL_ACTUATORS]
+        self._foot_qp = int(model.joint(tm.FOOT_JOINT).qposadr[0])
+        self._foot_qv = int(model.joint(tm.FOOT_JOINT).dofadr[0])
+        self._spool_qp = int(model.joint(tm.FOOT_MOTOR_JOINT).qposadr[0])
+        self._accel_adr = int(model.sensor("imu_accel").adr[0])
+        self._touch_adr = int(model.sensor("foot_force").adr[0])
+
+        # Depth camera: pixel ray directions in the optical frame, fixed for the run.
+        w, h = p.depth_width, p.depth_height
+        if w <= 0 or h <= 0 or not 0.0 < p.depth_hfov_deg < 180.0:
+            raise ValueError("depth camera needs a positive size and 0 < hfov < 180 deg")
+        self.fx = self.fy = 0.5 * w / math.tan(math.radians(p.depth_hfov_deg) / 2)
+        self.cx, self.cy = 0.5 * w, 0.5 * h
+        u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+        rays = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+        self._ray_z = 1.0 / np.linalg.norm(rays, axis=1)  # z component of each unit ray
+        self._rays_optical = rays * self._ray_z[:, None]
+        self._cam_site = int(model.site("depth_camera").id)
+        self._ray_geom = np.zeros(w * h, dtype=np.int32)
+        self._ray_dist = np.zeros(w * h)
+
+    # --- per tick -----------------------------------------------------------------
+
+    def tick(self, data: mujoco.MjData, now_ns: int) -> list[tuple[str, object]]:
+        """Capture what is due at ``now_ns`` and return ``(topic, message)`` pairs delivered now."""
+        out: list[tuple[str, object]] = []
+        if self.imu.due(now_ns) and not self.imu.dropout.lost():
+            self.imu.push(now_ns, self._imu(data, now_ns))
+        if self.joints.due(now_ns) and not self.joints.dropout.lost():
+            self.joints.push(now_ns, self._joints(data, now_ns))
+        if self.pose.due(now_ns) and not self.pose.dropout.lost():
+            self.pose.push(now_ns, self._pose(data, now_ns))
+        if self.depth.due(now_ns) and not self.depth.dropout.lost():
+            self.depth.push(now_ns, self.depth_image(data, now_ns))
+        self.imu.pop_ready(now_ns, out, "imu")
+        self.joints.pop_ready(now_ns, out, "joints")
+        self.pose.pop_ready(now_ns, out, "pose")
+        self.depth.pop_ready(now_ns, out, "depth")
+        return out
+
+    def _imu(self, data: mujoco.MjData, now_ns: int) -> m.ImuSample:
+        qpos, qvel, sd = data.qpos, data.qvel, data.sensordata
+        n = self._imu_noise.row()
+        a, g, b = self._imu_att_std, self._gyro_std, self._accel_std
+        gb, ab = self.gyro_bias, self.accel_bias
+        i, j, k = self._qp + 3, self._qv + 3, self._accel_adr
+        quat = _qmul_small((qpos[i], qpos[i + 1], qpos[i + 2], qpos[i + 3]), a * n[0], a * n[1], a * n[2]) if a > 0 else [
+            float(qpos[i]), float(qpos[i + 1]), float(qpos[i + 2]), float(qpos[i + 3])]
+        self.imu.seq += 1
+        return m.ImuSample(
+            stamp_ns=now_ns,
+            seq=self.imu.seq,
+            quat=quat,
+            gyro=[float(qvel[j]) + gb[0] + g * n[3], float(qvel[j + 1]) + gb[1] + g * n[4], float(qvel[j + 2]) + gb[2] + g * n[5]],
+            accel=[float(sd[k]) + ab[0] + b * n[6], float(sd[k + 1]) + ab[1] + b * n[7], float(sd[k + 2]) + ab[2] + b * n[8]],
+        )
+
+    def _quantize(self, angle: float) -> float:
+        r = self._enc_res
+        return round(angle / r) * r if r > 0 else angle
+
+    def _joints(self, data: mujoco.MjData, now_ns: int) -> m.JointSensors:
+        qpos, qvel, force = data.qpos, data.qvel, data.actuator_force
+        n = self._joint_noise.row()
+        wv, wt = self._wheel_vel_std, self._wheel_torque_std
+        wp, wq, wa = self._wheel_qp, self._wheel_qv, self._wheel_act
+        self.joints.seq += 1
+        return m.JointSensors(
+            stamp_ns=now_ns,
+            seq=self.joints.seq,
+            wheel_pos=[self._quantize(float(qpos[wp[0]])), self._quantize(float(qpos[wp[1]])), self._quantize(float(qpos[wp[2]]))],
+            wheel_vel=[float(qvel[wq[0]]) + wv * n[0], float(qvel[wq[1]]) + wv * n[1], float(qvel[wq[2]]) + wv * n[2]],
+            wheel_torque=[float(force[wa[0]]) + wt * n[3], float(force[wa[1]]) + wt * n[4], float(force[wa[2]]) + wt * n[5]],
+            foot_pos=float(qpos[self._foot_qp]) + self._foot_pos_std * n[6],
+            foot_vel=float(qvel[self._foot_qv]) + self._foot_vel_std * n[7],
+            foot_contact=bool(data.sensordata[self._touch_adr] > self.params.contact_threshold_n),
+            foot_motor_pos=self._quantize(float(qpos[self._spool_qp])),
+        )
+
+    def _pose(self, data: mujoco.MjData, now_ns: int) -> m.PoseMeasurement:
+        qpos = data.qpos
+        n = self._pose_noise.row()
+        s, a, i = self._pose_pos_std, self._pose_att_std, self._qp
+        quat = (float(qpos[i + 3]), float(qpos[i + 4]), float(qpos[i + 5]), float(qpos[i + 6]))
+        self.pose.seq += 1
+        return m.PoseMeasurement(
+            stamp_ns=now_ns,
+            seq=self.pose.seq,
+            position=[float(qpos[i]) + s * n[0], float(qpos[i + 1]) + s * n[1], float(qpos[i + 2]) + s * n[2]],
+            quat=_qmul_small(quat, a * n[3], a * n[4], a * n[5]) if a > 0 else list(quat),
+            source=self.params.pose_source,
+        )
+
+    def depth_image(self, data: mujoco.MjData, now_ns: int = 0) -> DepthImage:
+        """Ray-cast a depth image from the camera site's pose in ``data`` (last forward pass)."""
+        p = self.params
+        pos = data.site_xpos[self._cam_site].copy()
+        rot = data.site_xmat[self._cam_site].reshape(3, 3) @ _SITE_FROM_OPTICAL  # optical -> world
+        vec = self._rays_optical @ rot.T
+        n = vec.shape[0]
+        mujoco.mj_multiRay(self.model, data, pos, vec.reshape(-1), _DEPTH_GROUPS, True, -1,
+                           self._ray_geom, self._ray_dist, None, n, p.depth_max_range_m)
+        dist = self._ray_dist
+        z = dist * self._ray_z
+        hit = (dist >= 0.0) & (z <= p.depth_max_range_m)
+        if self._depth_noise > 0:
+            z = z + self._depth_noise * z * z * self._depth_rng.standard_normal(n)
+        depth = np.where(hit & (z > 0), z, 0.0).astype(np.float32).reshape(p.depth_height, p.depth_width)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, rot.reshape(-1))
+        self.depth.seq += 1
+        return DepthImage(depth=depth, fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, cam_pos=pos, cam_quat=quat,
+                          stamp_ns=now_ns, seq=self.depth.seq)
