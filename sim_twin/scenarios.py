@@ -1,0 +1,403 @@
+"""Scenarios, registered by name: the world, the start, the goal and the scenario's own reference.
+
+A scenario is a small class (as a dm_control task): it adds its world to the robot's MJCF spec
+(:meth:`Scenario.build`), places the robot (:meth:`Scenario.initialize`), may push it
+(:meth:`Scenario.before_step`), and states the goal, the ground-truth obstacles (2D convex
+polygons as :class:`onboard.messages.Polytope`, and the same shapes as MuJoCo geoms named
+``obstacle_*``) and a CoM reference of its own (:meth:`Scenario.reference`) used when no planner
+runs. Terrain geoms (``floor``, ``terrain_*``) are ground: the foot may touch them, nothing else
+of the robot may. Every random choice comes from the scenario's seed.
+
+Reference trajectories are Bezier segments in the horizontal plane on the time base of the run
+(``t_ref_ns`` = start of the run); after the last segment the reference holds its end point.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import mujoco
+import numpy as np
+
+from onboard import messages as m
+from sim_twin import model as tm
+
+OBSTACLE_PREFIX = "obstacle_"
+TERRAIN_PREFIX = "terrain_"
+OBSTACLE_HEIGHT = 1.0  # [m] taller than the robot's hop: it cannot hop over an obstacle
+START_DROP = 0.05  # [m] the robot starts upright at rest with its foot this high above the ground
+GOAL_TOLERANCE = 0.10  # [m] issue 4: "arrives within 0.10 m"
+REF_SPEED = 0.25  # [m/s] cruise speed of the scenarios' own references (ASSUMPTION, hop-sized)
+WORLD_RGBA = [0.55, 0.35, 0.3, 1.0]
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A vertical prism over a convex polygon (counter-clockwise vertices, world xy, metres)."""
+
+    vertices: tuple[tuple[float, float], ...]
+    height: float = OBSTACLE_HEIGHT
+
+    def polytope(self) -> m.Polytope:
+        vs = self.vertices
+        a, b = [], []
+        for i in range(len(vs)):
+            (x0, y0), (x1, y1) = vs[i], vs[(i + 1) % len(vs)]
+            nx, ny = y1 - y0, x0 - x1  # outward normal of a CCW edge
+            n = math.hypot(nx, ny)
+            a.append([nx / n, ny / n])
+            b.append((nx * x0 + ny * y0) / n)
+        return m.Polytope(A=a, b=b, vertices=[list(v) for v in vs])
+
+
+def _ccw_hull(points: np.ndarray) -> tuple[tuple[float, float], ...]:
+    """Convex hull, counter-clockwise (monotone chain)."""
+    pts = sorted(map(tuple, points.tolist()))
+
+    def half(seq: list) -> list:
+        out: list = []
+        for p in seq:
+            while len(out) >= 2 and (out[-1][0] - out[-2][0]) * (p[1] - out[-2][1]) - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0]) <= 0:
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(pts), half(pts[::-1])
+    return tuple((float(x), float(y)) for x, y in lower[:-1] + upper[:-1])
+
+
+def _box(cx: float, cy: float, hx: float, hy: float) -> Obstacle:
+    return Obstacle(((cx - hx, cy - hy), (cx + hx, cy - hy), (cx + hx, cy + hy), (cx - hx, cy + hy)))
+
+
+def _segment(t0: float, duration: float, points: list[list[float]]) -> m.BezierSegment:
+    return m.BezierSegment(t0=t0, duration=duration, control_points=[[float(v) for v in p] for p in points])
+
+
+def straight_reference(start: tuple[float, float], goal: tuple[float, float], t0: float = 0.0,
+                       speed: float = REF_SPEED) -> list[m.BezierSegment]:
+    """A cubic from ``start`` to ``goal`` leaving and arriving at rest (peak speed 1.5 x ``speed``)."""
+    dist = math.dist(start, goal)
+    if dist < 1e-9:
+        return [_segment(t0, 1.0, [list(start)])]
+    dur = dist / speed
+    return [_segment(t0, dur, [list(start), list(start), list(goal), list(goal)])]
+
+
+def polyline_reference(points: list[tuple[float, float]], t0: float = 0.0, speed: float = REF_SPEED) -> list[m.BezierSegment]:
+    """Constant-speed straight segments through ``points`` (degree-1 Beziers)."""
+    segs, t = [], t0
+    for a, b in zip(points[:-1], points[1:]):
+        dur = math.dist(a, b) / speed
+        segs.append(_segment(t, dur, [list(a), list(b)]))
+        t += dur
+    return segs
+
+
+def sample_reference(segments: list[m.BezierSegment], t_s: float) -> tuple[float, float]:
+    """Reference position at ``t_s`` [s]; before the first / after the last segment: its end point."""
+    first, last = segments[0], segments[-1]
+    if t_s <= first.t0:
+        p = first.control_points[0]
+        return p[0], p[1]
+    if t_s >= last.t0 + last.duration:
+        p = last.control_points[-1]
+        return p[0], p[1]
+    for seg in segments:
+        if seg.t0 <= t_s < seg.t0 + seg.duration:
+            pts = seg.control_points
+            n = len(pts) - 1
+            s = (t_s - seg.t0) / seg.duration
+            x = y = 0.0
+            for j, p in enumerate(pts):
+                w = math.comb(n, j) * s**j * (1.0 - s) ** (n - j)
+                x += w * p[0]
+                y += w * p[1]
+            return x, y
+    p = last.control_points[-1]
+    return p[0], p[1]
+
+
+class Scenario:
+    """Base scenario: flat floor, start at the origin, no goal, hop in place."""
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    default_duration_s: ClassVar[float] = 20.0
+
+    def __init__(self, seed: int = 0, obstacles: int | None = None) -> None:
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.start: tuple[float, float] = (0.0, 0.0)
+        self.start_ground: float = 0.0  # ground height under the start [m]
+        self.goal_xy: tuple[float, float] | None = None
+        self.obstacles: list[Obstacle] = []
+        self.terrain: list[tuple[str, dict]] = []  # (name, MjsGeom keyword arguments)
+        self.segments: list[m.BezierSegment] = []
+        self.setup(obstacles)
+
+    # --- to override ------------------------------------------------------------
+
+    def setup(self, obstacles: int | None) -> None:
+        """Decide everything (using ``self.rng``): start, goal, obstacles, terrain, reference."""
+        self.segments = [_segment(0.0, 1.0, [list(self.start)])]
+
+    def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        """Disturbances, called before every control tick."""
+
+    # --- common -------------------------------------------------------------------
+
+    def build(self, spec: mujoco.MjSpec) -> None:
+        """Add terrain and obstacles to the robot's spec."""
+        for name, kw in self.terrain:
+            spec.worldbody.add_geom(name=TERRAIN_PREFIX + name, contype=1, conaffinity=2, group=0, condim=3,
+                                    friction=[1.0, 0.005, 0.0001], rgba=[0.6, 0.6, 0.55, 1.0], **kw)
+        for k, ob in enumerate(self.obstacles):
+            verts = [[x, y, z] for x, y in ob.vertices for z in (0.0, ob.height)]
+            mesh_name = f"{OBSTACLE_PREFIX}{k}_mesh"
+            spec.add_mesh(name=mesh_name, uservert=np.array(verts, dtype=float).reshape(-1).tolist())
+            spec.worldbody.add_geom(name=f"{OBSTACLE_PREFIX}{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
+                                    contype=1, conaffinity=2, group=0, rgba=WORLD_RGBA)
+
+    def initialize(self, model: mujoco.MjModel, data: mujoco.MjData, robot: tm.RobotParams) -> None:
+        """Upright at rest over the start, foot ``START_DROP`` above the ground."""
+        mujoco.mj_resetData(model, data)
+        adr = int(model.joint(tm.ROOT_JOINT).qposadr[0])
+        data.qpos[adr:adr + 3] = [self.start[0], self.start[1], self.start_ground + robot.leg_length + START_DROP]
+        data.qpos[adr + 3:adr + 7] = [1.0, 0.0, 0.0, 0.0]
+        mujoco.mj_forward(model, data)
+
+    def goal(self) -> m.Goal | None:
+        if self.goal_xy is None:
+            return None
+        return m.Goal(position=list(self.goal_xy), tolerance=GOAL_TOLERANCE)
+
+    def target(self) -> tuple[float, float]:
+        """Where the robot should end: the goal, or the start for in-place scenarios."""
+        return self.goal_xy if self.goal_xy is not None else self.start
+
+    def reference(self, t_ref_ns: int = 0) -> m.ComReference:
+        hold = self.goal_xy is None and len(self.segments) == 1 and len(self.segments[0].control_points) == 1
+        return m.ComReference(t_ref_ns=t_ref_ns, segments=list(self.segments), hold=hold)
+
+    def polytopes(self, stamp_ns: int = 0) -> m.PolytopeSet:
+        return m.PolytopeSet(stamp_ns=stamp_ns, mode="obstacles", polytopes=[o.polytope() for o in self.obstacles],
+                             source="ground_truth")
+
+
+SCENARIOS: dict[str, type[Scenario]] = {}
+
+
+def register(cls: type[Scenario]) -> type[Scenario]:
+    if not cls.name or cls.name in SCENARIOS:
+        raise ValueError(f"scenario name {cls.name!r} empty or taken")
+    SCENARIOS[cls.name] = cls
+    return cls
+
+
+def make(name: str, seed: int = 0, obstacles: int | None = None) -> Scenario:
+    try:
+        cls = SCENARIOS[name]
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
+    return cls(seed=seed, obstacles=obstacles)
+
+
+@register
+class HopInPlace(Scenario):
+    name = "hop-in-place"
+    description = "hop on the spot (thesis: 3000 stable hops)"
+    default_duration_s = 30.0
+
+
+@register
+class Setpoint(Scenario):
+    name = "setpoint"
+    description = "go to a goal 2 m away (thesis Fig. 5.22)"
+    default_duration_s = 20.0
+    DISTANCE = 2.0
+
+    def setup(self, obstacles: int | None) -> None:
+        heading = float(self.rng.uniform(-math.pi, math.pi)) if self.seed else 0.0
+        self.goal_xy = (self.DISTANCE * math.cos(heading), self.DISTANCE * math.sin(heading))
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+
+@register
+class Square(Scenario):
+    name = "square"
+    description = "two laps of a 1 m square (thesis Fig. 5.23)"
+    default_duration_s = 40.0
+    SIDE = 1.0
+    LAPS = 2
+
+    def setup(self, obstacles: int | None) -> None:
+        s = self.SIDE
+        corners = [(0.0, 0.0), (s, 0.0), (s, s), (0.0, s)]
+        pts = corners * self.LAPS + [corners[0]]
+        self.segments = polyline_reference(pts, speed=REF_SPEED)
+        self.default_duration_s = self.segments[-1].t0 + self.segments[-1].duration + 4.0
+
+
+@register
+class Lissajous(Scenario):
+    name = "lissajous"
+    description = "a 1:2 Lissajous figure, 1 m wide (thesis Fig. 5.12)"
+    default_duration_s = 45.0
+    AMPLITUDE = 0.5  # [m]
+    PERIOD = 40.0  # [s] of the slow axis
+    KNOTS = 80  # cubic Hermite pieces per period
+
+    def setup(self, obstacles: int | None) -> None:
+        a, w = self.AMPLITUDE, 2 * math.pi / self.PERIOD
+
+        def p(t: float) -> tuple[float, float]:
+            return a * math.sin(w * t), a * math.sin(2 * w * t)
+
+        def v(t: float) -> tuple[float, float]:
+            return a * w * math.cos(w * t), 2 * a * w * math.cos(2 * w * t)
+
+        h = self.PERIOD / self.KNOTS
+        segs = []
+        for k in range(self.KNOTS):
+            t0, t1 = k * h, (k + 1) * h
+            p0, p1, v0, v1 = p(t0), p(t1), v(t0), v(t1)
+            segs.append(_segment(t0, h, [p0, (p0[0] + v0[0] * h / 3, p0[1] + v0[1] * h / 3),
+                                         (p1[0] - v1[0] * h / 3, p1[1] - v1[1] * h / 3), p1]))
+        self.segments = segs
+        self.default_duration_s = self.PERIOD + 5.0
+
+
+@register
+class Push(Scenario):
+    name = "push"
+    description = "hop in place under lateral impulses"
+    default_duration_s = 30.0
+    IMPULSE = 2.0  # [N s] per push (0.34 m/s on the indoor robot)
+    PUSH_TIME = 0.05  # [s] each push lasts this long
+    FIRST = 5.0  # [s] first push
+    EVERY = 5.0  # [s] then every
+
+    def setup(self, obstacles: int | None) -> None:
+        super().setup(obstacles)
+        n = 64
+        self.push_angles = self.rng.uniform(-math.pi, math.pi, n).tolist()
+        self.pushes_applied = 0
+
+    def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        torso = model.body(tm.TORSO).id
+        k = int((t_s - self.FIRST) // self.EVERY)
+        active = t_s >= self.FIRST and (t_s - self.FIRST - k * self.EVERY) < self.PUSH_TIME
+        if active:
+            f = self.IMPULSE / self.PUSH_TIME
+            ang = self.push_angles[k % len(self.push_angles)]
+            data.xfrc_applied[torso, :3] = [f * math.cos(ang), f * math.sin(ang), 0.0]
+            self.pushes_applied = max(self.pushes_applied, k + 1)
+        else:
+            data.xfrc_applied[torso, :3] = 0.0
+
+
+@register
+class Step(Scenario):
+    name = "step"
+    description = "hop up a 3.8 cm step to a goal on it"
+    default_duration_s = 20.0
+    HEIGHT = 0.038
+    EDGE = 0.6  # [m] step edge from the start
+
+    def setup(self, obstacles: int | None) -> None:
+        h = self.HEIGHT
+        self.terrain = [("step", dict(type=mujoco.mjtGeom.mjGEOM_BOX, size=[2.0, 2.0, h / 2],
+                                      pos=[self.EDGE + 2.0, 0.0, h / 2]))]
+        self.goal_xy = (self.EDGE + 0.9, 0.0)
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+
+@register
+class Ramp(Scenario):
+    name = "ramp"
+    description = "hop down a 20 degree ramp from a platform to a goal on the floor"
+    default_duration_s = 25.0
+    ANGLE = math.radians(20.0)
+    LENGTH = 1.0  # [m] horizontal run of the ramp
+    TOP = 0.5  # [m] ramp top edge from the start
+    THICK = 0.2  # [m] ramp slab thickness
+
+    def setup(self, obstacles: int | None) -> None:
+        a, L = self.ANGLE, self.LENGTH
+        top = L * math.tan(a)
+        self.start_ground = top
+        slab = L / math.cos(a)
+        # Slab rotated about y by +a: its top face runs from (TOP, top) down to (TOP + L, 0).
+        mid = np.array([self.TOP + L / 2, 0.0, top / 2]) - np.array([math.sin(a), 0.0, math.cos(a)]) * self.THICK / 2
+        self.terrain = [
+            ("platform", dict(type=mujoco.mjtGeom.mjGEOM_BOX, size=[1.0, 1.5, top / 2], pos=[self.TOP - 1.0, 0.0, top / 2])),
+            ("ramp", dict(type=mujoco.mjtGeom.mjGEOM_BOX, size=[slab / 2, 1.5, self.THICK / 2], pos=mid.tolist(),
+                          quat=[math.cos(a / 2), 0.0, math.sin(a / 2), 0.0])),
+        ]
+        self.goal_xy = (self.TOP + L + 0.8, 0.0)
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+
+@register
+class Forest(Scenario):
+    name = "forest"
+    description = "random convex obstacles between the start and a goal beyond them (--obstacles N)"
+    default_duration_s = 60.0
+    DEFAULT_COUNT = 10
+    REGION = ((0.8, 5.0), (-2.0, 2.0))  # [m] x and y range of obstacle centres
+    RADIUS = (0.15, 0.35)  # [m] circumradius range
+    GAP = 0.45  # [m] minimum free gap between obstacles (the robot is 0.26 m wide)
+    GOAL = (6.0, 0.0)
+
+    def setup(self, obstacles: int | None) -> None:
+        count = self.DEFAULT_COUNT if obstacles is None else obstacles
+        if count < 0:
+            raise ValueError("obstacle count must be >= 0")
+        placed: list[tuple[float, float, float]] = []
+        (x0, x1), (y0, y1) = self.REGION
+        tries = 0
+        while len(placed) < count:
+            tries += 1
+            if tries > 20000:
+                raise ValueError(f"cannot place {count} obstacles with {self.GAP} m gaps in the forest region")
+            r = float(self.rng.uniform(*self.RADIUS))
+            cx, cy = float(self.rng.uniform(x0, x1)), float(self.rng.uniform(y0, y1))
+            if any(math.dist((cx, cy), (px, py)) < r + pr + self.GAP for px, py, pr in placed):
+                continue
+            placed.append((cx, cy, r))
+            nv = int(self.rng.integers(3, 7))
+            ang = np.sort(self.rng.uniform(0, 2 * math.pi, nv))
+            pts = np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1)
+            hull = _ccw_hull(pts)
+            if len(hull) < 3:  # degenerate draw: use a triangle
+                hull = _ccw_hull(np.array([[cx + r, cy], [cx - r / 2, cy + r * 0.87], [cx - r / 2, cy - r * 0.87]]))
+            self.obstacles.append(Obstacle(hull))
+        self.goal_xy = self.GOAL
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+
+@register
+class Maze(Scenario):
+    name = "maze"
+    description = "three walls with one random gap each between the start and the goal, inside a corridor"
+    default_duration_s = 90.0
+    WALL_X = (1.2, 2.4, 3.6)  # [m]
+    HALF_WIDTH = 2.0  # [m] corridor half width
+    GAP = 0.8  # [m] gap width
+    THICK = 0.1  # [m] wall thickness
+
+    def setup(self, obstacles: int | None) -> None:
+        w, t = self.HALF_WIDTH, self.THICK / 2
+        walls = [_box(2.15, w + t, 2.65, t), _box(2.15, -w - t, 2.65, t), _box(-0.5 - t, 0.0, t, w + 2 * t),
+                 _box(4.8 + t, 0.0, t, w + 2 * t)]
+        for x in self.WALL_X:
+            gy = float(self.rng.uniform(-w + self.GAP, w - self.GAP))
+            lo, hi = gy - self.GAP / 2, gy + self.GAP / 2
+            walls.append(_box(x, (-w + lo) / 2, t, (lo + w) / 2))
+            walls.append(_box(x, (hi + w) / 2, t, (w - hi) / 2))
+        self.obstacles = walls
+        self.goal_xy = (4.3, float(self.rng.uniform(-w + 0.5, w - 0.5)))
+        self.segments = straight_reference(self.start, self.goal_xy)

@@ -1,0 +1,118 @@
+"""Scenarios: registered names, seeded worlds, obstacles as geoms and as polytopes, terrain, pushes."""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+
+from sim_twin import model as tm
+from sim_twin import scenarios as sc
+
+ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "step", "ramp", "forest", "maze"]
+
+
+def _compiled(scn: sc.Scenario) -> tuple[mujoco.MjModel, mujoco.MjData]:
+    spec = tm.load_spec()
+    scn.build(spec)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    scn.initialize(model, data, tm.robot_params())
+    return model, data
+
+
+def _ground_height(model: mujoco.MjModel, data: mujoco.MjData, x: float, y: float) -> float:
+    geomid = np.zeros(1, dtype=np.int32)
+    d = mujoco.mj_ray(model, data, np.array([x, y, 5.0]), np.array([0.0, 0.0, -1.0]),
+                      np.array([1, 0, 0, 0, 0, 0], dtype=np.uint8), 1, -1, geomid)
+    return 5.0 - d
+
+
+def test_registry_has_every_scenario() -> None:
+    assert list(sc.SCENARIOS) == ALL
+    with pytest.raises(ValueError):
+        sc.make("volcano")
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_scenario_builds_and_starts_clear(name: str) -> None:
+    scn = sc.make(name, seed=1)
+    model, data = _compiled(scn)
+    assert data.ncon == 0  # starts in the air, touching nothing
+    ref = scn.reference(123)
+    assert ref.t_ref_ns == 123 and ref.segments
+    x0 = sc.sample_reference(ref.segments, 0.0)
+    assert math.dist(x0, scn.start) < 1e-9
+    end = sc.sample_reference(ref.segments, 1e6)
+    assert math.dist(end, scn.target()) < 1e-9
+    robot = tm.robot_params()
+    foot_z = data.qpos[2] - robot.leg_length
+    assert foot_z == pytest.approx(_ground_height(model, data, *scn.start) + sc.START_DROP, abs=1e-6)
+    # obstacles: geoms named obstacle_k whose footprint is the ground-truth polygon
+    poly = scn.polytopes()
+    assert poly.source == "ground_truth" and len(poly.polytopes) == len(scn.obstacles)
+    for k, p in enumerate(poly.polytopes):
+        a, b, verts = np.array(p.A), np.array(p.b), np.array(p.vertices)
+        assert np.all(a @ verts.T <= b[:, None] + 1e-9)
+        centre = verts.mean(axis=0)
+        assert np.all(a @ centre < b)
+        gid = model.geom(f"{sc.OBSTACLE_PREFIX}{k}").id
+        assert model.geom_contype[gid] == 1
+        assert _ground_height(model, data, *centre) == pytest.approx(sc.OBSTACLE_HEIGHT, abs=1e-6)
+        outside = centre + 1.02 * (verts[0] - centre) + 0.01 * (verts[0] - centre) / np.linalg.norm(verts[0] - centre)
+        inside_any = any(np.all(np.array(q.A) @ outside <= np.array(q.b)) for q in poly.polytopes)
+        assert (_ground_height(model, data, *outside) > sc.OBSTACLE_HEIGHT - 0.1) == inside_any
+
+
+def test_seed_changes_every_random_choice() -> None:
+    a, b, c = sc.make("forest", seed=5), sc.make("forest", seed=5), sc.make("forest", seed=6)
+    assert a.obstacles == b.obstacles and a.obstacles != c.obstacles
+    assert len(sc.make("forest", seed=2, obstacles=4).obstacles) == 4
+    with pytest.raises(ValueError):
+        sc.make("forest", seed=0, obstacles=500)
+    assert sc.make("maze", seed=1).obstacles != sc.make("maze", seed=2).obstacles
+    assert sc.make("setpoint", seed=0).goal_xy == (2.0, 0.0)
+    g = sc.make("setpoint", seed=9).goal_xy
+    assert math.hypot(*g) == pytest.approx(2.0) and g != (2.0, 0.0)
+
+
+def test_terrain_heights() -> None:
+    step = sc.make("step")
+    model, data = _compiled(step)
+    assert _ground_height(model, data, step.EDGE - 0.05, 0.0) == pytest.approx(0.0, abs=1e-9)
+    assert _ground_height(model, data, step.EDGE + 0.05, 0.0) == pytest.approx(0.038, abs=1e-9)
+    ramp = sc.make("ramp")
+    model, data = _compiled(ramp)
+    top = ramp.LENGTH * math.tan(math.radians(20))
+    assert _ground_height(model, data, 0.0, 0.0) == pytest.approx(top, abs=1e-9)
+    mid = ramp.TOP + 0.3
+    assert _ground_height(model, data, mid, 0.0) == pytest.approx(top - 0.3 * math.tan(math.radians(20)), abs=1e-6)
+    assert _ground_height(model, data, ramp.goal_xy[0], 0.0) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_square_reference_visits_corners() -> None:
+    sq = sc.make("square")
+    segs = sq.reference().segments
+    corners = [tuple(s.control_points[0]) for s in segs] + [tuple(segs[-1].control_points[-1])]
+    assert corners[:5] == [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.0)]
+    assert len(segs) == 8  # two laps
+    assert sc.sample_reference(segs, segs[0].duration / 2) == pytest.approx((0.5, 0.0))
+
+
+def test_push_delivers_its_impulse() -> None:
+    push = sc.make("push", seed=3)
+    model, data = _compiled(push)
+    model.opt.gravity[:] = 0.0
+    data.qpos[2] = 3.0
+    mass = tm.robot_params().total_mass
+    dt = model.opt.timestep
+    while data.time < push.FIRST + push.PUSH_TIME + 0.05:
+        push.before_step(data.time, model, data)
+        mujoco.mj_step(model, data)
+    mujoco.mj_subtreeVel(model, data)
+    v = data.subtree_linvel[model.body("torso").id]
+    ang = push.push_angles[0]
+    assert mass * v[:2] == pytest.approx([push.IMPULSE * math.cos(ang), push.IMPULSE * math.sin(ang)], abs=2 * push.IMPULSE * dt / push.PUSH_TIME)
+    assert push.pushes_applied == 1
