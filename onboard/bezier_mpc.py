@@ -1,0 +1,469 @@
+"""Bezier MPC over waypoints and control points (thesis eqs. 6.12 and 7.2).
+
+Decision variables: the waypoints ``x_0 .. x_N`` (each in R^n) and, for orders above
+``2 gamma - 1``, each segment's free control points ``Z_k``. Segment ``k`` is the Bezier
+curve ``C_k = M [x_k; x_{k+1}] + N Z_k`` of duration ``tau`` (Property 2.45), so every
+feasible point of the QP is a dynamically feasible trajectory of the planning model,
+continuous in every derivative below ``gamma``.
+
+Constraints (all linear, all on control points, so they hold for all time):
+
+- ``x_0`` within ``init_radius`` of the measured state (7.2b), ``x_N = r_N`` (7.2e) or free;
+- trust region ``|x_k - r_k| <= trust_region`` componentwise (6.12b; a box in place of
+  the thesis's 1-norm ball: same role, no auxiliary variables);
+- the reachability rows ``F [x_k; x_{k+1}; Z_k] <= G`` (6.12d / 7.2d) of
+  :class:`onboard.reachability.BezierReachability` (state limits tightened by the tube,
+  input limits), with per-segment references for nonlinear models;
+- per segment, up to ``max_planes`` halfspaces ``a . q <= b`` on every position control
+  point (7.2c separating hyperplanes or the faces of the convex set ``X_k`` of 6.12),
+  tightened here by the tube (dual norm). The robot radius belongs in ``b``.
+
+Cost: ``sum_k (x_k - r_k)' Q (x_k - r_k) + (x_N - r_N)' V (x_N - r_N)`` plus per
+segment ``effort * integral ||q^(gamma)||^2 dt`` and ``path * sum_j ||C_{j+1} - C_j||^2``
+(a quadratic surrogate of the path-length bound 2.49).
+
+The QP is set up once; each :meth:`BezierMpc.solve` updates values only (never the
+sparsity pattern), warm starts (OSQP), solves and then *certifies* the answer: every
+inequality is re-evaluated against the untightened bounds, so ``ok`` means the returned
+trajectory satisfies its constraints whatever the solver's status. Inequalities are
+tightened by ``margin`` so that a solver's small residual never becomes a violation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import osqp
+import piqp
+import scipy.sparse as sp
+
+from onboard import bezier as bz
+from onboard.messages import BezierSegment, ComReference
+from onboard.reachability import BezierReachability
+
+Backend = Literal["osqp", "piqp"]
+
+_PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
+
+
+@dataclass(frozen=True)
+class MpcWeights:
+    """Cost weights. ``state``/``terminal``: diagonal of ``Q``/``V`` over the state."""
+
+    state: tuple[float, ...]
+    terminal: tuple[float, ...]
+    effort: float = 0.0  # per integral of ||q^(gamma)||^2 [1/(unit^2 s^(1-2 gamma))]
+    path: float = 0.0  # per sum of squared control-polygon legs
+
+
+@dataclass(frozen=True)
+class MpcSolution:
+    """One solve: the trajectory and whether it may be used."""
+
+    ok: bool  # certified: finite, inequalities hold, equalities within tolerance
+    status: str  # the solver's own status string
+    waypoints: np.ndarray  # (N + 1, n)
+    control_points: np.ndarray  # (N, p + 1, m): position control points per segment
+    tau: float  # segment duration [s]
+    objective: float
+    iterations: int
+    max_violation: float  # largest inequality excess over the untightened bound (<= 0 is fine)
+    equality_residual: float
+
+    @property
+    def duration(self) -> float:
+        return self.tau * len(self.control_points)
+
+    def evaluate(self, t: np.ndarray, derivative: int = 0) -> np.ndarray:
+        """Position (or its ``derivative``) at times ``t`` [s] from the trajectory start."""
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        seg = np.minimum((t / self.tau).astype(int), len(self.control_points) - 1)
+        out = np.empty(t.shape + (self.control_points.shape[-1],))
+        for k in np.unique(seg):
+            sel = seg == k
+            C = bz.derivative_points(self.control_points[k], self.tau, derivative)
+            out[sel] = bz.evaluate(C, self.tau, t[sel] - k * self.tau)
+        return out
+
+    def to_com_reference(self, t_ref_ns: int, stamp_ns: int = 0, segments: int | None = None) -> ComReference:
+        """The trajectory as the message the low level tracks (positions in metres)."""
+        count = len(self.control_points) if segments is None else min(segments, len(self.control_points))
+        segs = [
+            BezierSegment(t0=k * self.tau, duration=self.tau, control_points=self.control_points[k].tolist())
+            for k in range(count)
+        ]
+        return ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=not self.ok)
+
+
+@dataclass(eq=False)
+class BezierMpc:
+    """The Bezier MPC QP for one reachability model, horizon and plane budget.
+
+    ``init_radius`` (``(n,)``) is how far ``x_0`` may sit from the measured state (the
+    tube, 7.2b); a zero component is an equality. ``terminal="equal"`` pins ``x_N`` to
+    the reference. ``margin`` tightens every inequality; ``eps`` is the solver accuracy;
+    ``max_iter`` caps OSQP's iterations (the thesis ran 50).
+    """
+
+    reach: BezierReachability
+    horizon: int
+    weights: MpcWeights
+    trust_region: np.ndarray | None = None
+    init_radius: np.ndarray | None = None
+    max_planes: int = 0
+    terminal: Literal["equal", "free"] = "equal"
+    backend: Backend = "osqp"
+    eps: float = 1e-5
+    margin: float = 1e-4
+    max_iter: int = 4000
+    polish: bool = False  # OSQP active-set polishing: more accurate, slower
+    _ready: bool = field(default=False, init=False)
+
+    def __post_init__(self) -> None:
+        R, N = self.reach, self.horizon
+        n, m, p = R.n, R.model.m, R.p
+        if N < 1:
+            raise ValueError("horizon must be >= 1")
+        if len(self.weights.state) != n or len(self.weights.terminal) != n:
+            raise ValueError(f"state and terminal weights need {n} entries")
+        if min(self.weights.state) < 0 or min(self.weights.terminal) < 0 or self.weights.effort < 0 or self.weights.path < 0:
+            raise ValueError("weights must be non-negative")
+        self.trust = np.full(n, np.inf) if self.trust_region is None else np.broadcast_to(np.asarray(self.trust_region, float), (n,)).copy()
+        self.x0_radius = np.zeros(n) if self.init_radius is None else np.broadcast_to(np.asarray(self.init_radius, float), (n,)).copy()
+        if np.any(self.trust <= self.margin) or np.any(self.x0_radius < 0):
+            raise ValueError("trust region must exceed the margin, init radius non-negative")
+        if np.any((self.x0_radius > 0) & (self.x0_radius <= self.margin)):
+            raise ValueError("a non-zero init radius must exceed the margin")
+        self.nx = (N + 1) * n
+        self.nvar = self.nx + N * R.nz
+        self._split_rows()
+        self._build_cost()
+        self._build_constraints()
+        self._setup_solver()
+
+    # --- structure ----------------------------------------------------------------
+
+    def _seg_cols(self, k: int) -> np.ndarray:
+        """Global variable index of each entry of segment k's vector ``[x_k; x_k+1; Z_k]``."""
+        R, n = self.reach, self.reach.n
+        return np.concatenate([np.arange(k * n, (k + 2) * n), self.nx + k * R.nz + np.arange(R.nz)]).astype(int)
+
+    def _split_rows(self) -> None:
+        """Separate rows acting on one waypoint only (imposed once per node) when G is constant."""
+        R, n = self.reach, self.reach.n
+        F = R.F_full
+        if R.G_const is None:
+            self.seg_rows = np.arange(F.shape[0])
+            self.node_A = np.zeros((0, n))
+            self.node_b = np.zeros(0)
+            return
+        only0 = ~np.any(F[:, n:], axis=1)
+        onlyT = ~np.any(F[:, :n], axis=1) & ~np.any(F[:, 2 * n :], axis=1)
+        node = np.vstack([F[only0, :n], F[onlyT, n : 2 * n]])
+        rhs = np.concatenate([R.G_const[only0], R.G_const[onlyT]])
+        uniq, idx = np.unique(np.round(np.column_stack([node, rhs]), 12), axis=0, return_index=True)
+        node, rhs = node[np.sort(idx)], rhs[np.sort(idx)]
+        self.seg_rows = np.flatnonzero(~(only0 | onlyT))
+        # axis-aligned node rows fold into the waypoint bounds
+        self.node_lo = np.full(n, -np.inf)
+        self.node_hi = np.full(n, np.inf)
+        keep = []
+        for row, b in zip(node, rhs):
+            nz = np.flatnonzero(row)
+            if len(nz) == 1:
+                c = row[nz[0]]
+                if c > 0:
+                    self.node_hi[nz[0]] = min(self.node_hi[nz[0]], b / c)
+                else:
+                    self.node_lo[nz[0]] = max(self.node_lo[nz[0]], b / c)
+            else:
+                keep.append((row, b))
+        self.node_A = np.array([r for r, _ in keep]).reshape(-1, n)
+        self.node_b = np.array([b for _, b in keep])
+
+    def _build_cost(self) -> None:
+        R, N, W = self.reach, self.horizon, self.weights
+        n, m, p = R.n, R.model.m, R.p
+        tau = float(R.tau)
+        Hg = np.linalg.matrix_power(bz.derivative_matrix(p, tau), R.model.gamma)
+        effort = Hg @ bz.gram_matrix(p, tau) @ Hg.T  # C' E C = integral ||q^(gamma)||^2
+        diff = np.diff(np.eye(p + 1), axis=0)
+        pts = W.effort * effort + W.path * diff.T @ diff
+        seg_cost = R.segment_map.T @ np.kron(pts, np.eye(m)) @ R.segment_map  # (ns, ns)
+        P = sp.lil_matrix((self.nvar, self.nvar))
+        Qd = np.asarray(W.state, float)
+        Vd = np.asarray(W.terminal, float)
+        diag = np.concatenate([np.tile(Qd, N), Vd])
+        P[np.arange(self.nx), np.arange(self.nx)] = diag
+        P = P.tocsc() + sp.csc_matrix((self.nvar, self.nvar))
+        rows, cols, vals = [], [], []
+        for k in range(N):
+            c = self._seg_cols(k)
+            rr, cc = np.meshgrid(c, c, indexing="ij")
+            rows.append(rr.ravel())
+            cols.append(cc.ravel())
+            vals.append(seg_cost.ravel())
+        P = P + sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=P.shape)
+        P = 2.0 * P  # the solvers minimize 0.5 y' P y + q' y
+        P.data[np.abs(P.data) < 1e-14 * max(1.0, np.abs(P.data).max())] = 0.0
+        P.eliminate_zeros()
+        self.P = sp.csc_matrix(sp.triu(P, format="csc"))
+        self.P.sort_indices()
+        self.q_diag = diag
+
+    def _build_constraints(self) -> None:
+        R, N = self.reach, self.horizon
+        n, m, p = R.n, R.model.m, R.p
+        coo_r, coo_c, coo_v = [], [], []
+        row = 0
+
+        def add(r, c, v):
+            coo_r.append(np.asarray(r, int))
+            coo_c.append(np.asarray(c, int))
+            coo_v.append(np.asarray(v, float))
+
+        # (a) waypoint bounds: one identity row per waypoint entry
+        self.r_box = slice(row, row + self.nx)
+        add(np.arange(self.nx), np.arange(self.nx), np.ones(self.nx))
+        row += self.nx
+        # (b) node rows
+        kn = len(self.node_b)
+        self.r_node = slice(row, row + kn * (N + 1))
+        for k in range(N + 1):
+            rr, cc = np.nonzero(self.node_A)
+            add(row + k * kn + rr, k * n + cc, self.node_A[rr, cc])
+        row += kn * (N + 1)
+        # (c) segment reachability rows
+        # unit rows: acceleration rows carry (p / tau)^2-sized coefficients, which slows ADMM
+        self.seg_scale = np.abs(R.F_full[self.seg_rows]).max(axis=1)
+        Fs = R.F_full[self.seg_rows] / self.seg_scale[:, None]
+        ks = len(self.seg_rows)
+        self.r_seg = slice(row, row + ks * N)
+        rr, cc = np.nonzero(Fs)
+        for k in range(N):
+            add(row + k * ks + rr, self._seg_cols(k)[cc], Fs[rr, cc])
+        row += ks * N
+        # (d) plane rows: plane h on position control point j of segment k
+        P_ = self.max_planes
+        nrow_planes = N * P_ * (p + 1)
+        self.r_plane = slice(row, row + nrow_planes)
+        MN = R.segment_map.reshape(p + 1, m, R.ns)  # position point j, coord d -> s
+        ent = [(j, d, s, MN[j, d, s]) for j in range(p + 1) for d in range(m) for s in np.flatnonzero(MN[j, d])]
+        ej = np.array([e[0] for e in ent], int)
+        ed = np.array([e[1] for e in ent], int)
+        es = np.array([e[2] for e in ent], int)
+        ecoef = np.array([e[3] for e in ent])
+        self._plane_start = sum(len(v) for v in coo_v)
+        pk, ph, pd, pcoef = [], [], [], []
+        for k in range(N):
+            cols = self._seg_cols(k)
+            for h in range(P_):
+                base = row + (k * P_ + h) * (p + 1)
+                add(base + ej, cols[es], np.zeros(len(ej)))
+                pk.append(np.full(len(ej), k))
+                ph.append(np.full(len(ej), h))
+                pd.append(ed)
+                pcoef.append(ecoef)
+        row += nrow_planes
+        self._pk = np.concatenate(pk) if pk else np.zeros(0, int)
+        self._ph = np.concatenate(ph) if ph else np.zeros(0, int)
+        self._pd = np.concatenate(pd) if pd else np.zeros(0, int)
+        self._pcoef = np.concatenate(pcoef) if pcoef else np.zeros(0)
+        r_all = np.concatenate(coo_r)
+        c_all = np.concatenate(coo_c)
+        v_all = np.concatenate(coo_v)
+        # CSC with explicit zeros kept: build on entry ids, then read back the order
+        ids = sp.csc_matrix((np.arange(1, len(v_all) + 1, dtype=float), (r_all, c_all)), shape=(row, self.nvar))
+        ids.sort_indices()
+        if ids.nnz != len(v_all):
+            raise AssertionError("duplicate constraint entries")
+        self._perm = ids.data.astype(int) - 1
+        self._A_indices = ids.indices.copy()
+        self._A_indptr = ids.indptr.copy()
+        self._coo_vals = v_all
+        self.n_rows = row
+        # static bounds
+        self.l_static = np.full(row, -np.inf)
+        self.u_static = np.full(row, np.inf)
+        self.u_static[self.r_node] = np.tile(self.node_b, N + 1)
+        if R.G_const is not None:
+            self.u_static[self.r_seg] = np.tile(R.G_const[self.seg_rows] / self.seg_scale, N)
+
+    def _A_matrix(self) -> sp.csc_matrix:
+        return sp.csc_matrix((self._coo_vals[self._perm], self._A_indices, self._A_indptr), shape=(self.n_rows, self.nvar))
+
+    def _setup_solver(self) -> None:
+        A = self._A = self._A_matrix()
+        q = np.zeros(self.nvar)
+        l, u = self.l_static.copy(), self.u_static.copy()
+        l[self.r_box], u[self.r_box] = -1e3, 1e3  # placeholders, replaced at the first solve
+        if self.backend == "osqp":
+            self._solver = osqp.OSQP()
+            self._solver.setup(
+                self.P, q, A, l, u,
+                verbose=False, warm_starting=True, polishing=self.polish,
+                eps_abs=self.eps, eps_rel=self.eps, max_iter=self.max_iter,
+                eps_prim_inf=1e-6, eps_dual_inf=1e-6,
+            )  # fmt: skip
+        elif self.backend == "piqp":
+            self._setup_piqp(A, q, l, u)
+        else:
+            raise ValueError(f"unknown backend {self.backend!r}")
+        self._ready = True
+
+    def _piqp_split(self, l: np.ndarray, u: np.ndarray):
+        """PIQP form: waypoint rows become variable bounds or equalities, the rest G."""
+        n = self.reach.n
+        box_l, box_u = l[self.r_box], u[self.r_box]
+        x_l = np.full(self.nvar, -np.inf)
+        x_u = np.full(self.nvar, np.inf)
+        eq = self._eq_mask
+        x_l[: self.nx][~eq] = box_l[~eq]
+        x_u[: self.nx][~eq] = box_u[~eq]
+        b = box_l[eq]
+        rest = slice(self.r_box.stop, self.n_rows)
+        g_l, g_u = l[rest], u[rest].copy()
+        # PIQP wants no free rows (unused plane slots): give them a harmless finite bound
+        g_u[~np.isfinite(g_l) & ~np.isfinite(g_u)] = _PIQP_FREE_ROW_BOUND
+        return x_l, x_u, b, g_l, g_u
+
+    def _setup_piqp(self, A: sp.csc_matrix, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
+        n, N = self.reach.n, self.horizon
+        eq = np.zeros(self.nx, bool)
+        eq[:n] = self.x0_radius == 0.0
+        if self.terminal == "equal":
+            eq[N * n :] = True
+        self._eq_mask = eq
+        E = sp.csc_matrix((np.ones(eq.sum()), (np.arange(eq.sum()), np.flatnonzero(eq))), shape=(int(eq.sum()), self.nvar))
+        self._piqp_E = E
+        x_l, x_u, b, g_l, g_u = self._piqp_split(l, u)
+        self._solver = piqp.SparseSolver()
+        s = self._solver.settings
+        s.verbose = False
+        s.eps_abs = self.eps * 1e-2  # interior point: cheap to be accurate
+        s.eps_rel = self.eps * 1e-2
+        s.max_iter = 200
+        self._solver.setup(
+            self.P, q, E, b, A[self.r_box.stop :, :].tocsc(), g_l, g_u, x_l, x_u
+        )
+
+    # --- per tick -------------------------------------------------------------------
+
+    def _plane_values(self, planes: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        R, N, P_ = self.reach, self.horizon, self.max_planes
+        m, p = R.model.m, R.p
+        if planes is None:
+            a = np.zeros((N, P_, m))
+            b = np.full((N, P_), np.inf)
+        else:
+            a = np.asarray(planes[0], float)
+            b = np.asarray(planes[1], float)
+            if a.shape != (N, P_, m) or b.shape != (N, P_):
+                raise ValueError(f"planes must be ({N}, {P_}, {m}) and ({N}, {P_}); pad with b = inf")
+            if not np.all(np.isfinite(a)) or np.any(np.isnan(b)):
+                raise ValueError("plane normals must be finite and offsets not NaN")
+            dual = {1: np.inf, 2: 2, np.inf: 1}[R.limits.tube_norm]
+            b = b - np.linalg.norm(a, ord=dual, axis=-1) * R.limits.tube
+        vals = a[self._pk, self._ph, self._pd] * self._pcoef
+        rhs = np.repeat(b, p + 1, axis=1).reshape(-1)  # row order: (k, h, j)
+        return vals, rhs
+
+    def solve(
+        self,
+        x_init: np.ndarray,
+        reference: np.ndarray,
+        planes: tuple[np.ndarray, np.ndarray] | None = None,
+        warm_start: np.ndarray | None = None,
+    ) -> MpcSolution:
+        """Solve for measured ``x_init`` ``(n,)`` and reference waypoints ``(N + 1, n)``.
+
+        ``planes``: ``(a, b)`` of shapes ``(N, max_planes, m)`` and ``(N, max_planes)``;
+        unused planes have ``b = inf``. ``warm_start``: waypoints ``(N + 1, n)`` (for
+        example the graph path); OSQP otherwise starts from the previous solution.
+        """
+        R, N = self.reach, self.horizon
+        n = R.n
+        x_init = np.asarray(x_init, float)
+        ref = np.asarray(reference, float)
+        if x_init.shape != (n,) or ref.shape != (N + 1, n):
+            raise ValueError(f"x_init must be ({n},) and reference ({N + 1}, {n})")
+        if not (np.all(np.isfinite(x_init)) and np.all(np.isfinite(ref))):
+            raise ValueError("x_init and reference must be finite")
+        q = np.zeros(self.nvar)
+        q[: self.nx] = -2.0 * self.q_diag * ref.reshape(-1)
+        l, u = self.l_static.copy(), self.u_static.copy()  # the true bounds
+        lo = ref - self.trust
+        hi = ref + self.trust
+        if R.G_const is not None:
+            lo = np.maximum(lo, self.node_lo)
+            hi = np.minimum(hi, self.node_hi)
+        else:
+            G = R.G(R.references(ref[:-1]))  # (N, K): references from each reference waypoint
+            u[self.r_seg] = (G[:, self.seg_rows] / self.seg_scale).reshape(-1)
+        lo[0], hi[0] = x_init - self.x0_radius, x_init + self.x0_radius
+        if self.terminal == "equal":
+            lo[N] = hi[N] = ref[N]
+        l[self.r_box], u[self.r_box] = lo.reshape(-1), hi.reshape(-1)
+        vals, rhs = self._plane_values(planes)
+        u[self.r_plane] = rhs
+        plane_slot = slice(self._plane_start, self._plane_start + len(vals))
+        a_changed = self.max_planes > 0 and not np.array_equal(self._coo_vals[plane_slot], vals)
+        if a_changed:  # new values in the same pattern; the solver refactors only then
+            self._coo_vals[plane_slot] = vals
+            self._A = self._A_matrix()
+        A = self._A
+        if np.any(l > u) or np.any(np.isnan(u)):
+            return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
+        # the solver sees every inequality tightened by the margin
+        eq = l == u
+        ls = np.where(eq, l, l + self.margin)
+        us = np.where(eq, u, u - self.margin)
+        if np.any(ls > us):
+            return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
+        if self.backend == "osqp":
+            upd = {"q": q, "l": ls, "u": us}
+            if a_changed:
+                upd["Ax"] = A.data
+            self._solver.update(**upd)
+            if warm_start is not None:
+                y0 = np.zeros(self.nvar)
+                y0[: self.nx] = np.asarray(warm_start, float).reshape(-1)
+                self._solver.warm_start(x=y0)
+            res = self._solver.solve(raise_error=False)  # the status is checked below
+            y, status, iters, obj = res.x, str(res.info.status), int(res.info.iter), float(res.info.obj_val)
+        else:
+            x_l, x_u, b, g_l, g_u = self._piqp_split(ls, us)
+            kw = {"c": q, "b": b, "h_l": g_l, "h_u": g_u, "x_l": x_l, "x_u": x_u}
+            if a_changed:
+                kw["G"] = A[self.r_box.stop :, :].tocsc()
+            self._solver.update(**kw)
+            st = self._solver.solve()
+            rs = self._solver.result
+            y, status, iters, obj = rs.x, str(st).split(".")[-1], int(rs.info.iter), float(rs.info.primal_obj)
+        return self._certify(y, A, l, u, status, iters, obj)
+
+    def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
+        """Check the answer against the true (untightened) bounds."""
+        R, N = self.reach, self.horizon
+        n, m, p = R.n, R.model.m, R.p
+        y = None if y is None else np.asarray(y, float)
+        finite = y is not None and y.shape == (self.nvar,) and bool(np.all(np.isfinite(y)))
+        if not finite:
+            y = np.full(self.nvar, np.nan)
+        Ay = A @ y
+        eq = l == u
+        with np.errstate(invalid="ignore"):
+            excess = np.maximum(np.where(np.isfinite(u), Ay - u, -np.inf), np.where(np.isfinite(l), l - Ay, -np.inf))
+        viol = float(np.max(excess[~eq], initial=-np.inf)) if finite else np.inf
+        eq_res = float(np.abs(Ay[eq] - l[eq]).max(initial=0.0)) if finite else np.inf
+        scale = 1.0 + float(np.abs(l[eq]).max(initial=0.0))
+        ok = finite and viol <= 0.0 and eq_res <= 10 * self.eps * scale
+        X = y[: self.nx].reshape(N + 1, n)
+        S = np.concatenate([np.concatenate([X[:-1], X[1:]], axis=1), y[self.nx :].reshape(N, R.nz)], axis=1)
+        C = (S @ R.segment_map.T).reshape(N, p + 1, m)
+        return MpcSolution(
+            ok=bool(ok), status=status, waypoints=X, control_points=C, tau=float(R.tau),
+            objective=obj, iterations=iters, max_violation=viol, equality_residual=eq_res,
+        )  # fmt: skip

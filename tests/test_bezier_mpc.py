@@ -1,0 +1,233 @@
+"""Bezier MPC (thesis 6.12 / 7.2): certified solutions, backend agreement, messages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from onboard import bezier as bz
+from onboard import bezier_mpc as bm
+from onboard import reachability as rc
+from onboard.messages import ComReference, decode, encode
+
+FAST = settings(max_examples=15, deadline=None)
+SAMPLES = 100  # dense samples per segment
+
+V_MAX, A_MAX, TUBE = 0.6, 1.0, 0.05
+WEIGHTS = bm.MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=1.0)
+
+
+def di_reach(tau: float = 0.1, order: int = 3) -> rc.BezierReachability:
+    md = rc.double_integrator(2)
+    lim = rc.box_limits(md, A_MAX, [-np.inf, -np.inf, -V_MAX, -V_MAX], [np.inf, np.inf, V_MAX, V_MAX], tube=TUBE)
+    return rc.BezierReachability(md, lim, tau, order=order)
+
+
+def sine_reference(seed: int, N: int, tau: float) -> np.ndarray:
+    """A smooth path well inside the limits: speeds <= V_MAX/2, accelerations <= A_MAX/3."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(N + 1) * tau
+    w = rng.uniform(0.2, 0.8, size=2)
+    amp = np.minimum(0.5 * V_MAX / w, A_MAX / 3 / w**2)
+    phase = rng.uniform(0, 2 * np.pi, size=2)
+    pos = amp * np.sin(np.outer(t, w) + phase) + rng.uniform(-1, 1, size=2)
+    vel = amp * w * np.cos(np.outer(t, w) + phase)
+    return np.concatenate([pos, vel], axis=1)
+
+
+def planes_around(seed: int, ref: np.ndarray, max_planes: int, clearance: float):
+    """Random halfspaces that every reference segment clears by ``clearance`` + tube."""
+    rng = np.random.default_rng(seed + 1)
+    N = len(ref) - 1
+    a = rng.normal(size=(N, max_planes, 2))
+    a /= np.linalg.norm(a, axis=-1, keepdims=True)
+    pts = np.stack([ref[:-1, :2], ref[1:, :2]], axis=1)  # (N, 2, 2)
+    b = np.einsum("khd,kjd->khj", a, pts).max(axis=-1) + clearance + TUBE * np.sqrt(2) + 0.05
+    unused = rng.random(size=(N, max_planes)) < 0.3
+    b[unused] = np.inf
+    return a, b
+
+
+def dense_plane_violation(sol: bm.MpcSolution, a: np.ndarray, b: np.ndarray) -> float:
+    t = np.linspace(0, sol.tau, SAMPLES)
+    pos = bz.evaluate(sol.control_points, sol.tau, t)  # (N, S, 2)
+    lhs = np.einsum("khd,ksd->khs", a, pos)
+    rhs = b - np.linalg.norm(a, ord=1, axis=-1) * TUBE  # inf-norm tube: dual is the 1-norm
+    with np.errstate(invalid="ignore"):
+        return float(np.nanmax(lhs - rhs[..., None]))
+
+
+def check_dynamics_and_continuity(sol: bm.MpcSolution, reach: rc.BezierReachability) -> None:
+    C = sol.control_points
+    ends = bz.state_values(C, sol.tau, 2, np.array([0.0, sol.tau]))  # (N, 2, 4)
+    np.testing.assert_allclose(ends[1:, 0], ends[:-1, 1], atol=1e-9)
+    np.testing.assert_allclose(ends[:, 0], sol.waypoints[:-1], atol=1e-9)
+    np.testing.assert_allclose(ends[-1, 1], sol.waypoints[-1], atol=1e-9)
+
+
+@FAST
+@given(seed=st.integers(0, 2**32 - 1), backend=st.sampled_from(["osqp", "piqp"]), order=st.sampled_from([3, 4, 5]))
+def test_double_integrator_solutions_satisfy_constraints_when_densely_sampled(seed, backend, order):
+    N, tau, P = 20, 0.1, 3
+    reach = di_reach(tau, order)
+    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], init_radius=[0.02, 0.02, 0.0, 0.0], max_planes=P, backend=backend)
+    ref = sine_reference(seed, N, tau)
+    a, b = planes_around(seed, ref, P, clearance=0.0)
+    x_init = ref[0] + np.array([0.01, -0.01, 0.0, 0.0])
+    # a shifted target pulls the trajectory toward the planes and the limits
+    target = ref.copy()
+    target[:, :2] += 0.2
+    target[-1] = ref[-1]
+    sol = mpc.solve(x_init, target, (a, b), warm_start=ref)
+    assert sol.ok, (sol.status, sol.max_violation)
+    assert np.all(reach.violation(sol.control_points, SAMPLES) <= 0.0)
+    assert dense_plane_violation(sol, a, b) <= 0.0
+    assert np.all(np.abs(sol.waypoints[0] - x_init) <= np.array([0.02, 0.02, 0, 0]) + 1e-6)
+    np.testing.assert_allclose(sol.waypoints[-1], ref[-1], atol=1e-5)
+    assert np.all(np.abs(sol.waypoints[1:-1] - target[1:-1]) <= np.array([0.3, 0.3, 0.4, 0.4]) + 1e-9)
+    check_dynamics_and_continuity(sol, reach)
+
+
+@FAST
+@given(seed=st.integers(0, 2**32 - 1), order=st.sampled_from([3, 5]))
+def test_osqp_and_piqp_agree(seed, order):
+    N, tau, P = 15, 0.1, 2
+    reach = di_reach(tau, order)
+    ref = sine_reference(seed, N, tau)
+    a, b = planes_around(seed, ref, P, clearance=0.0)
+    target = ref.copy()
+    target[1:-1, :2] += 0.15
+    sols = {}
+    for backend in ("osqp", "piqp"):
+        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=P, backend=backend, eps=1e-6, polish=True, max_iter=50000)
+        sols[backend] = mpc.solve(ref[0], target, (a, b))
+    o, q = sols["osqp"], sols["piqp"]
+    assert o.ok and q.ok
+    np.testing.assert_allclose(o.waypoints, q.waypoints, atol=1e-3)
+    np.testing.assert_allclose(o.control_points, q.control_points, atol=1e-3)
+    assert o.objective == pytest.approx(q.objective, rel=1e-3, abs=1e-4)
+
+
+def section61_reach(u_max: float) -> rc.BezierReachability:
+    v_max = 1.5
+    md = rc.PlanningModel(1, 2, drift=lambda x: (np.sin(x[..., 0]) + x[..., 1] ** 3)[..., None], lipschitz_drift=np.array([[1.0, 3 * v_max**2]]))
+    lim = rc.box_limits(md, u_max, [-3.0, -v_max], [3.0, v_max])
+    return rc.BezierReachability(md, lim, 0.2, refinement=2)
+
+
+@FAST
+@given(seed=st.integers(0, 2**32 - 1), backend=st.sampled_from(["osqp", "piqp"]))
+def test_nonlinear_model_solutions_are_feasible_for_the_true_dynamics(seed, backend):
+    reach = section61_reach(u_max=4.0)
+    md = reach.model
+    N = 10
+    # reference: the system itself under a small smooth input, sampled every tau
+    rng = np.random.default_rng(seed)
+    x = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-0.5, 0.5)])
+    ref = [x.copy()]
+    h = 0.002
+    u0, w = rng.uniform(-0.5, 0.5), rng.uniform(0.5, 2.0)
+    for k in range(N):
+        for i in range(int(round(reach.tau / h))):
+            t = k * reach.tau + i * h
+            u = u0 * np.cos(w * t) - np.sin(x[0]) - x[1] ** 3 - 0.8 * x[1]  # damped, stays slow
+            x = x + h * np.array([x[1], np.sin(x[0]) + x[1] ** 3 + u])
+        ref.append(x.copy())
+    ref = np.array(ref)
+    assume(np.all(reach.test(ref[:-1], ref[1:])))
+    mpc = bm.BezierMpc(reach, N, bm.MpcWeights(state=(1.0, 0.1), terminal=(1.0, 0.1), effort=1e-3), trust_region=[0.2, 0.3], backend=backend)
+    target = np.zeros_like(ref)  # drive toward the origin (thesis section 6.1)
+    target[-1] = ref[-1]
+    target[0] = ref[0]
+    sol = mpc.solve(ref[0], target, warm_start=ref)
+    # the trust region keeps it near the feasible reference: centre it there
+    sol_ref = mpc.solve(ref[0], ref, warm_start=ref)
+    assert sol_ref.ok, (sol_ref.status, sol_ref.max_violation)
+    for s in (sol, sol_ref):
+        if s.ok:
+            assert np.all(reach.violation(s.control_points, SAMPLES) <= 0.0)
+
+
+def test_infeasible_start_is_reported_not_raised():
+    reach = di_reach()
+    mpc = bm.BezierMpc(reach, 10, WEIGHTS)
+    ref = np.zeros((11, 4))
+    sol = mpc.solve(np.array([0.0, 0.0, 3 * V_MAX, 0.0]), ref)  # far over the speed limit
+    assert not sol.ok
+    msg = sol.to_com_reference(t_ref_ns=5)
+    assert msg.hold
+    with pytest.raises(ValueError):
+        mpc.solve(np.array([np.nan, 0, 0, 0]), ref)
+    with pytest.raises(ValueError):
+        mpc.solve(np.zeros(4), np.zeros((5, 4)))
+
+
+def test_bad_planes_and_settings_are_rejected():
+    reach = di_reach()
+    with pytest.raises(ValueError):
+        bm.BezierMpc(reach, 10, WEIGHTS, init_radius=[1e-6, 0, 0, 0])
+    with pytest.raises(ValueError):
+        bm.BezierMpc(reach, 10, bm.MpcWeights(state=(1.0,), terminal=(1.0,)))
+    with pytest.raises(ValueError):
+        bm.BezierMpc(reach, 10, WEIGHTS, backend="nope")
+    mpc = bm.BezierMpc(reach, 10, WEIGHTS, max_planes=2)
+    with pytest.raises(ValueError):
+        mpc.solve(np.zeros(4), np.zeros((11, 4)), (np.zeros((10, 3, 2)), np.zeros((10, 3))))
+    with pytest.raises(ValueError):
+        mpc.solve(np.zeros(4), np.zeros((11, 4)), (np.full((10, 2, 2), np.nan), np.zeros((10, 2))))
+
+
+def test_per_tick_updates_reuse_the_setup_and_warm_start():
+    reach = di_reach()
+    N = 30
+    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2)
+    pattern = (mpc._A.indices.copy(), mpc._A.indptr.copy())
+    ref = sine_reference(3, N + 5, 0.1)
+    a, b = planes_around(3, ref, 2, 0.0)
+    iters = []
+    for tick in range(5):
+        window = ref[tick : tick + N + 1]
+        sol = mpc.solve(window[0], window, (a[tick : tick + N], b[tick : tick + N]))
+        assert sol.ok
+        iters.append(sol.iterations)
+        assert np.array_equal(mpc._A.indices, pattern[0]) and np.array_equal(mpc._A.indptr, pattern[1])
+    again = mpc.solve(window[0], window, (a[4 : 4 + N], b[4 : 4 + N]))  # same data: warm start is the answer
+    assert again.iterations <= max(1, min(iters))
+    np.testing.assert_allclose(again.waypoints, sol.waypoints, atol=1e-4)
+
+
+def test_unconverged_answers_are_only_ok_when_they_are_feasible():
+    reach = di_reach()
+    N = 20
+    ref = sine_reference(11, N, 0.1)
+    a, b = planes_around(11, ref, 2, 0.0)
+    target = ref.copy()
+    target[1:-1, :2] += 0.3
+    for max_iter in (1, 3, 10, 30):
+        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2, max_iter=max_iter)
+        sol = mpc.solve(ref[0], target, (a, b))
+        if sol.ok:
+            assert np.all(reach.violation(sol.control_points, SAMPLES) <= 0.0)
+            assert dense_plane_violation(sol, a, b) <= 0.0
+        else:
+            assert sol.max_violation > 0.0 or sol.equality_residual > 0.0
+
+
+def test_solution_becomes_a_com_reference_message():
+    reach = di_reach()
+    N = 10
+    mpc = bm.BezierMpc(reach, N, WEIGHTS)
+    ref = sine_reference(5, N, 0.1)
+    sol = mpc.solve(ref[0], ref)
+    assert sol.ok
+    msg = decode(encode(sol.to_com_reference(t_ref_ns=123, stamp_ns=100)), ComReference)
+    assert not msg.hold and msg.t_ref_ns == 123 and len(msg.segments) == N
+    assert msg.segments[3].t0 == pytest.approx(0.3) and msg.segments[3].duration == pytest.approx(0.1)
+    np.testing.assert_allclose(msg.segments[3].control_points, sol.control_points[3])
+    # evaluating the whole trajectory matches per-segment evaluation
+    t = np.array([0.0, 0.05, 0.35, sol.duration])
+    np.testing.assert_allclose(sol.evaluate(t)[2], bz.evaluate(sol.control_points[3], 0.1, 0.05), atol=1e-12)
+    np.testing.assert_allclose(sol.evaluate(t)[-1], sol.waypoints[-1, :2], atol=1e-9)
+    np.testing.assert_allclose(sol.evaluate(t, 1)[0], sol.waypoints[0, 2:], atol=1e-9)
