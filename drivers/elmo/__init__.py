@@ -1,0 +1,1 @@
+"""ELMO drives over CANopen (CiA 301 / CiA 402): codec, transport, SDO, device, emulator."""

@@ -1,0 +1,1 @@
+"""Teensy microcontroller over a framed serial link: protocol, transport, device, emulator."""
