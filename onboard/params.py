@@ -105,6 +105,7 @@ class EstimatorParams:
     tilt_std_rad: float = 0.03  # [rad] accelerometer gravity direction, when quasi-static
     static_accel_tol_m_s2: float = 0.3  # [m/s^2] | |accel| - g | below this: quasi-static
     static_gyro_max_rad_s: float = 0.2  # [rad/s] body rate below this: quasi-static
+    static_hold_s: float = 0.2  # [s] quasi-static this long before gravity is trusted
     # Initial uncertainty (before the first pose).
     init_pos_std_m: float = 10.0
     init_vel_std_m_s: float = 2.0
@@ -134,21 +135,21 @@ class ControlParams:
     rate_hz: float = 1000.0  # control loop rate [Hz]
     auto_arm: bool = True  # arm on the first valid estimate (else wait for an arm request)
     # flight: quaternion PD (thesis 2201-2216)
-    kp_tilt: float = 10.0  # [N m/rad] roll and pitch
-    kd_tilt: float = 0.9  # [N m s/rad]
+    kp_tilt: float = 40.0  # [N m/rad] roll and pitch
+    kd_tilt: float = 3.0  # [N m s/rad]
     kp_yaw: float = 2.0  # [N m/rad]
     kd_yaw: float = 0.25  # [N m s/rad]
     attitude_log: bool = False  # error map: False = 2 Im(q_d^-1 q) (thesis default), True = Log
     # ground: flywheel spin-down u = -gamma * wheel speed (thesis 2723-2731)
-    spin_down_gamma: float = 0.01  # [N m s/rad]
+    spin_down_gamma: float = 0.03  # [N m s/rad]
     # foot: hop-height regulator (preload in flight, release at touchdown)
     hop_height: float = 0.10  # CoM rise from touchdown to apex [m]
     hop_gain: float = 0.5  # fraction of the hop-energy error corrected per hop
     loss_adapt: float = 0.2  # per-hop gain of the energy-loss estimate
     preload_max: float = 0.05  # [m] spring compression the cable may hold
-    spool_kp: float = 3.0  # spool position gain [N m/rad]
-    spool_kd: float = 0.08  # spool damping [N m s/rad]
-    release_slack: float = 0.015  # unwind this far [m of cable] past the foot at release
+    spool_kp: float = 10.0  # spool position gain [N m/rad]
+    spool_kd: float = 0.2  # spool damping [N m s/rad]
+    release_slack: float = 0.015  # at release unwind to this much cable [m] past the extended foot
     # phases
     min_flight_s: float = 0.05  # ignore a touchdown earlier than this after lift-off [s]
     min_stance_s: float = 0.02  # ignore a lift-off earlier than this after touchdown [s]
@@ -252,7 +253,64 @@ class PlannerParams:
     reference_horizon_s: float = 20.0  # [s] longest reference published (tail of the path dropped)
 
 
+@dataclass(frozen=True)
+class PerceptionParams:
+    """Depth image -> occupancy grid -> convex sets (:mod:`onboard.perception`), ``perception`` service.
+
+    Thesis 3100-3116 (Algorithm 4, convex free cells or convex obstacles) and 3336 (the
+    outdoor pipeline: depth at apex, segmentation, vertical binning, Algorithm 4).
+    Lengths [m], angles [deg], times [s]; cell counts in grid cells.
+    """
+
+    # service
+    rate_hz: float = 5.0  # polytope publication rate (issue: 4-20 Hz; the published node ran at 5)
+    mode: str = "obstacles"  # "free": convex free cells; "obstacles": convex obstacles
+    # point cloud
+    pixel_stride: int = 1  # use every n-th pixel in both directions
+    max_range_m: float = 6.0  # farther returns are dropped (depth noise grows with range^2)
+    # geometric segmentation: RANSAC ground plane, height and slope thresholds
+    ransac_iterations: int = 64
+    ransac_inlier_m: float = 0.03  # plane distance of a RANSAC inlier
+    ground_min_points: int = 30  # fewer inliers: fall back to the plane z = 0
+    ground_tilt_max_deg: float = 25.0  # a ground-plane candidate tilted more is rejected
+    ground_tol_m: float = 0.04  # points this close to the ground plane are ground
+    slope_max_deg: float = 25.0  # ground points whose surface is steeper are obstacles
+    obstacle_height_max_m: float = 1.0  # points higher above the ground are ignored (overhangs)
+    depth_jump_m: float = 0.10  # neighbours farther apart than this give no surface normal
+    seed: int = 0  # RANSAC and K-means randomness
+    # occupancy grid: world frame, square, follows the robot by whole cells
+    grid_cells: int = 200  # the published pipeline: 200 x 200 cells of 5 cm
+    resolution_m: float = 0.05
+    hit_evidence: float = 1.0  # added per view to a cell with obstacle points
+    miss_evidence: float = 0.5  # removed per view from a cell seen as ground
+    evidence_max: float = 3.0  # saturation, both signs
+    occupied_threshold: float = 0.9  # evidence at or above: occupied
+    free_threshold: float = 0.4  # evidence at or below minus this: free
+    decay_half_life_s: float = 10.0  # evidence of cells not seen in a view fades to unknown
+    carve_range_m: float = 4.0  # ground seen along a ray up to this range is free
+    footprint_radius_m: float = 0.15  # the robot stands here: free
+    recenter_distance_m: float = 2.0  # re-centre the grid when the robot is this far off centre
+    # convex free cells (Algorithm 4)
+    cluster_cells: int = 2500  # free cells per K-means cluster (sets k)
+    clusters_min: int = 2
+    clusters_max: int = 24
+    ellipse_sigmas: float = 3.0  # thesis: three standard deviations
+    kmeans_max_points: int = 4000  # K-means runs on blocks of cells, about this many
+    coverage_rounds: int = 3  # refits of the free cells the polygons missed
+    coverage_target: float = 0.95  # no more coverage rounds once reached
+    residual_min_cells: int = 12  # missed pieces smaller than this are left alone
+    repair_rounds: int = 2  # connectivity repairs between groups of polygons
+    repair_radius_cells: float = 6.0  # circle metric of repair and must-cover fits
+    # convex obstacles
+    obstacle_method: str = "hull"  # "hull" or "rect" (minimum-area rectangle, as the thesis)
+    obstacle_solidity_min: float = 0.6  # cells / hull area below which a blob is split
+    obstacle_split_min_cells: int = 8
+    obstacle_split_depth: int = 6  # halvings per blob at most
+    obstacles_max: int = 400
+
+
 SECTIONS: dict[str, type] = {
+    "perception": PerceptionParams,
     "planner": PlannerParams,
     "control": ControlParams,
     "safety": SafetyLimits,

@@ -14,7 +14,9 @@ import sys
 
 BENCHES: dict[str, tuple[str, str]] = {
     # subject: (module, one-line help)
+    "perception": ("services.bench_perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
     "messaging": ("services.bench_messaging", "Zenoh latency and loss between two processes at 1 kHz"),
+    "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
 }
 
 

@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "echo": ("services.cmd_introspect", "print decoded live messages of one topic"),
     "status": ("services.cmd_introspect", "list live services and their status"),
     "bench": ("services.bench", "measure speed and print figures"),
+    "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
 }
 
 

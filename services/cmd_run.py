@@ -10,6 +10,7 @@ from services.config import ConfigError, load_params
 from services.runtime import Service, add_service_arguments, run_service, setup_logging
 
 SERVICE_CLASSES: dict[str, str] = {
+    "perception": "services.perception:PerceptionService",
     "router": "services.router:RouterService",
 }
 

@@ -1,4 +1,4 @@
-"""Compiled inner loops of the free-space decomposition (numba, cached on disk).
+"""Compiled inner loops of perception (numba, cached on disk).
 
 Everything here is in cell units: cell ``[r, c]`` is the square ``[c, c+1] x [r, r+1]``.
 A fit is a few hundred squares and a few dozen halfplanes; in numpy its cost is call
@@ -450,3 +450,39 @@ def bfs_labels(tflat, flat, rows, cols):  # pragma: no cover - compiled
                 queue[tail] = j
                 tail += 1
     return dist, parent
+
+
+@njit(cache=True)
+def carve(cu, cv, eu, ev, include_end, rows, cols, seen_free):  # pragma: no cover - compiled
+    """Mark the cells a 2D ray from ``(cu, cv)`` to each ``(eu[i], ev[i])`` passes over.
+
+    Cell units. Cells strictly before the end cell are marked, the end cell too when
+    ``include_end[i]`` (a ground return). Amanatides-Woo grid traversal.
+    """
+    for i in range(eu.shape[0]):
+        x, y = cu, cv
+        dx, dy = eu[i] - x, ev[i] - y
+        c, r = int(math.floor(x)), int(math.floor(y))
+        ce, re = int(math.floor(eu[i])), int(math.floor(ev[i]))
+        sx = 1 if dx > 0 else -1
+        sy = 1 if dy > 0 else -1
+        tdx = abs(1.0 / dx) if dx != 0 else np.inf
+        tdy = abs(1.0 / dy) if dy != 0 else np.inf
+        tx = ((c + 1 - x) if dx > 0 else (x - c)) * tdx if dx != 0 else np.inf
+        ty = ((r + 1 - y) if dy > 0 else (y - r)) * tdy if dy != 0 else np.inf
+        steps = abs(ce - c) + abs(re - r)
+        for _ in range(steps + 1):
+            at_end = c == ce and r == re
+            if at_end and not include_end[i]:
+                break
+            if 0 <= r < rows and 0 <= c < cols:
+                seen_free[r, c] = True
+            if at_end:
+                break
+            if tx < ty:
+                tx += tdx
+                c += sx
+            else:
+                ty += tdy
+                r += sy
+    return

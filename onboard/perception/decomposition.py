@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from onboard.params import PerceptionParams
 from onboard.perception import _kernels as K
 from onboard.perception.geometry import ConvexPolygon
 
@@ -52,23 +53,6 @@ ELLIPSE_REGULARISATION_CELLS = 1.0  # keeps a one-cell-wide cluster's ellipse fr
 INTERIOR_TOL_CELLS = 1e-3  # "strictly inside": a cell centre this far within every face
 OVERLAP_TOL_CELLS = 1e-6  # polygons share more than this to count as overlapping
 _KMEANS_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
-
-
-@dataclass(frozen=True)
-class DecompositionParams:
-    """Tuning of the free-space decomposition."""
-
-    cluster_cells: int = 2500  # free cells per K-means cluster (sets k)
-    clusters_min: int = 2
-    clusters_max: int = 24
-    ellipse_sigmas: float = 3.0  # thesis: three standard deviations
-    kmeans_max_points: int = 4000  # K-means runs on blocks of cells, about this many
-    coverage_rounds: int = 3
-    coverage_target: float = 0.95  # stop the coverage rounds once this is reached
-    residual_min_cells: int = 12  # smaller uncovered pieces are left alone
-    repair_rounds: int = 2
-    repair_radius_cells: float = 6.0  # circle metric of repair and must-cover fits
-    seed: int = 0  # K-means initialisation (OpenCV's RNG)
 
 
 @dataclass
@@ -258,7 +242,7 @@ def _moments(labels: np.ndarray, u: np.ndarray, v: np.ndarray, k: int) -> np.nda
     return out
 
 
-def _kmeans_label_image(target: np.ndarray, k: int, params: DecompositionParams) -> np.ndarray:
+def _kmeans_label_image(target: np.ndarray, k: int, params: PerceptionParams) -> np.ndarray:
     """K-means cluster per target cell (-1 elsewhere).
 
     K-means runs on blocks of ``f x f`` cells holding any target cell (``f`` keeps the
@@ -329,7 +313,7 @@ def decompose_free_space(
     free: np.ndarray,
     res: float,
     origin: tuple[float, float],
-    params: DecompositionParams = DecompositionParams(),
+    params: PerceptionParams = PerceptionParams(),
     start: tuple[float, float] | None = None,
     must_cover: tuple[tuple[float, float], ...] = (),
 ) -> tuple[list[ConvexPolygon], DecompositionStats]:

@@ -1,0 +1,104 @@
+"""Convex obstacles from the occupied cells of a grid (thesis 3116, "union of convex obstacles").
+
+Each 8-connected group of occupied cells becomes one convex polygon that contains all
+of its cell squares: the convex hull of the squares (``method="hull"``) or the
+minimum-area rectangle around them (``method="rect"``, what the thesis fitted with
+OpenCV). A group that fills too little of its hull (an L-shaped wall, a ring of trees
+seen as one blob) is split with K-means into pieces that are each hulled, so the
+obstacles do not swallow the free space between their arms.
+"""
+
+from __future__ import annotations
+
+import math
+import cv2
+import numpy as np
+
+from onboard.params import PerceptionParams
+from onboard.perception.geometry import ConvexPolygon, polygon_from_points
+
+_SQUARE = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+_KMEANS_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
+
+
+def obstacles_from_mask(
+    occupied: np.ndarray, res: float, origin: tuple[float, float], params: PerceptionParams = PerceptionParams()
+) -> list[ConvexPolygon]:
+    """Convex polygons [m, world] covering every cell square of ``occupied`` (bool).
+
+    Rows of ``occupied`` run along world y, columns along x; ``origin`` [m] is the
+    lower-left corner of cell [0, 0] and ``res`` [m] the cell side.
+    """
+    if params.obstacle_method not in ("hull", "rect"):
+        raise ValueError(f"obstacle_method must be 'hull' or 'rect', got {params.obstacle_method!r}")
+    occ = np.ascontiguousarray(occupied, dtype=np.uint8)
+    n, labels = cv2.connectedComponents(occ, connectivity=8)
+    if n <= 1:
+        return []
+    rr, cc = np.nonzero(occ)
+    lab = labels[rr, cc]
+    order = np.argsort(lab, kind="stable")
+    groups = np.split(order, np.cumsum(np.bincount(lab, minlength=n))[:-1])[1:]
+    centres = np.column_stack([cc + 0.5, rr + 0.5])  # cell units
+    cv2.setRNGSeed(params.seed)
+    pieces: list[np.ndarray] = []
+    budget = params.obstacles_max - len(groups)
+    for g in groups:
+        budget = _split(centres[g], params, params.obstacle_split_depth, budget, pieces)
+    o = np.asarray(origin, dtype=float)
+    out = []
+    for pts in pieces:
+        poly = _cover(pts, params.obstacle_method)
+        out.append(ConvexPolygon(poly.A, res * poly.b + poly.A @ o, poly.vertices * res + o))
+    return out
+
+
+def _split(pts: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray]) -> int:
+    """Append ``pts`` (cell centres) or its K-means halves to ``out``; returns the budget left."""
+    if depth > 0 and budget > 0 and len(pts) >= params.obstacle_split_min_cells:
+        hull = _cover(pts, "hull")
+        if len(pts) < params.obstacle_solidity_min * hull.area:
+            _, lab, _ = cv2.kmeans(pts.astype(np.float32), 2, None, _KMEANS_CRITERIA, 1, cv2.KMEANS_PP_CENTERS)
+            lab = lab.ravel()
+            if 0 < int(lab.sum()) < len(lab):
+                budget -= 1
+                budget = _split(pts[lab == 0], params, depth - 1, budget, out)
+                return _split(pts[lab == 1], params, depth - 1, budget, out)
+    out.append(pts)
+    return budget
+
+
+def _cover(centres: np.ndarray, method: str) -> ConvexPolygon:
+    """Convex polygon [cells] containing the unit squares centred at ``centres``."""
+    hull_idx = cv2.convexHull(centres.astype(np.float32), returnPoints=False).ravel()
+    # Hull of the squares = hull of the centres' hull vertices, each grown to a square
+    # (exact in float64; the centres are half-integers, so float32 lost nothing above).
+    corners = (centres[hull_idx][:, None, :] + _SQUARE[None]).reshape(-1, 2)
+    poly = polygon_from_points(corners)
+    assert poly is not None  # four corners of a unit square at least
+    if method == "hull":
+        return poly
+    return _min_area_rect(poly.vertices)
+
+
+def _min_area_rect(hull: np.ndarray) -> ConvexPolygon:
+    """Smallest rectangle containing a convex polygon: one side lies on a hull edge."""
+    best: tuple[float, float, float, float, float, float] | None = None
+    n = len(hull)
+    for i in range(n):
+        e = hull[(i + 1) % n] - hull[i]
+        ang = math.atan2(e[1], e[0])
+        c, s = math.cos(ang), math.sin(ang)
+        u = hull[:, 0] * c + hull[:, 1] * s
+        v = -hull[:, 0] * s + hull[:, 1] * c
+        area = float((u.max() - u.min()) * (v.max() - v.min()))
+        if best is None or area < best[0]:
+            best = (area, ang, float(u.min()), float(u.max()), float(v.min()), float(v.max()))
+    assert best is not None
+    _, ang, u0, u1, v0, v1 = best
+    c, s = math.cos(ang), math.sin(ang)
+    ax, ay = np.array([c, s]), np.array([-s, c])
+    verts = np.array([u0 * ax + v0 * ay, u1 * ax + v0 * ay, u1 * ax + v1 * ay, u0 * ax + v1 * ay])
+    A = np.array([ay * -1.0, ax, ay, -ax])
+    b = np.array([-v0, u1, v1, -u0])
+    return ConvexPolygon(A, b, verts)

@@ -1,0 +1,146 @@
+"""World-frame occupancy grid fused over views, with decay (thesis 3336: vertical binning).
+
+Labelled points are binned vertically into square cells. Each view adds evidence:
+``+hit`` to a cell holding obstacle points, ``-miss`` to a cell seen as ground (a
+ground return in it, or a ray passing over it on its way to a return within the
+carving range). Evidence saturates at ``+-evidence_max``; cells a view does not see
+fade to unknown with a half-life, so what moved away is forgotten. The grid follows
+the robot by whole cells, so it stays aligned with the world axes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
+from onboard.params import PerceptionParams
+from onboard.perception import _kernels as K
+from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE
+
+
+class OccupancyMap:
+    """Evidence per cell; positive = occupied. Rows along world y, columns along x."""
+
+    def __init__(self, params: PerceptionParams = PerceptionParams(), centre: tuple[float, float] = (0.0, 0.0)) -> None:
+        if params.grid_cells < 2 or not params.resolution_m > 0:
+            raise ValueError("grid needs at least 2 cells and a positive resolution")
+        self.params = params
+        self.res = params.resolution_m
+        n = params.grid_cells
+        self.evidence = np.zeros((n, n), dtype=np.float32)
+        half = 0.5 * n * self.res
+        self.origin = (self._snap(centre[0] - half), self._snap(centre[1] - half))
+        self.last_stamp_s: float | None = None
+        self.views = 0
+
+    def _snap(self, x: float) -> float:
+        return math.floor(x / self.res) * self.res
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.evidence.shape  # type: ignore[return-value]
+
+    def centre(self) -> tuple[float, float]:
+        half = 0.5 * self.params.grid_cells * self.res
+        return self.origin[0] + half, self.origin[1] + half
+
+    def follow(self, x: float, y: float) -> bool:
+        """Shift the grid by whole cells to centre it on ``(x, y)`` [m] when the robot is
+        ``recenter_distance_m`` off centre; new cells are unknown. True if it moved."""
+        cx, cy = self.centre()
+        if max(abs(x - cx), abs(y - cy)) < self.params.recenter_distance_m:
+            return False
+        n = self.params.grid_cells
+        dc = int(round((x - cx) / self.res))
+        dr = int(round((y - cy) / self.res))
+        shifted = np.zeros_like(self.evidence)
+        src_r = slice(max(dr, 0), n + min(dr, 0))
+        dst_r = slice(max(-dr, 0), n + min(-dr, 0))
+        src_c = slice(max(dc, 0), n + min(dc, 0))
+        dst_c = slice(max(-dc, 0), n + min(-dc, 0))
+        if abs(dr) < n and abs(dc) < n:
+            shifted[dst_r, dst_c] = self.evidence[src_r, src_c]
+        self.evidence = shifted
+        self.origin = (self.origin[0] + dc * self.res, self.origin[1] + dr * self.res)
+        return True
+
+    def integrate(
+        self,
+        points: np.ndarray,
+        labels: np.ndarray,
+        sensor_xy: tuple[float, float],
+        stamp_s: float,
+        footprint_xy: tuple[float, float] | None = None,
+    ) -> None:
+        """Fuse one view: ``points`` ``(N, 3)`` world [m] with ``labels`` ``(N,)``.
+
+        ``sensor_xy`` [m] is where the rays start (the camera, projected); ``stamp_s``
+        [s] the capture time (decay uses the time since the previous view);
+        ``footprint_xy`` [m], the robot's position, is cleared to free.
+        """
+        p = self.params
+        if not math.isfinite(stamp_s):
+            raise ValueError("view stamp is not finite")
+        rows, cols = self.shape
+        ox, oy = self.origin
+        u = (points[:, 0] - ox) / self.res
+        v = (points[:, 1] - oy) / self.res
+        fin = np.isfinite(u) & np.isfinite(v)
+        inside = fin & (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        c = np.where(inside, u, 0).astype(np.intp)
+        r = np.where(inside, v, 0).astype(np.intp)
+        occ = np.zeros(self.shape, dtype=bool)
+        occ[r[inside & (labels == OCCUPIED)], c[inside & (labels == OCCUPIED)]] = True
+        ground = np.zeros(self.shape, dtype=bool)
+        ground[r[inside & (labels == TRAVERSABLE)], c[inside & (labels == TRAVERSABLE)]] = True
+        # Rays over the ground to every return within the carving range.
+        su, sv = (sensor_xy[0] - ox) / self.res, (sensor_xy[1] - oy) / self.res
+        ray = fin & (labels != 0)
+        ray &= np.hypot(u - su, v - sv) * self.res <= p.carve_range_m
+        if math.isfinite(su) and math.isfinite(sv) and np.any(ray):
+            K.carve(float(su), float(sv), u[ray].astype(float), v[ray].astype(float),
+                    labels[ray] == TRAVERSABLE, rows, cols, ground)
+        seen = occ | ground
+        if self.last_stamp_s is not None and p.decay_half_life_s > 0:
+            dt = max(stamp_s - self.last_stamp_s, 0.0)
+            self.evidence[~seen] *= np.float32(0.5 ** (dt / p.decay_half_life_s))
+        self.last_stamp_s = stamp_s if self.last_stamp_s is None else max(stamp_s, self.last_stamp_s)
+        e = self.evidence
+        e[occ] += p.hit_evidence
+        free_now = ground & ~occ
+        e[free_now] -= p.miss_evidence
+        np.clip(e, -p.evidence_max, p.evidence_max, out=e)
+        if footprint_xy is not None:
+            self.clear_disc(footprint_xy, p.footprint_radius_m)
+        self.views += 1
+
+    def clear_disc(self, xy: tuple[float, float], radius: float) -> None:
+        """Set the cells whose centre is within ``radius`` [m] of ``xy`` [m] to free."""
+        rows, cols = self.shape
+        cu = (xy[0] - self.origin[0]) / self.res
+        cv = (xy[1] - self.origin[1]) / self.res
+        if not (math.isfinite(cu) and math.isfinite(cv)):
+            return
+        k = radius / self.res
+        c0, c1 = max(int(cu - k) - 1, 0), min(int(cu + k) + 2, cols)
+        r0, r1 = max(int(cv - k) - 1, 0), min(int(cv + k) + 2, rows)
+        if c0 >= c1 or r0 >= r1:
+            return
+        uu, vv = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
+        disc = (uu - cu) ** 2 + (vv - cv) ** 2 <= k * k
+        self.evidence[r0:r1, c0:c1][disc] = -self.params.evidence_max
+
+    def occupied(self) -> np.ndarray:
+        return self.evidence >= self.params.occupied_threshold
+
+    def free(self) -> np.ndarray:
+        return self.evidence <= -self.params.free_threshold
+
+    def grid(self, stamp_ns: int = 0, seq: int = 0) -> OccupancyGrid:
+        """The binary message: 0 free, 100 occupied, 255 unknown."""
+        cells = np.full(self.shape, CELL_UNKNOWN, dtype=np.uint8)
+        cells[self.free()] = CELL_FREE
+        cells[self.occupied()] = CELL_OCCUPIED
+        return OccupancyGrid(cells, self.res, self.origin, stamp_ns, seq)

@@ -1,0 +1,103 @@
+"""The whole perception chain in one object: views in, convex sets out (pure, no clock).
+
+    view = Perception(params)
+    view.integrate(depth_image, robot_xy=(x, y))       # each depth image, at apex
+    polys, stats = view.polytopes(robot_xy=(x, y))     # at the publication rate
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, DepthImage, OccupancyGrid
+from onboard.params import PerceptionParams
+from onboard.perception.decomposition import DecompositionStats, decompose_free_space
+from onboard.perception.geometry import ConvexPolygon
+from onboard.perception.obstacles import obstacles_from_mask
+from onboard.perception.occupancy import OccupancyMap
+from onboard.perception.pointcloud import depth_to_points
+from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, Cloud, GeometricSegmenter, Segmenter
+
+MODES = ("free", "obstacles")
+NS = 1_000_000_000
+
+
+@dataclass
+class ViewStats:
+    points: int = 0
+    traversable: int = 0
+    occupied: int = 0
+    ground_inliers: int = 0
+    extras: dict[str, float] = field(default_factory=dict)
+
+
+class Perception:
+    """Depth images -> fused occupancy grid -> convex free cells or convex obstacles."""
+
+    def __init__(self, params: PerceptionParams = PerceptionParams(), segmenter: Segmenter | None = None,
+                 centre: tuple[float, float] = (0.0, 0.0)) -> None:
+        if params.mode not in MODES:
+            raise ValueError(f"perception mode must be one of {MODES}, got {params.mode!r}")
+        self.params = params
+        self.segmenter: Segmenter = segmenter if segmenter is not None else GeometricSegmenter(params)
+        self.map = OccupancyMap(params, centre)
+
+    def integrate(self, img: DepthImage, robot_xy: tuple[float, float] | None = None) -> ViewStats:
+        """Fuse one depth image (its ``stamp_ns`` is the capture time)."""
+        p = self.params
+        if robot_xy is not None:
+            if not all(math.isfinite(v) for v in robot_xy):
+                raise ValueError("robot position is not finite")
+            self.map.follow(*robot_xy)
+        pts, valid = depth_to_points(img, p.max_range_m, p.pixel_stride)
+        labels = self.segmenter.segment(Cloud(pts, valid, np.asarray(img.cam_pos, dtype=float)))
+        keep = labels != 0
+        flat_pts = pts[keep]
+        flat_lab = labels[keep]
+        cam = (float(img.cam_pos[0]), float(img.cam_pos[1]))
+        self.map.integrate(flat_pts, flat_lab, cam, img.stamp_ns / NS, robot_xy)
+        plane = getattr(self.segmenter, "plane", None)
+        return ViewStats(
+            points=int(valid.sum()),
+            traversable=int((flat_lab == TRAVERSABLE).sum()),
+            occupied=int((flat_lab == OCCUPIED).sum()),
+            ground_inliers=int(plane.inliers) if plane is not None else 0,
+        )
+
+    def grid(self, stamp_ns: int = 0, seq: int = 0) -> OccupancyGrid:
+        return self.map.grid(stamp_ns, seq)
+
+    def polytopes(
+        self,
+        mode: str | None = None,
+        robot_xy: tuple[float, float] | None = None,
+        must_cover: tuple[tuple[float, float], ...] = (),
+    ) -> tuple[list[ConvexPolygon], dict[str, float]]:
+        """Convex sets of the current grid (see :func:`polytopes_of_grid`)."""
+        return polytopes_of_grid(self.map.grid(), self.params, mode or self.params.mode, robot_xy, must_cover)
+
+
+def polytopes_of_grid(
+    grid: OccupancyGrid,
+    params: PerceptionParams,
+    mode: str,
+    robot_xy: tuple[float, float] | None = None,
+    must_cover: tuple[tuple[float, float], ...] = (),
+) -> tuple[list[ConvexPolygon], dict[str, float]]:
+    """Convex free cells in the robot's free region (unknown counts as blocked), or
+    convex obstacles around the occupied cells (unknown counts as free), with counts."""
+    if mode == "free":
+        polys, st = decompose_free_space(grid.cells == CELL_FREE, grid.resolution, grid.origin, params,
+                                         start=robot_xy, must_cover=must_cover)
+        return polys, _dec_stats(st)
+    if mode == "obstacles":
+        polys = obstacles_from_mask(grid.cells == CELL_OCCUPIED, grid.resolution, grid.origin, params)
+        return polys, {"polygons": float(len(polys))}
+    raise ValueError(f"perception mode must be one of {MODES}, got {mode!r}")
+
+
+def _dec_stats(st: DecompositionStats) -> dict[str, float]:
+    return {k: float(v) for k, v in vars(st).items()}

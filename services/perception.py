@@ -1,0 +1,128 @@
+"""The ``perception`` service: depth images to convex sets for the planner.
+
+Subscribes: ``depth`` (binary DepthImage, captured at apex; every image is fused),
+``state`` (robot position: the grid follows the robot, its footprint counts as free,
+and ``free`` mode decomposes the robot's free region), ``goal`` (kept inside a free
+cell in ``free`` mode).
+Computes: :class:`onboard.perception.pipeline.Perception` - point cloud, segmentation,
+fused occupancy grid - then Algorithm 4 (``free``) or convex obstacles (``obstacles``)
+on a snapshot of the grid, off the event loop.
+Publishes: ``polytopes`` (PolytopeSet) at ``perception.rate_hz`` (4-20 Hz) once a
+view has been fused, and ``grid`` (binary OccupancyGrid) with it, for inspection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+from onboard import messages as m
+from onboard.binary_messages import DepthImage, encode_grid
+from onboard.perception.geometry import ConvexPolygon
+from onboard.perception.pipeline import MODES, Perception, polytopes_of_grid
+from services.runtime import Service
+
+RATE_MIN_HZ = 4.0  # the issue's band for the publication rate
+RATE_MAX_HZ = 20.0
+
+
+def to_message(poly: ConvexPolygon) -> m.Polytope:
+    return m.Polytope(A=poly.A.tolist(), b=poly.b.tolist(), vertices=poly.vertices.tolist())
+
+
+class PerceptionService(Service):
+    name = "perception"
+    params_sections = ("perception",)
+
+    async def setup(self) -> None:
+        self.view = self._new_view()
+        self._rebuild = False
+        self.state_slot = self.latest("state")
+        self.goal = self.latest("goal")
+        self.polytopes_pub = self.publisher("polytopes")
+        self.grid_pub = self.publisher("grid")
+        self.last_depth_stamp = -1
+        self.grid_seq = 0
+        self.compute_ms = 0.0
+        self.polygons = 0
+        self.subscribe("depth", self.on_depth)
+
+    def _new_view(self) -> Perception:
+        p = self.params["perception"]
+        if not RATE_MIN_HZ <= p.rate_hz <= RATE_MAX_HZ:
+            raise ValueError(f"perception.rate_hz must be within [{RATE_MIN_HZ}, {RATE_MAX_HZ}], got {p.rate_hz}")
+        if p.mode not in MODES:
+            raise ValueError(f"perception.mode must be one of {MODES}, got {p.mode!r}")
+        return Perception(p)
+
+    def on_params_changed(self, section: str) -> None:
+        self._rebuild = True  # grid size or thresholds may have changed: start a fresh map
+
+    def status_extra(self) -> dict[str, float]:
+        return {"compute_ms": self.compute_ms, "polygons": float(self.polygons), "views": float(self.view.map.views)}
+
+    def _robot_xy(self) -> tuple[float, float] | None:
+        got = self.state_slot.get()
+        if got is None:
+            return None
+        state: m.StateEstimate = got[0]
+        x, y = state.position[0], state.position[1]
+        if not (state.valid and math.isfinite(x) and math.isfinite(y)):
+            return None
+        return (x, y)
+
+    async def on_depth(self, img: DepthImage) -> None:
+        if img.stamp_ns <= self.last_depth_stamp:
+            self.count("rejected.depth_out_of_order")
+            return
+        try:
+            self.view.integrate(img, self._robot_xy())
+        except ValueError as exc:
+            self.count("rejected.depth")
+            self.fail(f"depth image: {exc}")
+            return
+        self.last_depth_stamp = img.stamp_ns
+        self.count("views")
+
+    async def main(self) -> None:
+        period = 1.0 / self.params["perception"].rate_hz
+        next_t = time.monotonic()
+        while not self.stopping.is_set():
+            if self._rebuild:
+                self._rebuild = False
+                try:
+                    self.view = self._new_view()
+                    period = 1.0 / self.params["perception"].rate_hz
+                except ValueError as exc:
+                    self.fail(str(exc))
+            if self.view.map.views > 0:
+                await self._publish()
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < 0:
+                self.count("overruns")
+                next_t = time.monotonic()
+                delay = 0.0
+            try:
+                await asyncio.wait_for(self.stopping.wait(), delay)
+            except asyncio.TimeoutError:
+                pass
+
+    async def _publish(self) -> None:
+        p = self.params["perception"]
+        now = self.clock.now_ns()
+        self.grid_seq += 1
+        grid = self.view.grid(now, self.grid_seq)  # a snapshot: fusing goes on meanwhile
+        robot = self._robot_xy()
+        cover: tuple[tuple[float, float], ...] = ()
+        if robot is not None:
+            goal = self.goal.get()
+            cover = (robot,) if goal is None else (robot, (goal[0].position[0], goal[0].position[1]))
+        t0 = time.perf_counter()
+        polys, _ = await asyncio.to_thread(polytopes_of_grid, grid, p, p.mode, robot if p.mode == "free" else None, cover)
+        self.compute_ms = (time.perf_counter() - t0) * 1e3
+        self.polygons = len(polys)
+        self.polytopes_pub.put(m.PolytopeSet(stamp_ns=now, mode=p.mode, polytopes=[to_message(q) for q in polys]))
+        self.grid_pub.put_bytes(encode_grid(grid))
+        self.rate("polytopes").tick()
