@@ -45,6 +45,7 @@ VERTEX_MERGE_TOL = 1e-9  # [m] consecutive vertices closer than this are a repea
 GAP_EPS = 1e-9  # [m] a gap must beat the margin by this much (float round-off)
 QP_TOL = 1e-7  # OSQP absolute/relative tolerance for the distance QP
 QP_MARGIN_SLACK = 1e-4  # [m] the QP answer is trusted only this far from the margin
+SET_TOL = 1e-8  # [m] round-off accepted on the faces of a free polygon
 EMPTY_CELL_SIZE = 1.0  # [m] broad-phase cell when there is nothing to size it by
 
 
@@ -231,8 +232,7 @@ def hull_set(points: np.ndarray) -> HullSet:
 # --- compiled kernels ------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline="always")
-def _hull_clear_of_polygon(pts, axes, verts, norms, offs, margin):  # pragma: no cover - compiled
+def _hull_clear_of_polygon_impl(pts, axes, verts, norms, offs, margin):  # pragma: no cover - compiled
     """True iff dist(conv(pts), polygon) > margin (exact; see the module docstring)."""
     K = pts.shape[0]
     n = verts.shape[0]
@@ -300,6 +300,10 @@ def _hull_clear_of_polygon(pts, axes, verts, norms, offs, margin):  # pragma: no
     return False
 
 
+_hull_clear_of_polygon = nb.njit(cache=True, inline="always")(_hull_clear_of_polygon_impl)
+_hull_clear_of_polygon_py = nb.njit(cache=True)(_hull_clear_of_polygon_impl)
+
+
 @nb.njit(cache=True)
 def _bin_boxes(aabb, x0, y0, h, nx, ny):  # pragma: no cover - compiled
     """Uniform-grid bins of boxes: CSR (start, items) over cells, and each box's cell range."""
@@ -330,8 +334,7 @@ def _bin_boxes(aabb, x0, y0, h, nx, ny):  # pragma: no cover - compiled
     return start, items, ranges
 
 
-@nb.njit(cache=True, parallel=True)
-def _cut_obstacles_kernel(pts, aabb, center, radius, axes, active,
+def _cut_obstacles_kernel_py(pts, aabb, center, radius, axes, active,
                           verts, offsets, norms, face_offs, oaabb, ocenter, oradius,
                           start, items, oranges, x0, y0, h, nx, ny, margin):  # pragma: no cover - compiled
     E = pts.shape[0]
@@ -377,35 +380,34 @@ def _cut_obstacles_kernel(pts, aabb, center, radius, axes, active,
     return blocked
 
 
-@nb.njit(cache=True, parallel=True)
-def _cut_free_kernel(pts, active, norms, face_offs, offsets, start, items, x0, y0, h, nx, ny, margin):  # pragma: no cover
+def _free_cell_kernel_py(pts, active, norms, face_offs, offsets, start, items, x0, y0, h, nx, ny, margin):  # pragma: no cover
+    """Index of the first cell holding every control point ``margin`` deep, or -1."""
     E = pts.shape[0]
     K = pts.shape[1]
-    blocked = np.zeros(E, dtype=np.bool_)
+    found = np.full(E, -1, dtype=np.int64)
     for e in nb.prange(E):
         if not active[e]:
             continue
         cx = int(math.floor((pts[e, 0, 0] - x0) / h))
         cy = int(math.floor((pts[e, 0, 1] - y0) / h))
-        inside_any = False
-        if 0 <= cx < nx and 0 <= cy < ny:
-            c = cy * nx + cx
-            for kk in range(start[c], start[c + 1]):
-                o = items[kk]
-                inside = True
-                for f in range(offsets[o], offsets[o + 1]):
-                    lim = face_offs[f] - margin - GAP_EPS
-                    for k in range(K):
-                        if norms[f, 0] * pts[e, k, 0] + norms[f, 1] * pts[e, k, 1] > lim:
-                            inside = False
-                            break
-                    if not inside:
+        if not (0 <= cx < nx and 0 <= cy < ny):
+            continue
+        c = cy * nx + cx
+        for kk in range(start[c], start[c + 1]):
+            o = items[kk]
+            inside = True
+            for f in range(offsets[o], offsets[o + 1]):
+                lim = face_offs[f] - margin - GAP_EPS
+                for k in range(K):
+                    if norms[f, 0] * pts[e, k, 0] + norms[f, 1] * pts[e, k, 1] > lim:
+                        inside = False
                         break
-                if inside:
-                    inside_any = True
+                if not inside:
                     break
-        blocked[e] = not inside_any
-    return blocked
+            if inside:
+                found[e] = o
+                break
+    return found
 
 
 @nb.njit(cache=True, inline="always")
@@ -436,8 +438,7 @@ def _point_polygon_distance(px, py, verts, norms, offs):  # pragma: no cover - c
     return best
 
 
-@nb.njit(cache=True, parallel=True)
-def _samples_clearance_kernel(samples, verts, offsets, norms, face_offs, oaabb, start, items, x0, y0, h, nx, ny, reach):  # pragma: no cover
+def _samples_clearance_kernel_py(samples, verts, offsets, norms, face_offs, oaabb, start, items, x0, y0, h, nx, ny, reach):  # pragma: no cover
     """Per curve, the smallest signed distance of its samples to any polygon within ``reach``."""
     E = samples.shape[0]
     S = samples.shape[1]
@@ -559,6 +560,18 @@ def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, ora
     return out
 
 
+# Each kernel in two builds: threads pay off on large batches only (a parallel launch
+# costs milliseconds on a loaded machine, more than a small batch takes).
+PARALLEL_MIN = 4096  # curves below which the serial build runs
+_cut_obstacles_kernel = (nb.njit(cache=True)(_cut_obstacles_kernel_py), nb.njit(cache=True, parallel=True)(_cut_obstacles_kernel_py))
+_free_cell_kernel = (nb.njit(cache=True)(_free_cell_kernel_py), nb.njit(cache=True, parallel=True)(_free_cell_kernel_py))
+_samples_clearance_kernel = (nb.njit(cache=True)(_samples_clearance_kernel_py), nb.njit(cache=True, parallel=True)(_samples_clearance_kernel_py))
+
+
+def _pick(kernels: tuple, count: int):
+    return kernels[count >= PARALLEL_MIN]
+
+
 # --- public entry points ----------------------------------------------------------------
 
 
@@ -606,25 +619,36 @@ def cut_obstacles(hulls: HullSet, obstacles: PolygonSet, margin: float, active: 
     cell = max(_typical_extent(obstacles.aabb) + 2 * margin, _typical_extent(hulls.aabb))
     grid = _grid_for(obstacles.aabb, cell, margin)
     start, items, oranges = _bin_boxes(obstacles.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
-    return _cut_obstacles_kernel(
+    return _pick(_cut_obstacles_kernel, E)(
         hulls.points, hulls.aabb, hulls.center, hulls.radius, hulls.axes, act,
         obstacles.vertices, obstacles.offsets, obstacles.normals, obstacles.face_offsets,
         obstacles.aabb, obstacles.center, obstacles.radius,
         start, items, oranges, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
 
 
-def cut_free_cells(hulls: HullSet, cells: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
-    """``blocked[e]``: no single free cell holds every control point of curve ``e`` ``margin`` deep."""
+def free_cell_of(hulls: HullSet, cells: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
+    """Per curve, the index of a free cell holding every control point ``margin`` [m] deep, or -1.
+
+    Inactive curves get -1.
+    """
     if margin < 0 or not math.isfinite(margin):
         raise ValueError(f"margin must be finite and >= 0, got {margin}")
     E = len(hulls)
     act = np.ones(E, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
-    if len(cells) == 0:
-        return act.copy()
+    if len(cells) == 0 or E == 0:
+        return np.full(E, -1, dtype=np.int64)
     grid = _grid_for(cells.aabb, max(_typical_extent(hulls.aabb), _typical_extent(cells.aabb) / 4), 0.0)
     start, items, _ = _bin_boxes(cells.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
-    return _cut_free_kernel(hulls.points, act, cells.normals, cells.face_offsets, cells.offsets,
-                            start, items, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
+    return _pick(_free_cell_kernel, E)(hulls.points, act, cells.normals, cells.face_offsets, cells.offsets,
+                             start, items, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
+
+
+def cut_free_cells(hulls: HullSet, cells: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
+    """``blocked[e]``: no single free cell holds every control point of active curve ``e`` ``margin`` deep."""
+    blocked = free_cell_of(hulls, cells, margin, active) < 0
+    if active is not None:
+        blocked &= np.asarray(active, dtype=bool)
+    return blocked
 
 
 def samples_clearance(samples: np.ndarray, obstacles: PolygonSet, reach: float) -> np.ndarray:
@@ -638,7 +662,7 @@ def samples_clearance(samples: np.ndarray, obstacles: PolygonSet, reach: float) 
         return np.full(len(samples), np.inf)
     grid = _grid_for(obstacles.aabb, max(_typical_extent(obstacles.aabb), reach), reach)
     start, items, _ = _bin_boxes(obstacles.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
-    return _samples_clearance_kernel(samples, obstacles.vertices, obstacles.offsets, obstacles.normals,
+    return _pick(_samples_clearance_kernel, len(samples))(samples, obstacles.vertices, obstacles.offsets, obstacles.normals,
                                      obstacles.face_offsets, obstacles.aabb, start, items,
                                      grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(reach))
 
@@ -661,6 +685,54 @@ def separating_halfspaces(points: np.ndarray, obstacles: PolygonSet, margin: flo
     return _halfspaces_kernel(hulls.points, hulls.axes, obstacles.vertices, obstacles.offsets,
                               obstacles.normals, obstacles.face_offsets, obstacles.center,
                               obstacles.radius, float(margin), int(count), float(reach))
+
+
+def _obstacles_near(points: np.ndarray, obstacles: PolygonSet, margin: float) -> np.ndarray:
+    """Indices of obstacles within ``margin`` of conv(points) ``(K, 2)`` (exact)."""
+    hulls = hull_set(points[None])
+    lo, hi = hulls.aabb[0, :2] - margin, hulls.aabb[0, 2:] + margin
+    box = obstacles.aabb
+    cand = np.flatnonzero(np.all(box[:, :2] <= hi, axis=1) & np.all(box[:, 2:] >= lo, axis=1))
+    hits = []
+    for o in cand:
+        a, b = obstacles.offsets[o], obstacles.offsets[o + 1]
+        if not _hull_clear_of_polygon_py(hulls.points[0], hulls.axes[0], obstacles.vertices[a:b],
+                                         obstacles.normals[a:b], obstacles.face_offsets[a:b], margin):
+            hits.append(o)
+    return np.array(hits, dtype=np.int64)
+
+
+def free_polygon(points: np.ndarray, obstacles: PolygonSet, margin: float, bounds: np.ndarray,
+                 seed_planes: int = 4, reach: float = 2.0, max_rounds: int = 20) -> np.ndarray:
+    """A convex polygon (CCW) holding conv(points) ``(K, 2)``, inside ``bounds``, ``margin`` clear of every obstacle.
+
+    Starts from the separating halfspaces to the ``seed_planes`` nearest obstacles and
+    adds the separating halfspace of any obstacle still within ``margin`` of the polygon
+    until none is. ``points`` must themselves be clear by ``margin``. Raises
+    :class:`PolygonError` when that does not hold or the rounds run out.
+    """
+    pts = np.asarray(points, dtype=float)
+    if len(_obstacles_near(pts, obstacles, margin)):
+        raise PolygonError("the points are not clear of the obstacles")
+    rows = separating_halfspaces(pts[None], obstacles, margin, seed_planes, reach)[0]
+    rows = [r for r in rows if np.isfinite(r[2])]
+    hulls = hull_set(pts[None])
+    (x0, y0), (x1, y1) = np.asarray(bounds, dtype=float)
+    box = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    for _ in range(max_rounds):
+        A = np.array([r[:2] for r in rows]).reshape(-1, 2)
+        b = np.array([r[2] for r in rows])
+        poly = validate_polygon(clip_polygon(box, A, b))
+        # The planes put the polygon exactly at the margin: accept round-off below it.
+        near = _obstacles_near(poly, obstacles, max(margin - SET_TOL, 0.0))
+        if len(near) == 0:
+            return poly
+        for o in near:
+            a, c = obstacles.offsets[o], obstacles.offsets[o + 1]
+            nx, ny, _, ho = _best_axis(hulls.points[0], hulls.axes[0], obstacles.vertices[a:c],
+                                       obstacles.normals[a:c], obstacles.face_offsets[a:c])
+            rows.append(np.array([-nx, -ny, -(ho + margin)]))
+    raise PolygonError("no clear polygon found")
 
 
 def hull_polygon_distance(points: np.ndarray, polygon: np.ndarray) -> float:

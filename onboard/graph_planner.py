@@ -1,0 +1,823 @@
+"""Kinodynamic Bezier graph planner: build, cut, search, refine (thesis ch. 7, lines 3067-3220).
+
+Planning model: the CoM double integrator in the horizontal plane, state
+``x = [px, py, vx, vy]`` (world frame, metres and m/s), input the CoM acceleration,
+bounded per axis (``PlannerParams.v_max``, ``a_max``).
+
+Pipeline (Algorithm 3):
+
+1. **Build** (:func:`build_graph`): ``N`` nodes over position and velocity (uniform
+   random or grid); candidate pairs come from a k-d tree over positions and velocities
+   scaled by the largest change one segment can make (an LP over the reachability
+   test, so the pruning drops no edge the test would accept); a pair is an edge iff
+   the Bezier reachability test ``F [x_i; x_j] <= G`` of :mod:`onboard.reachability`
+   holds (Theorem 6.2). Each edge carries its position control points and its cost,
+   the path-length bound of Property 2.49. The graph depends only on
+   :class:`GraphSpec`; :meth:`GraphSpec.key` names it for an on-disk cache, and
+   :meth:`BezierGraph.to_arrays` / :meth:`BezierGraph.from_arrays` convert it for the
+   caller, who does the file I/O.
+2. **Cut** (:mod:`onboard.collision`): edges whose control-point hull comes within
+   ``robot_radius + tube`` of a convex obstacle are removed (exact separating-axis
+   test), or, with free cells, edges not inside one cell. Edges leaving the planning
+   region are removed too.
+3. **Search** (:func:`search`): A* (admissible straight-line heuristic) from the
+   current state to the goal at rest. The start is the state itself, joined to the
+   graph by the same reachability test and cut, together with every node that
+   contains the state in its tube (Problem 7.1); the goal is joined the same way,
+   and graph nodes at rest within the goal tolerance also end a path.
+4. **Refine** (:meth:`GraphPlanner.refine`): the MPC of eq. 7.2 from
+   :mod:`onboard.bezier_mpc`, warm-started with the graph path, each segment kept on
+   the free side of separating halfspaces to its nearest obstacles; one SQP
+   iteration per call.
+
+In-process use (the lockstep runner, the ``planner`` service and ``archer plan`` all
+use it this way)::
+
+    planner = GraphPlanner(PlannerParams(), robot_radius=0.15)
+    planner.set_obstacles([poly, ...])          # convex polygons (k, 2) [m]; or set_free_cells
+    planner.set_goal((x, y), tolerance=0.1)
+    ref = planner.plan(position, velocity, stamp_ns)   # ComReference, or None: no path
+    ref = planner.refine(position, velocity, stamp_ns) # refined ComReference (100-200 Hz)
+    hold = planner.hold_reference(position, stamp_ns)  # hop in place when there is no path
+    wps = planner.waypoints(stamp_ns)                  # graph path and its convex sets
+
+``plan`` builds the graph itself when none fits the planning region; a caller with a
+cache supplies it first with :meth:`GraphPlanner.graph_spec_for` and
+:meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import heapq
+import json
+import math
+from dataclasses import asdict, dataclass, field
+
+import numba as nb
+import numpy as np
+from scipy.spatial import cKDTree
+
+from onboard import bezier as bz
+from onboard.bezier_mpc import BezierMpc, MpcWeights
+from onboard import collision as col
+from onboard import messages as msgs
+from onboard import reachability as reach
+from onboard.params import PlannerParams
+
+GRAPH_FORMAT = 1  # bump when the arrays or the build change meaning (invalidates caches)
+GAMMA = 2  # relative degree of the double integrator
+DIM = 2  # horizontal plane
+PRUNE_SLACK = 1e-9  # relative slack on the k-d tree radius (pairs exactly at the reach)
+SAMPLING = ("uniform", "grid")
+# MPC cost (eq. 7.2): stay near the graph path, but prefer a shorter, smoother curve
+# (thesis: "path length cost was scaled significantly higher than tracking cost").
+MPC_WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
+MPC_MIN_RADIUS = 2e-4  # [m, m/s] initial-state radii below this become equalities (MPC margin)
+
+
+class PlanningError(ValueError):
+    """Invalid planner input (bad obstacle, state outside the planning model, ...)."""
+
+
+# --- graph --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """Everything that shapes a graph; two equal specs give the same graph."""
+
+    bounds: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax of node positions [m]
+    nodes: int
+    v_max: float  # [m/s]
+    a_max: float  # [m/s^2]
+    tau: float  # [s] segment duration
+    sampling: str = "uniform"
+    seed: int = 0
+    grid_velocities: int = 3
+
+    def __post_init__(self) -> None:
+        xmin, ymin, xmax, ymax = self.bounds
+        values = (*self.bounds, self.v_max, self.a_max, self.tau)
+        if not all(math.isfinite(v) for v in values):
+            raise PlanningError("graph spec has a non-finite value")
+        if not (xmax > xmin and ymax > ymin):
+            raise PlanningError(f"empty planning region {self.bounds}")
+        if self.nodes < 2 or self.v_max <= 0 or self.a_max <= 0 or self.tau <= 0:
+            raise PlanningError("need nodes >= 2 and positive v_max, a_max, tau")
+        if self.sampling not in SAMPLING:
+            raise PlanningError(f"sampling must be one of {SAMPLING}, got {self.sampling!r}")
+        if self.grid_velocities < 1:
+            raise PlanningError("grid_velocities must be >= 1")
+
+    def key(self) -> str:
+        """Cache key: a hash of every field and the format version."""
+        blob = json.dumps({"format": GRAPH_FORMAT, **asdict(self)}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+    def reachability(self) -> reach.BezierReachability:
+        """The edge test: velocity box ``v_max`` and input bound ``a_max`` over segments of ``tau``.
+
+        Positions are not limited here: the planning region and the obstacles are
+        handled by the cut, so the graph does not depend on them or on the tube.
+        """
+        model = reach.double_integrator(DIM)
+        inf = math.inf
+        limits = reach.box_limits(model, self.a_max, [-inf, -inf, -self.v_max, -self.v_max],
+                                  [inf, inf, self.v_max, self.v_max])
+        return reach.BezierReachability(model, limits, self.tau)
+
+
+def spec_from_params(params: PlannerParams, bounds: tuple[float, float, float, float],
+                     nodes: int | None = None, seed: int | None = None) -> GraphSpec:
+    return GraphSpec(bounds=tuple(float(b) for b in bounds), nodes=int(params.nodes if nodes is None else nodes),
+                     v_max=params.v_max, a_max=params.a_max, tau=params.segment_s, sampling=params.sampling,
+                     seed=int(params.seed if seed is None else seed), grid_velocities=params.grid_velocities)
+
+
+@dataclass(frozen=True, eq=False)
+class BezierGraph:
+    """Directed graph of Bezier segments; edges sorted by source (CSR via ``indptr``)."""
+
+    spec: GraphSpec
+    nodes: np.ndarray  # (N, 4) [px, py, vx, vy]
+    src: np.ndarray  # (E,) int64
+    dst: np.ndarray  # (E,) int64
+    indptr: np.ndarray  # (N + 1,) edges of node i are indptr[i]:indptr[i+1]
+    control_points: np.ndarray  # (E, p + 1, 2) position control points [m]
+    cost: np.ndarray  # (E,) path-length bound [m] (Property 2.49)
+    reachability: reach.BezierReachability = field(repr=False)
+    hulls: col.HullSet = field(repr=False)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.src)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays that :meth:`from_arrays` restores (for an ``np.savez`` cache)."""
+        return {"key": np.array(self.spec.key()), "nodes": self.nodes, "src": self.src, "dst": self.dst,
+                "control_points": self.control_points, "cost": self.cost}
+
+    @classmethod
+    def from_arrays(cls, spec: GraphSpec, arrays: dict[str, np.ndarray]) -> BezierGraph:
+        """Rebuild from :meth:`to_arrays`; raises :class:`PlanningError` if they are not ``spec``'s."""
+        try:
+            key = str(arrays["key"])
+            nodes = np.asarray(arrays["nodes"], dtype=float)
+            src = np.asarray(arrays["src"], dtype=np.int64)
+            dst = np.asarray(arrays["dst"], dtype=np.int64)
+            ctrl = np.asarray(arrays["control_points"], dtype=float)
+            cost = np.asarray(arrays["cost"], dtype=float)
+        except KeyError as exc:
+            raise PlanningError(f"graph arrays lack {exc}") from None
+        if key != spec.key():
+            raise PlanningError("graph arrays belong to another spec")
+        E = len(src)
+        if (nodes.shape != (spec.nodes, 4) or dst.shape != (E,) or cost.shape != (E,) or ctrl.ndim != 3
+                or ctrl.shape[0] != E or ctrl.shape[2] != DIM or (E and (src.min() < 0 or dst.max() >= spec.nodes))
+                or np.any(np.diff(src) < 0)):
+            raise PlanningError("graph arrays are inconsistent")
+        return _assemble(spec, nodes, src, dst, ctrl, cost, spec.reachability())
+
+
+def _assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarray, ctrl: np.ndarray,
+              cost: np.ndarray, test: reach.BezierReachability) -> BezierGraph:
+    indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(src, minlength=len(nodes)), out=indptr[1:])
+    return BezierGraph(spec, np.ascontiguousarray(nodes), np.ascontiguousarray(src), np.ascontiguousarray(dst),
+                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl))
+
+
+def sample_nodes(spec: GraphSpec) -> np.ndarray:
+    """Graph nodes ``(N, 4)``: positions in the region, velocities in the box ``|v| <= v_max``."""
+    xmin, ymin, xmax, ymax = spec.bounds
+    v = spec.v_max
+    if spec.sampling == "uniform":
+        rng = np.random.default_rng(spec.seed)
+        pos = rng.uniform([xmin, ymin], [xmax, ymax], size=(spec.nodes, 2))
+        vel = rng.uniform(-v, v, size=(spec.nodes, 2))
+        return np.column_stack([pos, vel])
+    nv = spec.grid_velocities
+    per_cell = nv * nv
+    positions = max(spec.nodes // per_cell, 1)
+    aspect = (xmax - xmin) / (ymax - ymin)
+    nx = max(int(round(math.sqrt(positions * aspect))), 1)
+    ny = max(positions // nx, 1)
+    xs = np.linspace(xmin, xmax, nx) if nx > 1 else np.array([(xmin + xmax) / 2])
+    ys = np.linspace(ymin, ymax, ny) if ny > 1 else np.array([(ymin + ymax) / 2])
+    vs = np.linspace(-v, v, nv) if nv > 1 else np.zeros(1)
+    X, Y, VX, VY = np.meshgrid(xs, ys, vs, vs, indexing="ij")
+    grid = np.column_stack([X.ravel(), Y.ravel(), VX.ravel(), VY.ravel()])
+    if len(grid) < spec.nodes:  # fill the remainder uniformly so the node count is exact
+        rest = GraphSpec(spec.bounds, spec.nodes - len(grid), spec.v_max, spec.a_max, spec.tau, "uniform", spec.seed)
+        grid = np.vstack([grid, sample_nodes(rest)])
+    return grid[: spec.nodes]
+
+
+def reach_scale(test: reach.BezierReachability, a_max: float) -> np.ndarray:
+    """Per-coordinate bound on ``|x_j - x_i|`` over every pair the test accepts ``(4,)``.
+
+    Positions: an LP over the test (:meth:`BezierReachability.reach_radius`). Velocities:
+    the acceleration bound holds along the whole curve, so ``|dv| <= a_max tau``.
+    """
+    pos = test.reach_radius()
+    return np.array([pos[0], pos[1], a_max * test.tau, a_max * test.tau])
+
+
+def candidate_pairs(nodes: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ordered pairs ``(i, j)``, ``i != j``, with ``|x_j - x_i| <= scale`` per coordinate (k-d tree)."""
+    tree = cKDTree(nodes / scale)
+    pairs = tree.query_pairs(1.0 + PRUNE_SLACK, p=np.inf, output_type="ndarray")
+    i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
+    j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
+    return i, j
+
+
+def build_graph(spec: GraphSpec) -> BezierGraph:
+    """Sample nodes and connect every pair the reachability test accepts (see module docstring)."""
+    test = spec.reachability()
+    nodes = sample_nodes(spec)
+    i, j = candidate_pairs(nodes, reach_scale(test, spec.a_max))
+    ok = test.edge_table(nodes).test_pairs(i, j)
+    i, j = i[ok], j[ok]
+    order = np.lexsort((j, i))
+    i, j = i[order], j[order]
+    ctrl = test.curve(nodes[i], nodes[j])
+    return _assemble(spec, nodes, i, j, ctrl, bz.path_length_bound(ctrl), test)
+
+
+# --- search --------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True)
+def _astar(indptr, dst, cost, free, pos, start_nodes, start_costs, goal_costs, goal_x, goal_y, h_slack):  # pragma: no cover
+    """A* over graph nodes 0..N-1 plus a virtual start (its edges: start_nodes/start_costs)
+    and a virtual goal (edge from node n of cost goal_costs[n]; inf: none).
+
+    Returns (pred_node, pred_edge, goal_pred, total): pred_edge -1 marks a virtual start
+    edge; goal_pred is the node before the goal (-1: none found).
+    """
+    N = pos.shape[0]
+    dist = np.full(N, np.inf)
+    pred = np.full(N, -2, dtype=np.int64)  # -2 unvisited, -1 reached from the start
+    pred_edge = np.full(N, -1, dtype=np.int64)
+    closed = np.zeros(N, dtype=np.bool_)
+    heap = [(0.0, np.int64(0))]
+    heap.pop()
+    for k in range(start_nodes.shape[0]):
+        n = start_nodes[k]
+        if start_costs[k] < dist[n]:
+            dist[n] = start_costs[k]
+            pred[n] = -1
+            h = max(math.hypot(pos[n, 0] - goal_x, pos[n, 1] - goal_y) - h_slack, 0.0)
+            heapq.heappush(heap, (dist[n] + h, n))
+    best_goal = np.inf
+    goal_pred = -1
+    while len(heap) > 0:
+        f, n = heapq.heappop(heap)
+        if closed[n]:
+            continue
+        if f >= best_goal:
+            break
+        closed[n] = True
+        if dist[n] + goal_costs[n] < best_goal:
+            best_goal = dist[n] + goal_costs[n]
+            goal_pred = n
+        for e in range(indptr[n], indptr[n + 1]):
+            if not free[e]:
+                continue
+            m = dst[e]
+            d = dist[n] + cost[e]
+            if d < dist[m]:
+                dist[m] = d
+                pred[m] = n
+                pred_edge[m] = e
+                h = max(math.hypot(pos[m, 0] - goal_x, pos[m, 1] - goal_y) - h_slack, 0.0)
+                heapq.heappush(heap, (d + h, m))
+    return pred, pred_edge, goal_pred, best_goal
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """A path from the start to the goal: node states and the segments between them."""
+
+    states: np.ndarray  # (K + 1, 4) the start, graph nodes, the goal
+    control_points: np.ndarray  # (K, p + 1, 2) position control points of each segment [m]
+    tau: float  # [s] duration of every segment
+    cost: float  # [m] sum of path-length bounds
+    nodes: np.ndarray  # (K + 1,) graph node index per state, -1 for the virtual start / goal
+
+    @property
+    def duration(self) -> float:
+        return self.tau * len(self.control_points)
+
+
+def search(graph: BezierGraph, free: np.ndarray, start_state: np.ndarray, start_nodes: np.ndarray,
+           start_costs: np.ndarray, goal_state: np.ndarray, goal_costs: np.ndarray, goal_slack: float,
+           start_edge_ctrl: dict[int, np.ndarray], goal_edge_ctrl: dict[int, np.ndarray]) -> SearchResult | None:
+    """A* over ``graph`` with edge mask ``free`` between a virtual start and goal.
+
+    ``start_nodes``/``start_costs``: nodes reachable from the start and at what cost
+    (``start_edge_ctrl[n]`` the segment, absent for nodes that contain the start: no
+    segment). ``goal_costs[n]``: cost of ending at the goal from node ``n`` (``inf``:
+    not allowed; ``goal_edge_ctrl[n]`` the segment, absent when ``n`` is itself at the
+    goal). ``goal_slack`` [m] keeps the heuristic admissible for such nodes.
+    The virtual start-to-goal segment is node index ``N`` in both tables.
+    """
+    N = graph.n_nodes
+    pos = graph.nodes[:, :2]
+    direct = start_edge_ctrl.get(N)
+    sn = np.ascontiguousarray(start_nodes[start_nodes < N], dtype=np.int64)
+    sc = np.ascontiguousarray(start_costs[start_nodes < N], dtype=float)
+    pred, pred_edge, goal_pred, total = _astar(graph.indptr, graph.dst, graph.cost, free, pos, sn, sc,
+                                               np.ascontiguousarray(goal_costs[:N]), float(goal_state[0]),
+                                               float(goal_state[1]), float(goal_slack))
+    direct_cost = float(start_costs[start_nodes == N][0]) if direct is not None else math.inf
+    if direct is not None and direct_cost <= total:
+        return SearchResult(np.stack([start_state, goal_state]), direct[None], graph.spec.tau, direct_cost,
+                            np.array([-1, -1]))
+    if goal_pred < 0 or not math.isfinite(total):
+        return None
+    chain = [int(goal_pred)]
+    while pred[chain[-1]] >= 0:
+        chain.append(int(pred[chain[-1]]))
+    chain.reverse()
+    states = [start_state]
+    ctrl = []
+    first = chain[0]
+    if first in start_edge_ctrl:
+        ctrl.append(start_edge_ctrl[first])
+        states.append(graph.nodes[first])
+    else:  # the first node contains the start: the path begins there
+        states = [graph.nodes[first]]
+    for n in chain[1:]:
+        ctrl.append(graph.control_points[pred_edge[n]])
+        states.append(graph.nodes[n])
+    node_ids = ([-1] if first in start_edge_ctrl else []) + chain
+    if goal_pred in goal_edge_ctrl:
+        ctrl.append(goal_edge_ctrl[goal_pred])
+        states.append(goal_state)
+        node_ids.append(-1)
+    if not ctrl:  # already at a goal node: a zero-length stay
+        ctrl.append(np.repeat(graph.nodes[first][None, :2], graph.reachability.p + 1, axis=0))
+        states.append(graph.nodes[first])
+        node_ids.append(first)
+    return SearchResult(np.array(states), np.array(ctrl), graph.spec.tau, float(total), np.array(node_ids))
+
+
+# --- path sampling ---------------------------------------------------------------------
+
+
+def path_states(ctrl: np.ndarray, tau: float, times: np.ndarray) -> np.ndarray:
+    """States ``[px, py, vx, vy]`` ``(len(times), 4)`` of a chain of segments at ``times`` [s].
+
+    Times before 0 read the start; times after the end read the last point at rest
+    (the path ends at rest at the goal).
+    """
+    times = np.asarray(times, dtype=float)
+    K = len(ctrl)
+    end = K * tau
+    t = np.clip(times, 0.0, end)
+    seg = np.minimum((t / tau).astype(np.int64), K - 1)
+    local = t - seg * tau
+    s = local / tau
+    Z = bz.bernstein(ctrl.shape[1] - 1, s)  # (T, p + 1)
+    pos = np.einsum("tj,tjm->tm", Z, ctrl[seg])
+    vel_pts = bz.derivative_points(ctrl, tau, 1)  # (K, p + 1, 2)
+    vel = np.einsum("tj,tjm->tm", Z, vel_pts[seg])
+    vel[times >= end] = 0.0
+    return np.column_stack([pos, vel])
+
+
+def chain_tail(ctrl: np.ndarray, tau: float, t_from: float) -> list[tuple[float, np.ndarray]]:
+    """Segments of a chain from time ``t_from`` on, as ``(duration, control points)``."""
+    K = len(ctrl)
+    if t_from >= K * tau:
+        return []
+    k = int(t_from // tau)
+    a = (t_from - k * tau) / tau
+    out: list[tuple[float, np.ndarray]] = []
+    if a > 1e-9:
+        Q = bz.split_matrix(ctrl.shape[1] - 1, float(a), 1.0)
+        out.append(((1.0 - a) * tau, Q.T @ ctrl[k]))
+        k += 1
+    out.extend((tau, ctrl[i]) for i in range(k, K))
+    return out
+
+
+# --- the planner -----------------------------------------------------------------------
+
+
+@dataclass
+class PlannerStats:
+    """Counters and last timings a service reports (timings are filled by the caller)."""
+
+    plans: int = 0
+    no_path: int = 0
+    cuts: int = 0
+    graph_builds: int = 0
+    refines: int = 0
+    refine_failures: int = 0
+    edges_free: int = 0
+
+
+class GraphPlanner:
+    """The high-level planner of thesis ch. 7 as a pure object (see the module docstring).
+
+    ``robot_radius`` [m] and the tube (``PlannerParams.tube``, changed by
+    :meth:`set_tube`) inflate every obstacle: ``margin = robot_radius + tube``.
+    """
+
+    def __init__(self, params: PlannerParams, robot_radius: float, bounds: tuple[float, float, float, float] | None = None,
+                 nodes: int | None = None) -> None:
+        if not (math.isfinite(robot_radius) and robot_radius >= 0):
+            raise PlanningError(f"robot radius must be finite and >= 0, got {robot_radius}")
+        self.params = params
+        self.robot_radius = float(robot_radius)
+        self.tube = float(params.tube)
+        self.fixed_bounds = None if bounds is None else tuple(float(b) for b in bounds)
+        self.fixed_nodes = nodes
+        self.stats = PlannerStats()
+        self.graph: BezierGraph | None = None
+        self._tree: cKDTree | None = None
+        self._scale: np.ndarray | None = None
+        self.mode = "obstacles"
+        self.obstacles = col.pack_polygons([])
+        self.cells = col.pack_polygons([])
+        self._world_version = 0
+        self._cut_key: tuple | None = None
+        self.free: np.ndarray | None = None  # edge mask after the cut
+        self.edge_cell: np.ndarray | None = None  # free-cell mode: the cell of each edge
+        self.goal: np.ndarray | None = None
+        self.goal_tolerance = 0.0
+        self.path: SearchResult | None = None
+        self.path_t0_ns = 0  # clock time of the path's start
+        self.path_world_version = -1
+        self._mpc = None
+        self._mpc_tube = -1.0
+        self._last_solution = None
+        self._last_knot_ns = 0
+
+    # --- inputs ----------------------------------------------------------------------
+
+    @property
+    def margin(self) -> float:
+        """Clearance [m] the plan keeps from every obstacle: robot radius plus tube."""
+        return self.robot_radius + self.tube
+
+    def set_goal(self, position: tuple[float, float] | np.ndarray, tolerance: float = 0.1) -> None:
+        """Goal position [m] (world), reached at rest within ``tolerance`` [m]."""
+        g = np.asarray(position, dtype=float).reshape(-1)
+        if g.shape != (2,) or not np.all(np.isfinite(g)) or not (math.isfinite(tolerance) and tolerance >= 0):
+            raise PlanningError("goal must be a finite [x, y] with a finite tolerance >= 0")
+        changed = self.goal is None or not np.array_equal(g, self.goal) or tolerance != self.goal_tolerance
+        self.goal = g
+        self.goal_tolerance = float(tolerance)
+        if changed:
+            self.path = None
+
+    def set_obstacles(self, polygons: list) -> None:
+        """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
+        try:
+            packed = col.pack_polygons(list(polygons))
+        except col.PolygonError as exc:
+            raise PlanningError(f"obstacle: {exc}") from None
+        if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
+            return
+        self.mode = "obstacles"
+        self.obstacles = packed
+        self._world_version += 1
+
+    def set_free_cells(self, polygons: list) -> None:
+        """Convex free cells: a curve is free iff its control points lie in one cell."""
+        try:
+            packed = col.pack_polygons(list(polygons))
+        except col.PolygonError as exc:
+            raise PlanningError(f"free cell: {exc}") from None
+        if self.mode == "free" and _same_polygons(packed, self.cells):
+            return
+        self.mode = "free"
+        self.cells = packed
+        self._world_version += 1
+
+    def set_tube(self, tube: float) -> None:
+        """Plan with tube ``tube`` [m] from now on (a larger one after a broken promise)."""
+        if not (math.isfinite(tube) and tube >= 0):
+            raise PlanningError(f"tube must be finite and >= 0, got {tube}")
+        if tube != self.tube:
+            self.tube = float(tube)
+            self._world_version += 1
+
+    @property
+    def world_version(self) -> int:
+        """Increments whenever obstacles, cells or the tube change (a replan is due)."""
+        return self._world_version
+
+    # --- graph -------------------------------------------------------------------------
+
+    def region_for(self, position: np.ndarray) -> tuple[float, float, float, float]:
+        """Planning region: the fixed bounds, or start, goal and obstacles padded and snapped."""
+        if self.fixed_bounds is not None:
+            return self.fixed_bounds
+        pts = [np.asarray(position, float)[:2]]
+        if self.goal is not None:
+            pts.append(self.goal)
+        polys = self.obstacles if self.mode == "obstacles" else self.cells
+        if len(polys):
+            pts.extend([polys.aabb[:, :2].min(axis=0), polys.aabb[:, 2:].max(axis=0)])
+        pts_arr = np.array(pts)
+        q = self.params.bounds_quantum
+        lo = np.floor((pts_arr.min(axis=0) - self.params.bounds_padding) / q) * q
+        hi = np.ceil((pts_arr.max(axis=0) + self.params.bounds_padding) / q) * q
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    def graph_spec_for(self, position: np.ndarray) -> GraphSpec:
+        """The spec of the graph :meth:`plan` needs for a start at ``position``."""
+        bounds = self.region_for(position)
+        if self.graph is not None and self.fixed_bounds is None and _contains(self.graph.spec.bounds, position, self.goal):
+            return self.graph.spec  # the current region still holds start and goal: keep it
+        return spec_from_params(self.params, bounds, nodes=self.fixed_nodes)
+
+    def set_graph(self, graph: BezierGraph) -> None:
+        self.graph = graph
+        test = graph.reachability
+        self._scale = reach_scale(test, graph.spec.a_max)
+        self._tree = cKDTree(graph.nodes / self._scale)
+        self._cut_key = None
+        self.path = None
+
+    def _ensure_graph(self, position: np.ndarray) -> None:
+        spec = self.graph_spec_for(position)
+        if self.graph is None or self.graph.spec != spec:
+            self.set_graph(build_graph(spec))
+            self.stats.graph_builds += 1
+
+    # --- cut ---------------------------------------------------------------------------
+
+    def _blocked(self, hulls: col.HullSet) -> tuple[np.ndarray, np.ndarray]:
+        """Blocked mask and (free mode) containing cell of arbitrary curves."""
+        assert self.graph is not None
+        xmin, ymin, xmax, ymax = self.graph.spec.bounds
+        outside = ((hulls.aabb[:, 0] < xmin) | (hulls.aabb[:, 1] < ymin)
+                   | (hulls.aabb[:, 2] > xmax) | (hulls.aabb[:, 3] > ymax))
+        if self.mode == "free":
+            cell = col.free_cell_of(hulls, self.cells, self.margin, active=~outside)
+            return outside | (cell < 0), cell
+        return outside | col.cut_obstacles(hulls, self.obstacles, self.margin, active=~outside), np.full(len(hulls), -1)
+
+    def cut(self) -> np.ndarray:
+        """Recut the graph if the world, the tube or the graph changed; the free-edge mask."""
+        assert self.graph is not None
+        key = (id(self.graph), self._world_version)
+        if self._cut_key != key or self.free is None:
+            blocked, cell = self._blocked(self.graph.hulls)
+            self.free = ~blocked
+            self.edge_cell = cell
+            self._cut_key = key
+            self.stats.cuts += 1
+            self.stats.edges_free = int(self.free.sum())
+        return self.free
+
+    # --- plan ----------------------------------------------------------------------------
+
+    def _state(self, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        p = np.asarray(position, dtype=float).reshape(-1)[:2]
+        v = np.asarray(velocity, dtype=float).reshape(-1)[:2]
+        if p.shape != (2,) or v.shape != (2,) or not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
+            raise PlanningError("state must be finite position and velocity with at least x and y")
+        # The planning model cannot start faster than its bound; the tube absorbs the rest.
+        return np.concatenate([p, np.clip(v, -self.params.v_max, self.params.v_max)])
+
+    def _connect(self, x: np.ndarray, outgoing: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nodes joined to the virtual state ``x`` by a free segment: (nodes, costs, control points)."""
+        assert self.graph is not None and self._tree is not None
+        near = np.array(self._tree.query_ball_point(x / self._scale, 1.0 + PRUNE_SLACK, p=np.inf), dtype=np.int64)
+        if len(near) == 0:
+            return near, np.zeros(0), np.zeros((0, self.graph.reachability.p + 1, DIM))
+        test = self.graph.reachability
+        others = self.graph.nodes[near]
+        xs = np.broadcast_to(x, others.shape)
+        ok = test.test(xs, others) if outgoing else test.test(others, xs)
+        near, others = near[ok], others[ok]
+        ctrl = test.curve(xs[: len(near)], others) if outgoing else test.curve(others, xs[: len(near)])
+        if len(near):
+            blocked, _ = self._blocked(col.hull_set(ctrl))
+            near, ctrl = near[~blocked], ctrl[~blocked]
+        return near, bz.path_length_bound(ctrl), ctrl
+
+    def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0) -> msgs.ComReference | None:
+        """Cut (if needed) and search from the state at ``stamp_ns``; None when there is no path.
+
+        The result is also kept in :attr:`path` for :meth:`refine` and :meth:`waypoints`.
+        """
+        if self.goal is None:
+            raise PlanningError("no goal set")
+        x0 = self._state(position, velocity)
+        self._ensure_graph(x0[:2])
+        graph = self.graph
+        assert graph is not None
+        free = self.cut()
+        self.stats.plans += 1
+        N = graph.n_nodes
+        goal_state = np.array([self.goal[0], self.goal[1], 0.0, 0.0])
+        # Start: the state itself joined by free segments, plus nodes containing it in the tube.
+        s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True)
+        contains = np.flatnonzero(
+            (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
+            & np.all(np.abs(graph.nodes[:, 2:] - x0[2:]) <= self.params.start_speed_tol, axis=1))
+        start_edge_ctrl = {int(n): c for n, c in zip(s_nodes, s_ctrl)}
+        start_nodes = [s_nodes, contains]
+        start_costs = [s_costs, np.zeros(len(contains))]
+        for n in contains:
+            start_edge_ctrl.pop(int(n), None)  # containing the start beats joining it
+        direct_ok = graph.reachability.test(x0, goal_state)
+        if direct_ok:
+            direct = graph.reachability.curve(x0, goal_state)
+            if not self._blocked(col.hull_set(direct[None]))[0][0]:
+                start_edge_ctrl[N] = direct
+                start_nodes.append(np.array([N]))
+                start_costs.append(np.array([bz.path_length_bound(direct)]))
+        # Goal: nodes joined to the goal at rest, and nodes at rest within the tolerance.
+        g_nodes, g_costs, g_ctrl = self._connect(goal_state, outgoing=False)
+        goal_costs = np.full(N, np.inf)
+        goal_costs[g_nodes] = g_costs
+        goal_edge_ctrl = {int(n): c for n, c in zip(g_nodes, g_ctrl)}
+        at_goal = np.flatnonzero(
+            (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
+            & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
+        goal_costs[at_goal] = 0.0
+        for n in at_goal:
+            goal_edge_ctrl.pop(int(n), None)
+        result = search(graph, free, x0, np.concatenate(start_nodes).astype(np.int64),
+                        np.concatenate(start_costs), goal_state, goal_costs,
+                        self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl)
+        self.path = result
+        self.path_t0_ns = int(stamp_ns)
+        self.path_world_version = self._world_version
+        self._last_solution = None
+        if result is None:
+            self.stats.no_path += 1
+            return None
+        return self.path_reference(stamp_ns)
+
+    def path_reference(self, stamp_ns: int = 0) -> msgs.ComReference:
+        """The graph path as the CoM reference (time 0 at the path's start)."""
+        assert self.path is not None
+        segs = [msgs.BezierSegment(t0=k * self.path.tau, duration=self.path.tau, control_points=c.tolist())
+                for k, c in enumerate(self.path.control_points)]
+        return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=self.path_t0_ns, segments=segs, hold=False)
+
+    def hold_reference(self, position: np.ndarray, stamp_ns: int = 0) -> msgs.ComReference:
+        """Hop in place at ``position``: one constant segment, ``hold=True``."""
+        p = [float(v) for v in np.asarray(position, dtype=float).reshape(-1)[:2]]
+        tau = self.params.segment_s
+        seg = msgs.BezierSegment(t0=0.0, duration=tau, control_points=[p] * 4)
+        return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=True)
+
+    def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
+        """True when there is no path, the world changed since it was planned, or the
+        state is more than ``deviation`` [m] from where the path says it should be."""
+        if self.path is None or self.path_world_version != self._world_version:
+            return True
+        t = (stamp_ns - self.path_t0_ns) * 1e-9
+        expected = path_states(self.path.control_points, self.path.tau, np.array([t]))[0, :2]
+        return float(np.hypot(*(np.asarray(position, float)[:2] - expected))) > deviation
+
+    # --- refine ------------------------------------------------------------------------------
+
+    def _ensure_mpc(self, planes: int) -> BezierMpc:
+        if self._mpc is None or self._mpc_tube != self.tube or self._mpc.max_planes < planes:
+            prm = self.params
+            model = reach.double_integrator(DIM)
+            inf = math.inf
+            limits = reach.box_limits(model, prm.a_max, [-inf, -inf, -prm.v_max, -prm.v_max],
+                                      [inf, inf, prm.v_max, prm.v_max], tube=self.tube, tube_norm=2)
+            test = reach.BezierReachability(model, limits, prm.mpc_dt)
+            init = [self.tube, self.tube, prm.start_speed_tol, prm.start_speed_tol]
+            self._mpc = BezierMpc(test, prm.mpc_horizon, MPC_WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
+                                  init_radius=[r if r > MPC_MIN_RADIUS else 0.0 for r in init],
+                                  max_planes=max(planes, prm.halfspaces), terminal="equal")
+            self._mpc_tube = self.tube
+            self._last_solution = None
+        return self._mpc
+
+    def refine(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
+        """One SQP iteration of the MPC of eq. 7.2 around the current path; the refined reference.
+
+        Knots sit every ``mpc_dt`` from the path's start (so they meet the graph
+        segments' junctions); the first within the tube of the state, the last on the
+        graph path (7.2e), each within ``mpc_trust`` of it. Each MPC segment keeps to
+        halfspaces separating it (as warm-started: the last solution shifted, else the
+        graph path) from its nearest obstacles, or to its free cell. The solution is
+        certified by the MPC and then checked by the exact cut; when either fails the
+        graph path itself is returned (it is collision free). None without a path.
+        """
+        if self.path is None:
+            return None
+        prm = self.params
+        x = self._state(position, velocity)
+        dt, N = prm.mpc_dt, prm.mpc_horizon
+        path = self.path
+        j0 = max(0, int(round((stamp_ns - self.path_t0_ns) * 1e-9 / dt)))
+        times = (j0 + np.arange(N + 1)) * dt
+        ref = path_states(path.control_points, path.tau, times)
+        warm = ref.copy()
+        last = self._last_solution
+        if last is not None:
+            shift = j0 - last[0]
+            if 0 <= shift <= N:
+                warm[: N + 1 - shift] = last[1][shift:]
+        planes_needed = int(np.max(np.diff(self.cells.offsets), initial=0)) if self.mode == "free" else prm.halfspaces
+        mpc = self._ensure_mpc(planes_needed)
+        warm_ctrl = mpc.reach.curve(warm[:-1], warm[1:])
+        hs = self.segment_halfspaces(warm_ctrl, self.robot_radius, mpc.max_planes)  # the MPC adds the tube
+        self.stats.refines += 1
+        sol = mpc.solve(x, ref, planes=(np.ascontiguousarray(hs[..., :2]), np.ascontiguousarray(hs[..., 2])),
+                        warm_start=warm)
+        t_ref_ns = self.path_t0_ns + int(round(j0 * dt * 1e9))
+        if sol.ok:
+            hulls = col.hull_set(sol.control_points)
+            blocked, _ = self._blocked(hulls)
+            if not blocked.any():
+                self._last_solution = (j0, sol.waypoints)
+                segs = [msgs.BezierSegment(t0=k * dt, duration=dt, control_points=c.tolist())
+                        for k, c in enumerate(sol.control_points)]
+                t = N * dt
+                for dur, c in chain_tail(path.control_points, path.tau, times[-1]):
+                    segs.append(msgs.BezierSegment(t0=t, duration=dur, control_points=c.tolist()))
+                    t += dur
+                return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=False)
+        self.stats.refine_failures += 1
+        self._last_solution = None
+        return self.path_reference(stamp_ns)
+
+    # --- sets ------------------------------------------------------------------------------
+
+    def segment_halfspaces(self, ctrl: np.ndarray, margin: float, count: int) -> np.ndarray:
+        """``(S, count, 3)`` halfspaces ``a . x <= b`` keeping each segment ``margin`` [m] clear.
+
+        Obstacle mode: separating planes to the nearest obstacles. Free mode: the faces
+        of the cell holding the segment (``count`` must cover them; the rest padded).
+        """
+        S = len(ctrl)
+        if self.mode == "obstacles":
+            return col.separating_halfspaces(ctrl, self.obstacles, margin, count, self.params.halfspace_reach)
+        cells = col.free_cell_of(col.hull_set(ctrl), self.cells, 0.0)
+        out = np.zeros((S, count, 3))
+        out[:, :, 2] = np.inf
+        for s, c in enumerate(cells):
+            if c < 0:
+                continue
+            a = self.cells.normals[self.cells.offsets[c]:self.cells.offsets[c + 1]]
+            b = self.cells.face_offsets[self.cells.offsets[c]:self.cells.offsets[c + 1]] - margin
+            if len(a) > count:
+                raise PlanningError(f"free cell {c} has {len(a)} faces, more than {count} planes")
+            out[s, :len(a), :2] = a
+            out[s, :len(a), 2] = b
+        return out
+
+    def waypoints(self, stamp_ns: int = 0) -> msgs.Waypoints:
+        """The graph path's node positions and the convex set of the segment leaving each.
+
+        Obstacle mode: the planning region cut by separating halfspaces until every point
+        of the set keeps the margin from every obstacle
+        (:func:`onboard.collision.free_polygon`); free mode: the cell. A set that could
+        not be built is sent empty.
+        """
+        assert self.graph is not None and self.path is not None
+        ctrl = self.path.control_points
+        bounds = self.graph.spec.bounds
+        if self.mode == "free":
+            cells = col.free_cell_of(col.hull_set(ctrl), self.cells, self.margin)
+            polys = [self.cells.polygon(c) if c >= 0 else None for c in cells]
+        else:
+            polys = []
+            for c in ctrl:
+                try:
+                    polys.append(col.free_polygon(c, self.obstacles, self.margin, np.array(bounds).reshape(2, 2),
+                                                  self.params.halfspaces, self.params.halfspace_reach))
+                except col.PolygonError:
+                    polys.append(None)
+        sets = []
+        for poly in polys + polys[-1:]:
+            if poly is None:
+                sets.append(msgs.Polytope(A=[], b=[], vertices=[]))
+                continue
+            A, b = col.polygon_halfspaces(poly)
+            sets.append(msgs.Polytope(A=A.tolist(), b=b.tolist(), vertices=poly.tolist()))
+        points = [[float(s[0]), float(s[1])] for s in self.path.states]
+        return msgs.Waypoints(stamp_ns=stamp_ns, points=points, sets=sets)
+
+
+def _same_polygons(a: col.PolygonSet, b: col.PolygonSet) -> bool:
+    return a.offsets.shape == b.offsets.shape and np.array_equal(a.offsets, b.offsets) and np.array_equal(a.vertices, b.vertices)
+
+
+def _contains(bounds: tuple[float, float, float, float], position: np.ndarray, goal: np.ndarray | None) -> bool:
+    xmin, ymin, xmax, ymax = bounds
+    pts = [np.asarray(position, float)[:2]] + ([goal] if goal is not None else [])
+    return all(xmin <= p[0] <= xmax and ymin <= p[1] <= ymax for p in pts)
