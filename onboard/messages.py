@@ -61,6 +61,7 @@ class JointSensors(Message):
     foot_vel: float  # compression rate [m/s]
     foot_contact: bool  # contact switch / load cell over threshold
     foot_motor_pos: float = 0.0  # cable motor angle after the gearbox [rad]
+    foot_sensed: bool = True  # False: no foot sensor behind this source (CAN-only hardware); foot_pos, foot_vel, foot_contact are 0, not measurements
 
 
 class PoseMeasurement(Message):

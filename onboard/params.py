@@ -40,8 +40,8 @@ class HardwareParams:
     """The ``hardware`` service and its drivers (ELMO drives over CAN, Teensy over serial).
 
     Joint order everywhere: wheel 0, wheel 1, wheel 2, foot. Per-joint tuples are
-    drive settings (motor torque constant, current clamp, gearbox) of the real
-    robot; the emulators use the same values.
+    drive settings (motor torque constant, current clamp) of the real robot; the
+    emulators use the same values. Gear ratios come from the MJCF model.
     """
 
     backend: str = "can"  # "can": ELMO drives over CANopen; "teensy": framed serial
@@ -61,7 +61,6 @@ class HardwareParams:
     enable_timeout_s: float = 1.0  # [s] to reach OPERATION ENABLED
     torque_constant: tuple[float, ...] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
     current_max: tuple[float, ...] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
-    gear_ratio: tuple[float, ...] = (1.0, 1.0, 1.0, 3.0)  # motor turns per joint turn
     joint_sign: tuple[int, ...] = (1, 1, 1, 1)  # motor direction vs joint direction
     # Teensy
     serial_port: str = ""  # e.g. /dev/ttyACM0 or the pty the emulator prints
@@ -69,6 +68,7 @@ class HardwareParams:
     reconnect_min_s: float = 0.05  # [s] first retry after the port vanished
     reconnect_max_s: float = 1.0  # [s] backoff ceiling
     link_timeout_s: float = 0.1  # [s] no sensor frame for this long: link lost
+    recover_request: int = 0  # operator command: set a new value to clear latched faults and re-initialise
 
 
 # Sections owned by each layer follow; each is registered in SECTIONS below.
