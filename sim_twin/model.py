@@ -129,6 +129,7 @@ class RobotParams:
     com_offset_body: Vec3  # whole-robot CoM relative to the torso origin, body frame [m]
     inertia_com: Mat3  # whole robot (wheels locked) about its CoM, body frame [kg m^2]
     leg_length: float  # torso origin to the foot's lowest point along -z, foot extended [m]
+    footprint_radius: float  # largest horizontal reach of the robot's collision shapes from the spine [m]
     foot_radius: float  # radius of the foot's contact sphere [m]
     spring_stiffness: float  # [N/m]
     spring_damping: float  # [N s/m]
@@ -236,6 +237,22 @@ def params_from_model(model: mujoco.MjModel, variant: str) -> RobotParams:
     if not math.isfinite(lowest):
         raise ValueError("model has no spherical foot contact geom")
 
+    # Footprint: the horizontal reach of every collision geom of the robot (upright, spine at 0).
+    footprint = 0.0
+    robot_bodies = set(_body_subtree(model, torso))
+    for g in range(model.ngeom):
+        if int(model.geom_bodyid[g]) not in robot_bodies or (model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0):
+            continue
+        size = model.geom_size[g]
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+            rot = data.geom_xmat[g].reshape(3, 3)
+            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
+            pts = data.geom_xpos[g] + corners @ rot.T
+            reach = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
+        else:  # sphere, capsule, cylinder: radius around its (vertical) axis
+            reach = float(np.hypot(*data.geom_xpos[g][:2])) + float(size[0])
+        footprint = max(footprint, reach)
+
     slide = model.joint(FOOT_JOINT)
     slide_dof = int(slide.dofadr[0])
     motor = model.joint(FOOT_MOTOR_JOINT)
@@ -260,6 +277,7 @@ def params_from_model(model: mujoco.MjModel, variant: str) -> RobotParams:
         com_offset_body=_vec3(com - data.xpos[torso]),
         inertia_com=_mat3(inertia),
         leg_length=float(data.xpos[torso][2] - lowest),
+        footprint_radius=footprint,
         foot_radius=foot_radius,
         spring_stiffness=float(model.jnt_stiffness[slide.id]),
         spring_damping=float(model.dof_damping[slide_dof]),

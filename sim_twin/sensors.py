@@ -81,7 +81,7 @@ class _Dropout:
         return u < self._p
 
 
-def _qmul_small(q: tuple[float, float, float, float] | list[float], dx: float, dy: float, dz: float) -> list[float]:
+def _qmul_small(q: list[float], dx: float, dy: float, dz: float) -> list[float]:
     """``q * exp([dx, dy, dz])`` for a small rotation vector (body-frame perturbation), normalized."""
     w, x, y, z = q
     bw, bx, by, bz = 1.0, 0.5 * dx, 0.5 * dy, 0.5 * dz
@@ -210,12 +210,13 @@ class SensorSuite:
     def tick(self, data: mujoco.MjData, now_ns: int) -> list[tuple[str, object]]:
         """Capture what is due at ``now_ns`` and return ``(topic, message)`` pairs delivered now."""
         out: list[tuple[str, object]] = []
+        qpos, qvel = data.qpos.tolist(), data.qvel.tolist()  # plain floats: numpy scalars are slow per tick
         if self.imu.due(now_ns) and not self.imu.dropout.lost():
-            self.imu.push(now_ns, self._imu(data, now_ns))
+            self.imu.push(now_ns, self._imu(data, qpos, qvel, now_ns))
         if self.joints.due(now_ns) and not self.joints.dropout.lost():
-            self.joints.push(now_ns, self._joints(data, now_ns))
+            self.joints.push(now_ns, self._joints(data, qpos, qvel, now_ns))
         if self.pose.due(now_ns) and not self.pose.dropout.lost():
-            self.pose.push(now_ns, self._pose(data, now_ns))
+            self.pose.push(now_ns, self._pose(qpos, now_ns))
         if self.depth.due(now_ns) and not self.depth.dropout.lost():
             self.depth.push(now_ns, self.depth_image(data, now_ns))
         self.imu.pop_ready(now_ns, out, "imu")
@@ -224,29 +225,29 @@ class SensorSuite:
         self.depth.pop_ready(now_ns, out, "depth")
         return out
 
-    def _imu(self, data: mujoco.MjData, now_ns: int) -> m.ImuSample:
-        qpos, qvel, sd = data.qpos, data.qvel, data.sensordata
+    def _imu(self, data: mujoco.MjData, qpos: list[float], qvel: list[float], now_ns: int) -> m.ImuSample:
         n = self._imu_noise.row()
         a, g, b = self._imu_att_std, self._gyro_std, self._accel_std
         gb, ab = self.gyro_bias, self.accel_bias
         i, j, k = self._qp + 3, self._qv + 3, self._accel_adr
-        quat = _qmul_small((qpos[i], qpos[i + 1], qpos[i + 2], qpos[i + 3]), a * n[0], a * n[1], a * n[2]) if a > 0 else [
-            float(qpos[i]), float(qpos[i + 1]), float(qpos[i + 2]), float(qpos[i + 3])]
+        sd = data.sensordata[k:k + 3].tolist()
+        k = 0
+        quat = _qmul_small(qpos[i:i + 4], a * n[0], a * n[1], a * n[2]) if a > 0 else qpos[i:i + 4]
         self.imu.seq += 1
         return m.ImuSample(
             stamp_ns=now_ns,
             seq=self.imu.seq,
             quat=quat,
-            gyro=[float(qvel[j]) + gb[0] + g * n[3], float(qvel[j + 1]) + gb[1] + g * n[4], float(qvel[j + 2]) + gb[2] + g * n[5]],
-            accel=[float(sd[k]) + ab[0] + b * n[6], float(sd[k + 1]) + ab[1] + b * n[7], float(sd[k + 2]) + ab[2] + b * n[8]],
+            gyro=[qvel[j] + gb[0] + g * n[3], qvel[j + 1] + gb[1] + g * n[4], qvel[j + 2] + gb[2] + g * n[5]],
+            accel=[sd[k] + ab[0] + b * n[6], sd[k + 1] + ab[1] + b * n[7], sd[k + 2] + ab[2] + b * n[8]],
         )
 
     def _quantize(self, angle: float) -> float:
         r = self._enc_res
         return round(angle / r) * r if r > 0 else angle
 
-    def _joints(self, data: mujoco.MjData, now_ns: int) -> m.JointSensors:
-        qpos, qvel, force = data.qpos, data.qvel, data.actuator_force
+    def _joints(self, data: mujoco.MjData, qpos: list[float], qvel: list[float], now_ns: int) -> m.JointSensors:
+        force = data.actuator_force.tolist()
         n = self._joint_noise.row()
         wv, wt = self._wheel_vel_std, self._wheel_torque_std
         wp, wq, wa = self._wheel_qp, self._wheel_qv, self._wheel_act
@@ -254,26 +255,25 @@ class SensorSuite:
         return m.JointSensors(
             stamp_ns=now_ns,
             seq=self.joints.seq,
-            wheel_pos=[self._quantize(float(qpos[wp[0]])), self._quantize(float(qpos[wp[1]])), self._quantize(float(qpos[wp[2]]))],
-            wheel_vel=[float(qvel[wq[0]]) + wv * n[0], float(qvel[wq[1]]) + wv * n[1], float(qvel[wq[2]]) + wv * n[2]],
-            wheel_torque=[float(force[wa[0]]) + wt * n[3], float(force[wa[1]]) + wt * n[4], float(force[wa[2]]) + wt * n[5]],
-            foot_pos=float(qpos[self._foot_qp]) + self._foot_pos_std * n[6],
-            foot_vel=float(qvel[self._foot_qv]) + self._foot_vel_std * n[7],
+            wheel_pos=[self._quantize(qpos[wp[0]]), self._quantize(qpos[wp[1]]), self._quantize(qpos[wp[2]])],
+            wheel_vel=[qvel[wq[0]] + wv * n[0], qvel[wq[1]] + wv * n[1], qvel[wq[2]] + wv * n[2]],
+            wheel_torque=[force[wa[0]] + wt * n[3], force[wa[1]] + wt * n[4], force[wa[2]] + wt * n[5]],
+            foot_pos=qpos[self._foot_qp] + self._foot_pos_std * n[6],
+            foot_vel=qvel[self._foot_qv] + self._foot_vel_std * n[7],
             foot_contact=bool(data.sensordata[self._touch_adr] > self.params.contact_threshold_n),
-            foot_motor_pos=self._quantize(float(qpos[self._spool_qp])),
+            foot_motor_pos=self._quantize(qpos[self._spool_qp]),
         )
 
-    def _pose(self, data: mujoco.MjData, now_ns: int) -> m.PoseMeasurement:
-        qpos = data.qpos
+    def _pose(self, qpos: list[float], now_ns: int) -> m.PoseMeasurement:
         n = self._pose_noise.row()
         s, a, i = self._pose_pos_std, self._pose_att_std, self._qp
-        quat = (float(qpos[i + 3]), float(qpos[i + 4]), float(qpos[i + 5]), float(qpos[i + 6]))
+        quat = qpos[i + 3:i + 7]
         self.pose.seq += 1
         return m.PoseMeasurement(
             stamp_ns=now_ns,
             seq=self.pose.seq,
-            position=[float(qpos[i]) + s * n[0], float(qpos[i + 1]) + s * n[1], float(qpos[i + 2]) + s * n[2]],
-            quat=_qmul_small(quat, a * n[3], a * n[4], a * n[5]) if a > 0 else list(quat),
+            position=[qpos[i] + s * n[0], qpos[i + 1] + s * n[1], qpos[i + 2] + s * n[2]],
+            quat=_qmul_small(quat, a * n[3], a * n[4], a * n[5]) if a > 0 else quat,
             source=self.params.pose_source,
         )
 

@@ -36,6 +36,7 @@ def test_variant_masses_and_params() -> None:
     assert indoor.foot_mass == pytest.approx(0.4)
     assert indoor.leg_length == pytest.approx(0.40)
     assert outdoor.leg_length > indoor.leg_length  # tennis ball under the tip
+    assert indoor.footprint_radius == pytest.approx(0.13) and outdoor.footprint_radius == pytest.approx(0.17)
     assert indoor.wheel_torque_peak == pytest.approx(1.6) and fast.wheel_torque_peak == pytest.approx(15.0)
     assert np.allclose(indoor.wheel_axes, np.eye(3))
     m = tm.load_model("sim15nm")

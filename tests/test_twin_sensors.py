@@ -35,8 +35,9 @@ def _run(model, data, suite, ticks: int, gravity: bool = True) -> list[tuple[int
         data.qpos[:] = model.qpos0
         data.qpos[2] = 5.0
     out = []
+    substeps = round(0.001 / model.opt.timestep)
     for k in range(1, ticks + 1):
-        for _ in range(2):
+        for _ in range(substeps):
             mujoco.mj_step(model, data)
         now = k * MS
         out.extend((now, topic, msg) for topic, msg in suite.tick(data, now))

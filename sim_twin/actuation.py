@@ -1,0 +1,84 @@
+"""How the twin turns a :class:`TorqueCommand` into motor torques, as the hardware would.
+
+Shared by the lockstep runner and the real-time twin service. In order:
+
+1. no command, a command not ``armed``, older than ``SafetyLimits.command_stale_s``, or with a
+   non-finite value: zero torque (the drives' own watchdog); each reason is counted;
+2. clamp to ``SafetyLimits`` (``wheel_torque_max``, ``foot_torque_max``);
+3. the wheel motors' speed-torque curve (:meth:`RobotParams.wheel_torque_available`) and the foot
+   drive's peak torque, i.e. what the motor physically delivers at its current speed.
+
+The torques go to the MJCF actuators ``wheel_x/y/z`` and ``foot_motor`` through ``data.ctrl``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+
+from onboard.messages import TorqueCommand
+from onboard.params import SafetyLimits
+from sim_twin import model as tm
+
+NS = 1_000_000_000
+
+
+class Actuation:
+    """Applies torque commands to one model; counts what it refused or clipped."""
+
+    def __init__(self, model: mujoco.MjModel, robot: tm.RobotParams, safety: SafetyLimits) -> None:
+        self.robot = robot
+        self.safety = safety
+        self._wheel_act = [int(model.actuator(n).id) for n in tm.WHEEL_ACTUATORS]
+        self._foot_act = int(model.actuator(tm.FOOT_ACTUATOR).id)
+        self._wheel_dof = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
+        self._stale_ns = int(safety.command_stale_s * NS)
+        self._wheel_max = min(safety.wheel_torque_max, robot.wheel_torque_peak)
+        self._foot_max = min(safety.foot_torque_max, robot.foot_torque_peak)
+        self.counters: dict[str, int] = {"applied": 0, "no_command": 0, "disarmed": 0, "stale": 0, "non_finite": 0}
+        self.wheel_ticks = 0  # wheel-ticks applied (3 per applied command)
+        self.wheel_saturated = 0  # wheel-ticks whose torque was clipped (limit or motor curve)
+        self.last_applied = (0.0, 0.0, 0.0, 0.0)  # wheel x, y, z, foot [N m]
+
+    def _zero(self, data: mujoco.MjData, reason: str) -> None:
+        self.counters[reason] += 1
+        for a in self._wheel_act:
+            data.ctrl[a] = 0.0
+        data.ctrl[self._foot_act] = 0.0
+        self.last_applied = (0.0, 0.0, 0.0, 0.0)
+
+    def apply(self, cmd: TorqueCommand | None, now_ns: int, data: mujoco.MjData) -> None:
+        """Set ``data.ctrl`` from ``cmd`` at time ``now_ns``."""
+        if cmd is None:
+            return self._zero(data, "no_command")
+        if not cmd.armed:
+            return self._zero(data, "disarmed")
+        if now_ns - cmd.stamp_ns > self._stale_ns:
+            return self._zero(data, "stale")
+        wt = cmd.wheel_torque
+        ft = cmd.foot_torque
+        if not (math.isfinite(wt[0]) and math.isfinite(wt[1]) and math.isfinite(wt[2]) and math.isfinite(ft)):
+            return self._zero(data, "non_finite")
+        lim = self._wheel_max
+        qvel = data.qvel.tolist()
+        robot = self.robot
+        out = [0.0, 0.0, 0.0]
+        for i in range(3):
+            want = wt[i]
+            tau = lim if want > lim else -lim if want < -lim else want
+            tau = robot.wheel_torque_available(qvel[self._wheel_dof[i]], tau)
+            if tau != want:
+                self.wheel_saturated += 1
+            out[i] = tau
+            data.ctrl[self._wheel_act[i]] = tau
+        fl = self._foot_max
+        foot = fl if ft > fl else -fl if ft < -fl else ft
+        data.ctrl[self._foot_act] = foot
+        self.wheel_ticks += 3
+        self.counters["applied"] += 1
+        self.last_applied = (out[0], out[1], out[2], foot)
+
+    @property
+    def saturation_fraction(self) -> float:
+        return self.wheel_saturated / self.wheel_ticks if self.wheel_ticks else 0.0
