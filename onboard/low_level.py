@@ -1,0 +1,316 @@
+"""The composed hard-rate low level: ZDP + quaternion PD + spin-down + foot + supervisor.
+
+Interface (used by the ``control`` service and by the twin's lockstep runner):
+
+    ctrl = LowLevelController(control_params, robot, hopper, safety_limits, mlp_weights)
+    cmd = ctrl.step(now_ns, state, reference, joints)   # -> TorqueCommand, every 1 ms
+    ctrl.drain_phase_events()   # -> list[PhaseEvent]  (touchdown, bottom, liftoff, apex)
+    ctrl.drain_safety_events()  # -> list[SafetyEvent] (every trip, to log and publish)
+    ctrl.tube(stamp_ns)         # -> TrackingTube      (the measured certificate)
+    ctrl.request_arm(); ctrl.disarm(now_ns)
+
+``services.control.build_controller(variant, ...)`` builds one from the MJCF (the
+robot's parameters and the reduced hopper model) and the policy weights file; use
+it rather than the constructor. ``step`` takes the clock time ``now_ns`` [ns], the
+latest :class:`~onboard.messages.StateEstimate`, the latest
+:class:`~onboard.messages.ComReference` (None: hop in place) and the latest
+:class:`~onboard.messages.JointSensors` (the cable spool angle; None: the foot
+motor is left unpowered and the hop decays). It never raises on bad data: the
+supervisor turns it into a safe command and a counted event.
+
+Per tick:
+
+1. supervisor: estimate fresh and finite, upright, armed? else zero torque;
+2. phase detection; at touchdown the impact error to the reference is recorded in
+   the tube and the preload released; at apex the hop-energy loss is learnt;
+3. flight: predict the impact (ballistic to the last touchdown height), sample the
+   reference there (Corollary 5.8), evaluate the policy ``eta = psi(z - z_ref)``,
+   turn it into a desired attitude (leg axis + held heading) and run the quaternion
+   PD on the wheels; wind the spring preload;
+   stance: spin the wheels down; keep the cable slack;
+4. supervisor: clamp to the limits.
+
+Frames: world z up; ``eta`` is the world-frame horizontal part of the body z axis at
+impact (the foot lands at ``-leg * axis`` from the CoM).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from onboard import attitude_control as ac
+from onboard import bezier
+from onboard import quaternion as qt
+from onboard import zdp
+from onboard.foot_control import FootPhysics, HopRegulator
+from onboard.messages import ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand, TrackingTube
+from onboard.mlp import Mlp
+from onboard.params import ControlParams, SafetyLimits
+from onboard.phase import PhaseDetector
+from onboard.supervisor import Supervisor
+from onboard.tube import TubeMonitor
+
+NS = 1_000_000_000
+POLICIES = ("zdp", "lqr", "raibert", "mlp")
+SPOOL_VEL_FILTER = 0.3  # first-order filter weight of the differenced spool speed (1 kHz)
+
+
+class RobotLike(Protocol):
+    """The fields of ``sim_twin.model.RobotParams`` the low level reads."""
+
+    wheel_axes: tuple[tuple[float, float, float], ...]
+    total_mass: float
+    gravity: float
+    spring_stiffness: float
+    spool_radius: float
+    foot_travel: float
+    wheel_torque_peak: float
+    foot_torque_peak: float
+
+
+@dataclass(frozen=True)
+class PolicyDesign:
+    """What the constructor derives from the reduced model (kept for reports/tests)."""
+
+    preload_nominal: float  # periodic in-place hop preload [m]
+    loss_nominal: float  # energy loss per hop [J]
+    linear: zdp.LinearZdp  # linearization, LQR and S_eta
+
+
+def design_policy(params: ControlParams, hopper: zdp.HopperModel) -> PolicyDesign:
+    """Linearize the reduced impact map at the in-place hop and build the ZDP."""
+    d = zdp.periodic_preload(hopper, params.hop_height)
+    a_zz, a_ze = zdp.linearize(zdp.reduced_step(hopper, params.hop_height, d))
+    q_eta = np.eye(2) * params.zdp_q_tilt
+    q_z = np.diag([params.zdp_q_pos, params.zdp_q_pos, params.zdp_q_vel, params.zdp_q_vel])
+    r = np.eye(2) * params.zdp_r
+    lin = zdp.linear_zdp(a_zz, a_ze, q_eta, q_z, r)
+    return PolicyDesign(d, 0.5 * hopper.spring_k * d * d, lin)
+
+
+def sample_reference(ref: ComReference, t_s: float) -> tuple[float, float, float, float]:
+    """Reference CoM ``(x, y, vx, vy)`` at ``t_s`` [s] after ``ref.t_ref_ns``.
+
+    Before the first segment: its start at rest; after the last: its end at rest.
+    """
+    segs = ref.segments
+    first, last = segs[0], segs[-1]
+    if t_s <= first.t0:
+        p = first.control_points[0]
+        return p[0], p[1], 0.0, 0.0
+    if t_s >= last.t0 + last.duration:
+        p = last.control_points[-1]
+        return p[0], p[1], 0.0, 0.0
+    seg = first
+    for s in segs:
+        if s.t0 <= t_s < s.t0 + s.duration:
+            seg = s
+            break
+    pts = np.asarray(seg.control_points, dtype=float)[:, :2]
+    tau = seg.duration
+    t = min(max(t_s - seg.t0, 0.0), tau)
+    pos = bezier.evaluate(pts, tau, t)
+    if pts.shape[0] > 1:
+        vel = bezier.evaluate(bezier.hodograph(pts, tau), tau, t)
+    else:
+        vel = np.zeros(2)
+    return float(pos[0]), float(pos[1]), float(vel[0]), float(vel[1])
+
+
+class LowLevelController:
+    """See the module docstring."""
+
+    def __init__(
+        self,
+        params: ControlParams,
+        robot: RobotLike,
+        hopper: zdp.HopperModel,
+        safety: SafetyLimits | None = None,
+        mlp_weights: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        if params.policy not in POLICIES:
+            raise ValueError(f"unknown policy {params.policy!r}; known: {', '.join(POLICIES)}")
+        self.p = params
+        self.robot = robot
+        self.hopper = hopper
+        self.safety = safety or SafetyLimits()
+        self.design = design_policy(params, hopper)
+        self.alloc = ac.WheelAllocation.from_axes(robot.wheel_axes)
+        self._kp = (params.kp_tilt, params.kp_tilt, params.kp_yaw)
+        self._kd = (params.kd_tilt, params.kd_tilt, params.kd_yaw)
+        self._zero3 = (0.0, 0.0, 0.0)
+        # the controllers saturate at what the actuators deliver; the supervisor's
+        # clamps are the safety net behind them, and trip only on a real violation
+        self._wheel_max = min(self.safety.wheel_torque_max, robot.wheel_torque_peak)
+        self._foot_max = min(self.safety.foot_torque_max, robot.foot_torque_peak)
+
+        lin = self.design.linear
+        if params.policy == "zdp":
+            self._linear = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+        elif params.policy == "lqr":  # the plain gain, nothing clipped (thesis Fig. 5.22)
+            self._linear = zdp.LinearPolicy.from_matrix(-lin.k_lqr, 0.0, 0.0, 0.0)
+        elif params.policy == "raibert":
+            kp, kd = params.raibert_kp, params.raibert_kd
+            s = -np.array([[kp, 0.0, kd, 0.0], [0.0, kp, 0.0, kd]])
+            self._linear = zdp.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+        else:
+            if mlp_weights is None:
+                raise ValueError("policy 'mlp' needs the weights (ControlParams.mlp_weights)")
+            self._mlp = Mlp(mlp_weights)
+            if (self._mlp.n_in, self._mlp.n_out) != (4, 2):
+                raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
+            self._linear = zdp.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+
+        self.supervisor = Supervisor(self.safety, params)
+        touchdown_h = hopper.touchdown_height(self.design.preload_nominal)
+        self.phase = PhaseDetector(params.min_flight_s, params.min_stance_s, touchdown_h)
+        self.foot = HopRegulator(
+            params,
+            FootPhysics(robot.total_mass, robot.gravity, robot.spring_stiffness, robot.spool_radius, robot.foot_travel),
+            self.design.loss_nominal,
+        )
+        self.tube_monitor = TubeMonitor(params.tube_window)
+        self._phase_events: list[PhaseEvent] = []
+        self._g = robot.gravity
+        self._yaw_ref = 0.0
+        self._hold: tuple[float, float] | None = None  # hop-in-place point [m]
+        self._was_armed = False
+        self._spool_prev: tuple[int, float] | None = None
+        self._spool_vel = 0.0
+        # telemetry (read by the runner and the service status)
+        self.q_des: qt.Quat = qt.IDENTITY
+        self.eta: tuple[float, float] = (0.0, 0.0)
+        self.predicted_impact: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # t [s] ahead, x, y, ...
+        self.reference_at_impact: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+        self.last_impact_error = math.nan  # [m]
+        self.holding = True
+
+    # --- accessors -------------------------------------------------------------------
+
+    def drain_phase_events(self) -> list[PhaseEvent]:
+        out, self._phase_events = self._phase_events, []
+        return out
+
+    def drain_safety_events(self) -> list[SafetyEvent]:
+        return self.supervisor.drain_events()
+
+    def tube(self, stamp_ns: int = 0) -> TrackingTube:
+        return self.tube_monitor.tube(stamp_ns)
+
+    @property
+    def armed(self) -> bool:
+        return self.supervisor.armed
+
+    def request_arm(self) -> None:
+        self.supervisor.request_arm()
+
+    def disarm(self, now_ns: int, reason: str = "disarm_request") -> None:
+        self.supervisor.disarm(now_ns, reason)
+
+    def policy(self, ex: float, ey: float, evx: float, evy: float) -> tuple[float, float]:
+        """The impact attitude ``(a_x, a_y)`` for an impact-state error [m, m/s]."""
+        if self.p.policy == "mlp":
+            lp = self._linear
+            ex, ey = zdp.clip_norm(ex, ey, lp.pos_err_max)
+            evx, evy = zdp.clip_norm(evx, evy, lp.vel_err_max)
+            ax, ay = self._mlp((ex, ey, evx, evy))
+            return zdp.clip_norm(ax, ay, math.sin(lp.tilt_max))
+        return self._linear(ex, ey, evx, evy)
+
+    # --- the tick ----------------------------------------------------------------------
+
+    def _safe(self, now_ns: int) -> TorqueCommand:
+        return TorqueCommand(stamp_ns=now_ns, wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
+
+    def _target(self, now_ns: int, s: StateEstimate, ref: ComReference | None, t_ahead: float) -> tuple[float, float, float, float]:
+        if ref is None:
+            if self._hold is None:
+                self._hold = (s.position[0], s.position[1])
+            self.holding = True
+            return self._hold[0], self._hold[1], 0.0, 0.0
+        self.holding = False
+        if ref.hold:
+            p = ref.segments[0].control_points[0]
+            self._hold = (p[0], p[1])
+            return p[0], p[1], 0.0, 0.0
+        self._hold = None
+        return sample_reference(ref, (now_ns - ref.t_ref_ns) / NS + t_ahead)
+
+    def step(
+        self,
+        now_ns: int,
+        state: StateEstimate,
+        reference: ComReference | None,
+        joints: JointSensors | None = None,
+    ) -> TorqueCommand:
+        sup = self.supervisor
+        if not sup.check_estimate(now_ns, state):
+            self._was_armed = sup.armed
+            return self._safe(now_ns)
+        if not self._was_armed:  # just armed: hold heading and place
+            self._was_armed = True
+            self._yaw_ref = qt.yaw_of(state.quat)
+            self._hold = (state.position[0], state.position[1])
+            self.phase.reset()
+
+        # spool speed by differencing the encoder (the message carries no speed)
+        spool_pos = math.nan
+        if joints is not None and math.isfinite(joints.foot_motor_pos):
+            spool_pos = joints.foot_motor_pos
+            if self._spool_prev is not None and now_ns > self._spool_prev[0]:
+                raw = (spool_pos - self._spool_prev[1]) * NS / (now_ns - self._spool_prev[0])
+                self._spool_vel += SPOOL_VEL_FILTER * (raw - self._spool_vel)
+            self._spool_prev = (now_ns, spool_pos)
+
+        ref = sup.check_reference(now_ns, reference)
+        ev = self.phase.update(now_ns, state)
+        if ev is not None:
+            self._phase_events.append(ev)
+            self._on_event(now_ns, ev, state, ref)
+
+        g = self._g
+        px, py, pz = state.position
+        vx, vy, vz = state.velocity
+        if self.phase.phase == "flight":
+            z_td = self.phase.touchdown_height
+            disc = vz * vz + 2.0 * g * (pz - z_td)
+            t_imp = (vz + math.sqrt(disc)) / g if disc > 0.0 else max(vz / g, 0.0)
+            self.foot.in_flight(pz + vz * vz / (2.0 * g) - z_td)  # ballistic apex rise
+            xi, yi = px + vx * t_imp, py + vy * t_imp
+            rx, ry, rvx, rvy = self._target(now_ns, state, ref, t_imp)
+            self.predicted_impact = (t_imp, xi, yi, 0.0)
+            self.reference_at_impact = (rx, ry, rvx, rvy)
+            ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
+            self.eta = (ax, ay)
+            az = math.sqrt(max(1e-6, 1.0 - ax * ax - ay * ay))
+            self.q_des = qt.from_axis_yaw((ax, ay, az), self._yaw_ref)
+            u = ac.pd_torque(state.quat, state.omega, self.q_des, self._zero3, self._zero3, self._kp, self._kd, self.p.attitude_log)
+            wheel = self.alloc.wheel_torques(u)
+            stance = False
+        else:
+            wheel = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
+            stance = True
+        if math.isfinite(spool_pos):
+            foot = self.foot.spool_torque(stance, state.foot_pos, spool_pos, self._spool_vel)
+            foot = max(-self._foot_max, min(self._foot_max, foot))
+        else:
+            foot = 0.0
+        wm = self._wheel_max
+        wheel = (max(-wm, min(wm, wheel[0])), max(-wm, min(wm, wheel[1])), max(-wm, min(wm, wheel[2])))
+        wheel, foot = sup.limit_command(now_ns, wheel, foot, state.wheel_vel)
+        return TorqueCommand(stamp_ns=now_ns, wheel_torque=[wheel[0], wheel[1], wheel[2]], foot_torque=foot, armed=True)
+
+    def _on_event(self, now_ns: int, ev: PhaseEvent, s: StateEstimate, ref: ComReference | None) -> None:
+        if ev.event == "touchdown":
+            rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
+            err = math.hypot(s.position[0] - rx, s.position[1] - ry)
+            self.last_impact_error = err
+            self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
+            self.foot.on_touchdown(s.foot_pos)
+        elif ev.event == "apex":
+            self.foot.on_apex(s.position[2] - self.phase.touchdown_height)
