@@ -170,6 +170,9 @@ class ScenarioReference:
         self.reference = scenario.reference(t_ref_ns)
 
     def update(self, now_ns: int, state: m.StateEstimate) -> m.ComReference | None:
+        # a planner republishes its reference at the topic rate: the low level treats an old
+        # stamp as a dead planner (SafetyLimits.reference_stale_s) and hops in place
+        self.reference.stamp_ns = now_ns
         return self.reference
 
     def drain_contract_reports(self) -> list[m.ContractReport]:
@@ -225,6 +228,8 @@ class GraphPlannerPlug:
             ref = pl.refine(pos, vel, now_ns)
             if ref is not None:
                 self.reference = ref
+        if self.reference is not None:  # republished at the topic rate (see ScenarioReference)
+            self.reference.stamp_ns = now_ns
         return self.reference
 
     def drain_contract_reports(self) -> list[m.ContractReport]:
