@@ -16,7 +16,10 @@ BENCHES: dict[str, tuple[str, str]] = {
     # subject: (module, one-line help)
     "perception": ("services.bench_perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
     "messaging": ("services.bench_messaging", "Zenoh latency and loss between two processes at 1 kHz"),
+    "hardware": ("services.bench_hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
     "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
+    "planner": ("services.bench_planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
+    "estimator": ("services.bench_estimator", "state estimator on the twin (20 ms pose latency, 10 % dropouts): update time, CoM and attitude errors"),
 }
 
 

@@ -1,0 +1,426 @@
+"""State estimation: CoM position and velocity, attitude and rates, wheels, foot, contact.
+
+Pure and synchronous (no clock read, no I/O): the ``estimator`` service and the
+lockstep runner drive the same class with messages and their stamps.
+
+Usage (lockstep or service)::
+
+    est = StateEstimator(EstimatorParams(), robot_params("indoor"))
+    est.update_imu(imu)          # ImuSample, 1 kHz: propagates attitude and CoM
+    est.update_joints(joints)    # JointSensors, 1 kHz: wheels, foot, contact, leg kinematics
+    est.update_pose(pose)        # PoseMeasurement, whenever one arrives (stamp = capture time)
+    msg = est.estimate(now_ns)   # StateEstimate at now_ns (at most max_extrapolation_s past the IMU)
+
+Each ``update_*`` returns True if the sample was used and False if it was rejected;
+rejections are counted in :attr:`StateEstimator.counters` by reason (non-finite,
+out of order, out of range, stale, gated outlier). :meth:`StateEstimator.status`
+summarizes health: ``mode`` is ``"init"`` until the first pose is fused,
+``"pose_outage"`` while no pose has been fused for ``pose_timeout_s``, else ``"ok"``.
+
+Model (thesis line 2751 and :mod:`onboard.com_filter`, :mod:`onboard.attitude_filter`):
+
+- attitude and gyro bias: multiplicative EKF on the unit quaternion, corrected by the
+  pose sensor's attitude (latency compensated) and by gravity when quasi-static;
+- CoM: projectile dynamics in flight; in stance the foot is pinned, the accelerometer
+  drives the CoM and leg kinematics (rolling foot sphere) measure its velocity; the
+  touchdown impact stops the foot; the pose sensor's position is fused at its capture
+  time on a delayed horizon; Mahalanobis gating rejects outliers;
+- contact: the foot switch with hysteresis in time (consecutive samples to switch);
+- wheel speeds, foot compression and rate: the latest valid sensor values.
+
+Frames: world z up; body = torso frame, origin at the point the pose sensor reports
+(the torso origin), z up along the leg, foot compression along +z.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+from scipy.stats import chi2
+
+from onboard import quaternion as quat
+from onboard.attitude_filter import AttitudeFilter
+from onboard.com_filter import ComFilter, make_com_filter
+from onboard.messages import ImuSample, JointSensors, PoseMeasurement, StateEstimate
+from onboard.params import EstimatorParams
+
+NS = 1_000_000_000
+QUAT_NORM_TOL = 0.1  # a pose quaternion further than this from unit norm is malformed
+FOOT_RANGE_MARGIN_M = 0.01  # [m] foot compression reading tolerated outside its travel
+ATTITUDE_HISTORY_S = 0.25  # [s] oldest pose whose attitude can still be fused
+NOMINAL_IMU_HZ = 1000.0  # sizes the attitude history only
+
+
+class RobotGeometry(Protocol):
+    """What the estimator needs of the robot (``sim_twin.model.RobotParams`` has it)."""
+
+    gravity: float  # [m/s^2]
+    total_mass: float  # [kg]
+    foot_mass: float  # unsprung mass [kg]
+    com_offset_body: tuple[float, float, float]  # CoM from the torso origin, foot extended [m, body]
+    leg_length: float  # torso origin to the foot's lowest point, foot extended [m]
+    foot_radius: float  # contact sphere [m]
+    foot_travel: float  # maximum compression [m]
+
+
+class StateEstimator:
+    """The estimator; see the module docstring for the interface and the model."""
+
+    def __init__(self, params: EstimatorParams, robot: RobotGeometry) -> None:
+        self.params = params
+        p = params
+        self._g = robot.gravity
+        mu = robot.foot_mass / robot.total_mass
+        self._mu_foot = mu
+        self._mu_sprung = 1.0 - mu
+        c0 = tuple(float(v) for v in robot.com_offset_body)
+        self._foot_travel = robot.foot_travel
+        self._foot_radius = robot.foot_radius
+        # CoM relative to the foot sphere's centre at zero compression [m, body]; the foot
+        # slides along body z, so compression s moves the sphere up by s and the CoM by mu s.
+        self._r_cf0 = (c0[0], c0[1], c0[2] + robot.leg_length - robot.foot_radius)
+        self._gate3 = float(chi2.ppf(p.gate_probability, 3))
+        self._gate2 = float(chi2.ppf(p.gate_probability, 2))
+        self.att = AttitudeFilter(
+            gyro_noise_density=p.gyro_noise_density,
+            gyro_bias_walk=p.gyro_bias_walk,
+            init_att_std=p.init_att_std_rad,
+            init_bias_std=p.init_bias_std_rad_s,
+            history_len=int(ATTITUDE_HISTORY_S * NOMINAL_IMU_HZ),
+        )
+        self.com: ComFilter = make_com_filter(
+            p.kf_backend,
+            delay_s=p.pose_delay_s,
+            compensate_latency=p.compensate_latency,
+            accel_psd_flight=p.accel_psd_flight,
+            accel_psd_stance=p.accel_psd_stance,
+            init_pos_std=p.init_pos_std_m,
+            init_vel_std=p.init_vel_std_m_s,
+            gate_chi2=self._gate3,
+            gate_reset_after=p.gate_reset_after,
+            com_offset_body=c0,
+            com_per_compression=(0.0, 0.0, mu),
+        )
+        self._pose_pos_var = p.pose_pos_std_m ** 2
+        self._pose_att_var = p.pose_att_std_rad ** 2
+        self._leg_var = p.leg_vel_std_m_s ** 2
+        self._impact_var = p.impact_vel_std_m_s ** 2
+        self._tilt_var = p.tilt_std_rad ** 2
+        self._static_hold_ns = int(p.static_hold_s * NS)
+        self._static_gyro2 = p.static_gyro_max_rad_s ** 2
+        self._gyro_range2 = p.gyro_range_rad_s ** 2
+        self._accel_range2 = p.accel_range_m_s2 ** 2
+        self._valid_pos_var = p.valid_pos_std_m ** 2
+        self._valid_att_var = p.valid_att_std_rad ** 2
+        self._counters: dict[str, int] = {}
+        # inputs
+        self._t_imu = -1
+        self._t_joints = -1
+        self._t_pose = -1  # capture stamp of the newest accepted pose
+        self._t_pose_fused = -1
+        self._accel = (0.0, 0.0, 0.0)  # CoM acceleration at the newest sample [m/s^2, world]
+        self._sf_prev = (0.0, 0.0, 0.0)  # specific force at the previous sample [m/s^2, world]
+        self._rot = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # R at the newest sample, row-major
+        self._static_since = -1
+        self.wheel_vel = (0.0, 0.0, 0.0)
+        self.foot_pos = 0.0
+        self.foot_vel = 0.0
+        # contact with hysteresis
+        self.contact = False
+        self._contact_run = 0
+        self._switch = False  # the raw contact reading
+        self._switch_on_ns = 0  # when the switch last closed
+        self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
+        self._att_rejected_in_row = 0
+
+    # --- helpers ------------------------------------------------------------------
+
+    def _reject(self, reason: str) -> bool:
+        self._counters[reason] = self._counters.get(reason, 0) + 1
+        return False
+
+    def _count(self, name: str) -> None:
+        self._counters[name] = self._counters.get(name, 0) + 1
+
+    # --- IMU --------------------------------------------------------------------------
+
+    def update_imu(self, msg: ImuSample) -> bool:
+        """Propagate attitude and CoM to ``msg.stamp_ns``. Gyro [rad/s] and specific
+        force [m/s^2] in the body frame."""
+        t = msg.stamp_ns
+        gyro, accel = msg.gyro, msg.accel
+        # float(): callers building messages from numpy arrays pass numpy scalars,
+        # whose arithmetic is several times slower than a float's
+        gx, gy, gz = float(gyro[0]), float(gyro[1]), float(gyro[2])
+        fx, fy, fz = float(accel[0]), float(accel[1]), float(accel[2])
+        isf = math.isfinite
+        if not (isf(gx) and isf(gy) and isf(gz) and isf(fx) and isf(fy) and isf(fz)):
+            return self._reject("imu_nonfinite")
+        if t <= self._t_imu:
+            return self._reject("imu_out_of_order")
+        p = self.params
+        wr = gx * gx + gy * gy + gz * gz
+        fn2 = fx * fx + fy * fy + fz * fz
+        if wr > self._gyro_range2 or fn2 > self._accel_range2:
+            return self._reject("imu_out_of_range")
+        att = self.att
+        if not att.initialized:
+            return self._start(msg)
+        dt = (t - self._t_imu) / NS
+        self._t_imu = t
+        att.propagate(t, gx, gy, gz, dt)
+        # gravity as the direction of up, only after a quasi-static spell
+        wx, wy, wz = att.omega
+        if abs(math.sqrt(fn2) - self._g) < p.static_accel_tol_m_s2 and wx * wx + wy * wy + wz * wz < self._static_gyro2:
+            if self._static_since < 0:
+                self._static_since = t
+            elif t - self._static_since >= self._static_hold_ns:
+                if not att.correct_gravity(fx, fy, fz, self._tilt_var, self._gate2):
+                    self._count("gravity_outliers")
+        else:
+            self._static_since = -1
+        w, x, y, z = att.q
+        r00 = 1.0 - 2.0 * (y * y + z * z)
+        r01 = 2.0 * (x * y - w * z)
+        r02 = 2.0 * (x * z + w * y)
+        r10 = 2.0 * (x * y + w * z)
+        r11 = 1.0 - 2.0 * (x * x + z * z)
+        r12 = 2.0 * (y * z - w * x)
+        r20 = 2.0 * (x * z - w * y)
+        r21 = 2.0 * (y * z + w * x)
+        r22 = 1.0 - 2.0 * (x * x + y * y)
+        self._rot = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
+        g = self._g
+        # specific force in the world frame; the previous one for the trapezoid
+        sx = r00 * fx + r01 * fy + r02 * fz
+        sy = r10 * fx + r11 * fy + r12 * fz
+        sz = r20 * fx + r21 * fy + r22 * fz
+        px, py, pz = self._sf_prev
+        self._sf_prev = (sx, sy, sz)
+        # The switch (as read at the previous sample) picks the model: stance dynamics hold only
+        # while the foot is on the ground, and projectile dynamics are exact once it is not.
+        stance = self._switch
+        if stance:
+            # foot pinned: the CoM accelerates with the sprung mass's share of the body's;
+            # IMU samples are instantaneous, so the interval's mean is the trapezoid
+            m = self._mu_sprung
+            self._accel = (m * sx, m * sy, m * (sz - g))
+            self.com.push(t, dt, 0.5 * m * (sx + px), 0.5 * m * (sy + py), m * (0.5 * (sz + pz) - g), True, self.foot_pos)
+        else:
+            self._accel = (0.0, 0.0, -g)  # projectile
+            self.com.push(t, dt, 0.0, 0.0, -g, False, self.foot_pos)
+        return True
+
+    def _start(self, msg: ImuSample) -> bool:
+        """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
+        q0 = tuple(float(v) for v in msg.quat)
+        n = quat.norm(q0) if quat.is_finite(q0) else 0.0
+        q_start = quat.normalize(q0) if abs(n - 1.0) < QUAT_NORM_TOL else quat.IDENTITY
+        self.att.initialize(q_start, msg.stamp_ns, tuple(float(v) for v in msg.gyro))
+        self.com.start(msg.stamp_ns)
+        self._t_imu = msg.stamp_ns
+        self._accel = (0.0, 0.0, -self._g)
+        self._sf_prev = quat.rotate(q_start, tuple(float(v) for v in msg.accel))
+        return True
+
+    # --- joints -----------------------------------------------------------------------
+
+    def update_joints(self, msg: JointSensors) -> bool:
+        """Wheel speeds, foot compression and rate, contact; leg kinematics in stance."""
+        t = msg.stamp_ns
+        wv = msg.wheel_vel
+        s, sd = float(msg.foot_pos), float(msg.foot_vel)
+        isf = math.isfinite
+        if not (isf(wv[0]) and isf(wv[1]) and isf(wv[2]) and isf(s) and isf(sd)):
+            return self._reject("joints_nonfinite")
+        if t <= self._t_joints:
+            return self._reject("joints_out_of_order")
+        if not -FOOT_RANGE_MARGIN_M <= s <= self._foot_travel + FOOT_RANGE_MARGIN_M:
+            return self._reject("joints_out_of_range")
+        self._t_joints = t
+        self.wheel_vel = (float(wv[0]), float(wv[1]), float(wv[2]))
+        self.foot_pos = s
+        self.foot_vel = sd
+        if not msg.foot_contact:
+            self._free_foot = (s, sd)
+        elif not self._switch:
+            self._switch_on_ns = t
+        self._switch = msg.foot_contact
+        if msg.foot_contact == self.contact:
+            self._contact_run = 0
+        else:
+            self._contact_run += 1
+            needed = self.params.contact_off_samples if self.contact else self.params.contact_on_samples
+            if self._contact_run >= needed:
+                self._contact_run = 0
+                self.contact = msg.foot_contact
+                if self.contact and self.att.initialized:
+                    self._touchdown()
+        if self.contact and msg.foot_contact and self.att.initialized:
+            # (not while lift-off is being debounced: the foot is no longer pinned)
+            vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
+            self.com.add_leg_velocity(vx, vy, vz, self._leg_var)
+        return True
+
+    def _leg_velocity(self, s: float, sd: float, rolling: bool) -> tuple[float, float, float]:
+        """CoM velocity [m/s, world] relative to the foot sphere's contact point
+        (``rolling``) or to the sphere's centre, from attitude, body rate and the foot."""
+        r = self._rot
+        wx, wy, wz = self.att.omega
+        k = self._mu_sprung
+        bx, by, bz = self._r_cf0
+        bz -= k * s
+        # CoM - sphere centre in world, plus the sphere radius up to the contact point
+        lx = r[0] * bx + r[1] * by + r[2] * bz
+        ly = r[3] * bx + r[4] * by + r[5] * bz
+        lz = r[6] * bx + r[7] * by + r[8] * bz
+        if rolling:
+            lz += self._foot_radius
+        ox = r[0] * wx + r[1] * wy + r[2] * wz
+        oy = r[3] * wx + r[4] * wy + r[5] * wz
+        oz = r[6] * wx + r[7] * wy + r[8] * wz
+        d = -k * sd  # d/dt of the body-z offset
+        return (
+            oy * lz - oz * ly + r[2] * d,
+            oz * lx - ox * lz + r[5] * d,
+            ox * ly - oy * lx + r[8] * d,
+        )
+
+    def _touchdown(self) -> None:
+        """Impact map: the ground stops the foot; the CoM loses the foot's momentum share."""
+        # the foot's motion relative to the body just before it hit (now the spring is compressing)
+        rx, ry, rz = self._leg_velocity(*self._free_foot, rolling=False)
+        vx, vy, vz = self.com.velocity
+        m = self._mu_foot
+        # foot velocity = CoM velocity - (CoM relative to the foot)'
+        self.com.add_impulse(-m * (vx - rx), -m * (vy - ry), -m * (vz - rz), self._impact_var, self._switch_on_ns)
+        self._count("touchdowns")
+
+    # --- pose -------------------------------------------------------------------------
+
+    def update_pose(self, msg: PoseMeasurement) -> bool:
+        """Fuse a pose captured at ``msg.stamp_ns`` (torso origin [m, world], attitude)."""
+        t = msg.stamp_ns
+        px, py, pz = (float(v) for v in msg.position)
+        qm = tuple(float(v) for v in msg.quat)
+        isf = math.isfinite
+        if not (isf(px) and isf(py) and isf(pz) and quat.is_finite(qm)):
+            return self._reject("pose_nonfinite")
+        n = quat.norm(qm)
+        if abs(n - 1.0) > QUAT_NORM_TOL:
+            return self._reject("pose_bad_quat")
+        if self._t_imu < 0:
+            return self._reject("pose_before_imu")
+        if t <= self._t_pose:
+            return self._reject("pose_out_of_order")
+        if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
+            return self._reject("pose_future")
+        qm = (qm[0] / n, qm[1] / n, qm[2] / n, qm[3] / n)
+        if self.params.compensate_latency:
+            fused = self.att.correct_pose(qm, t, self._pose_att_var, self._gate3)
+        else:  # as if captured now
+            fused = self.att.correct_pose(qm, self._t_imu, self._pose_att_var, self._gate3)
+        if fused is None:
+            return self._reject("pose_stale")
+        self._t_pose = t
+        if fused:
+            self._att_rejected_in_row = 0
+        else:
+            self._count("att_outliers")
+            self._att_rejected_in_row += 1
+            if self._att_rejected_in_row >= self.params.gate_reset_after:
+                self._count("att_resets")
+                self._att_rejected_in_row = 0
+                self.att.reset_attitude(qm, self._pose_att_var)
+        if fused:
+            self._t_pose_fused = t
+        r0, r1, r2 = quat.to_matrix(qm)
+        self.com.add_pose(t, (px, py, pz), r0 + r1 + r2, self._pose_pos_var)
+        return True
+
+    # --- output -------------------------------------------------------------------------
+
+    def estimate(self, now_ns: int) -> StateEstimate:
+        """The state at ``now_ns``, predicted from the newest IMU sample by at most
+        ``max_extrapolation_s``; ``stamp_ns`` says the time it is valid at."""
+        p = self.params
+        t_imu = self._t_imu
+        lag_ns = min(max(now_ns - t_imu, 0), int(p.max_extrapolation_s * NS)) if t_imu >= 0 else 0
+        tau = lag_ns / NS
+        com = self.com
+        px, py, pz = com.position
+        vx, vy, vz = com.velocity
+        ax, ay, az = self._accel
+        h = 0.5 * tau * tau
+        att = self.att
+        q = att.q
+        wx, wy, wz = att.omega
+        if tau > 0.0:
+            px += vx * tau + ax * h
+            py += vy * tau + ay * h
+            pz += vz * tau + az * h
+            vx += ax * tau
+            vy += ay * tau
+            vz += az * tau
+            q = quat.mul(q, quat.exp((wx * tau, wy * tau, wz * tau)))
+        ppp, ppv, pvv = com.output_p2(tau)
+        z = 0.0
+        cov = [
+            ppp, z, z, ppv, z, z,
+            z, ppp, z, z, ppv, z,
+            z, z, ppp, z, z, ppv,
+            ppv, z, z, pvv, z, z,
+            z, ppv, z, z, pvv, z,
+            z, z, ppv, z, z, pvv,
+        ]
+        av = att.body_variances()
+        valid = (
+            max(self._t_pose_fused, com.last_fused_stamp) >= 0
+            and now_ns - t_imu <= p.imu_timeout_s * NS
+            and ppp <= self._valid_pos_var
+            and max(av) <= self._valid_att_var
+        )
+        return StateEstimate(
+            stamp_ns=t_imu + lag_ns,
+            position=[px, py, pz],
+            velocity=[vx, vy, vz],
+            quat=list(q),
+            omega=[wx, wy, wz],
+            wheel_vel=list(self.wheel_vel),
+            foot_pos=self.foot_pos,
+            foot_vel=self.foot_vel,
+            contact=self.contact,
+            phase="stance" if self.contact else "flight",
+            pos_vel_cov=cov,
+            att_cov=list(av),
+            valid=valid,
+        )
+
+    def status(self) -> dict[str, float | str]:
+        """Health figures: ``mode``, pose age [s], standard deviations, gyro bias [rad/s]."""
+        t = self._t_imu
+        fused = max(self._t_pose_fused, self.com.last_fused_stamp)
+        if fused < 0:
+            mode = "init"
+            pose_age = math.inf
+        else:
+            pose_age = (t - fused) / NS
+            mode = "pose_outage" if pose_age > self.params.pose_timeout_s else "ok"
+        ppp, _, pvv = self.com.output_p2()
+        bx, by, bz = self.att.bias
+        return {
+            "mode": mode,
+            "pose_age_s": pose_age,
+            "pos_std_m": math.sqrt(ppp),
+            "vel_std_m_s": math.sqrt(pvv),
+            "att_std_rad": math.sqrt(max(self.att.variances())),
+            "gyro_bias_rad_s": math.sqrt(bx * bx + by * by + bz * bz),
+        }
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Rejections by reason, gated outliers, fused measurements, touchdowns (a copy)."""
+        out = dict(self._counters)
+        out.update(self.com.counters)
+        return out
