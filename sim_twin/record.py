@@ -1,0 +1,55 @@
+"""Write a run's messages to an MCAP file (JSON schemas, readable in Foxglove).
+
+Channels are the Zenoh keys of :mod:`onboard.topics` (so a recording of a lockstep run looks like
+one of the live system); JSON messages carry their msgspec-generated JSON schema; depth images keep
+their binary layout (:mod:`onboard.binary_messages`) under the ``archer-binary-v1`` encoding.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from pathlib import Path
+
+import msgspec
+from mcap.writer import CompressionType, Writer
+
+from onboard import binary_messages as bm
+from onboard import messages as m
+from onboard.topics import TOPICS, namespace
+
+BINARY_ENCODING = "archer-binary-v1"
+
+
+def write_mcap(path: str | Path, messages: Iterable[tuple[str, int, object]], ns: str | None = None) -> int:
+    """Write ``(topic name, log time ns, message)`` triples; returns the number written."""
+    ns = ns or namespace()
+    count = 0
+    with open(path, "wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="archer sim_twin")
+        channels: dict[str, int] = {}
+        for topic, log_ns, msg in messages:
+            ch = channels.get(topic)
+            if ch is None:
+                ch = channels[topic] = _register(writer, topic, msg, ns)
+            if isinstance(msg, bm.DepthImage):
+                data = bm.encode_depth(msg)
+                stamp = msg.stamp_ns
+            else:
+                data = m.encode(msg)
+                stamp = getattr(msg, "stamp_ns", log_ns)
+            writer.add_message(ch, log_time=int(log_ns), data=data, publish_time=int(stamp), sequence=count)
+            count += 1
+        writer.finish()
+    return count
+
+
+def _register(writer: Writer, topic: str, msg: object, ns: str) -> int:
+    key = TOPICS[topic].key(ns) if topic in TOPICS else f"{ns}/{topic}"
+    if isinstance(msg, bm.DepthImage):
+        schema = writer.register_schema(name="DepthImage", encoding="", data=b"")
+        return writer.register_channel(topic=key, message_encoding=BINARY_ENCODING, schema_id=schema)
+    schema_json = msgspec.json.schema(type(msg))
+    schema = writer.register_schema(name=type(msg).__name__, encoding="jsonschema", data=json.dumps(schema_json).encode())
+    return writer.register_channel(topic=key, message_encoding="json", schema_id=schema)

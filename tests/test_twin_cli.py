@@ -1,0 +1,53 @@
+"""``archer sim``: JSON metrics on the last stdout line, PNG plot, MCAP recording, clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from mcap.reader import make_reader
+
+from onboard import messages as msgs
+from onboard.topics import TOPICS, namespace
+from services.cli import main
+
+REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_factor", "hops", "falls", "collisions",
+            "goal_reached", "final_goal_error_m", "rms_tracking_error_m", "max_tracking_error_m", "max_wheel_speed_rad_s",
+            "torque_saturation_fraction", "contract_violations"]
+
+
+def test_sim_json_plot_and_record(tmp_path, capsys) -> None:
+    png, rec = tmp_path / "run.png", tmp_path / "run.mcap"
+    rc = main(["sim", "--scenario", "forest", "--seed", "3", "--duration", "1.0", "--json", "--estimator", "truth",
+               "--controller", "passive", "--planner", "scenario", "--plot", str(png), "--record", str(rec)])
+    assert rc == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    metrics = json.loads(out[-1])
+    for key in REQUIRED:
+        assert key in metrics, key
+    assert metrics["scenario"] == "forest" and metrics["seed"] == 3 and metrics["mode"] == "lockstep"
+    assert metrics["sim_time_s"] == pytest.approx(1.0)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    ns = namespace()
+    counts: dict[str, int] = {}
+    with open(rec, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            if channel.topic == TOPICS["imu"].key(ns):
+                assert schema.encoding == "jsonschema"
+                msgs.decode(message.data, msgs.ImuSample)
+    assert counts[TOPICS["imu"].key(ns)] == 1000
+    assert counts[TOPICS["state"].key(ns)] == 1000
+    assert counts[TOPICS["pose"].key(ns)] == 100  # 100 Hz: captures at 1, 10, 20 ... 990 ms, each 10 ms late
+    assert counts[TOPICS["polytopes"].key(ns)] == 1
+    assert metrics["recorded_messages"] == sum(counts.values())
+
+
+def test_sim_rejects_bad_arguments(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["sim", "--scenario", "volcano"])
+    rc = main(["sim", "--scenario", "hop-in-place", "--duration", "-2", "--controller", "passive", "--estimator", "truth"])
+    assert rc == 2
+    assert "duration" in capsys.readouterr().err
