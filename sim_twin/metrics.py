@@ -1,0 +1,215 @@
+"""Run metrics computed from the physics (true CoM, true contacts, true tilt), never from the stack's belief.
+
+Shared by the lockstep runner and the real-time twin service. Definitions:
+
+- ``hops``: completed flights (lift-off then touchdown of the foot, airborne >= ``MIN_FLIGHT_S``);
+- ``falls``: tilt over ``SafetyLimits.tilt_max``, or any robot geom other than the foot touching the
+  ground (floor or terrain);
+- ``collisions``: contact episodes between the robot and an obstacle;
+- tracking errors: horizontal distance between the true CoM and the active reference evaluated at
+  the same time, at every touchdown (``rms_/max_tracking_error_m``, the issue-4 definition) and over
+  the whole run sampled every ``TRACE_EVERY`` ticks (``*_continuous_m``);
+- ``goal_reached``: the final CoM is within the goal tolerance of the target (the goal, or the
+  start for in-place scenarios) and the robot did not fall;
+- ``torque_saturation_fraction``: wheel-ticks whose commanded torque the limits or the motor curve
+  clipped (:class:`sim_twin.actuation.Actuation`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from onboard import messages as m
+from onboard.params import SafetyLimits
+from sim_twin import model as tm
+from sim_twin import scenarios as sc
+from sim_twin.actuation import Actuation
+from sim_twin.stack import TruthEstimator
+
+NS = 1_000_000_000
+MIN_FLIGHT_S = 0.08  # [s] an airborne spell shorter than this (apex < 8 mm) is a chatter, not a hop
+TRACE_EVERY = 10  # ticks between trace samples (plots, continuous tracking error)
+
+
+@dataclass
+class Trace:
+    t: list[float] = field(default_factory=list)
+    com: list[tuple[float, float, float]] = field(default_factory=list)
+    est: list[tuple[float, float, float]] = field(default_factory=list)
+    ref: list[tuple[float, float]] = field(default_factory=list)
+    wheel_vel: list[tuple[float, float, float]] = field(default_factory=list)
+    torque: list[tuple[float, float, float, float]] = field(default_factory=list)
+    tracking_error: list[float] = field(default_factory=list)
+    impacts: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # t, x, y, ref x, ref y
+
+
+class ContactClassifier:
+    """Which geoms are robot, foot, ground (floor / terrain) and obstacles."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        torso = model.body(tm.TORSO).id
+        foot = model.body(tm.FOOT).id
+        n = model.ngeom
+        robot, feet, ground, obstacle = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        for g in range(n):
+            chain = [int(model.geom_bodyid[g])]
+            while chain[-1] != 0:
+                chain.append(int(model.body_parentid[chain[-1]]))
+            name = model.geom(g).name
+            if torso in chain:
+                robot[g] = True
+                feet[g] = foot in chain
+            elif name == "floor" or name.startswith(sc.TERRAIN_PREFIX):
+                ground[g] = True
+            elif name.startswith(sc.OBSTACLE_PREFIX):
+                obstacle[g] = True
+        self.robot, self.foot, self.ground, self.obstacle = robot.tolist(), feet.tolist(), ground.tolist(), obstacle.tolist()
+
+    def classify(self, data: mujoco.MjData) -> tuple[bool, bool, bool]:
+        """(foot on ground, other robot part on ground, robot touching an obstacle)."""
+        foot_ground = body_ground = obstacle = False
+        geoms = data.contact.geom
+        rob, fo, gr, ob = self.robot, self.foot, self.ground, self.obstacle
+        for k in range(data.ncon):
+            a, b = int(geoms[k, 0]), int(geoms[k, 1])
+            if rob[b] and not rob[a]:
+                a, b = b, a
+            if not rob[a]:
+                continue
+            if gr[b]:
+                if fo[a]:
+                    foot_ground = True
+                else:
+                    body_ground = True
+            elif ob[b]:
+                obstacle = True
+        return foot_ground, body_ground, obstacle
+
+
+def reference_at(ref: m.ComReference, now_ns: int) -> tuple[float, float]:
+    if ref.hold:
+        p = ref.segments[0].control_points[0]
+        return p[0], p[1]
+    return sc.sample_reference(ref.segments, (now_ns - ref.t_ref_ns) / NS)
+
+
+def _rms(values: list[float]) -> float | None:
+    if not values:
+        return None
+    return round(math.sqrt(sum(v * v for v in values) / len(values)), 4)
+
+
+class PhysicsMetrics:
+    """Accumulates the metrics tick by tick; :meth:`summary` gives the figures."""
+
+    def __init__(self, model: mujoco.MjModel, scenario: sc.Scenario, truth: TruthEstimator, safety: SafetyLimits) -> None:
+        self.scenario = scenario
+        self.truth = truth
+        self.safety = safety
+        self.contacts = ContactClassifier(model)
+        self.wheel_dof = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
+        self.qp_root = int(model.joint(tm.ROOT_JOINT).qposadr[0])
+        self.cos_tilt_max = math.cos(safety.tilt_max)
+        self.target = scenario.target()
+        self.trace = Trace()
+        self.ticks = 0
+        self.hops = self.falls = self.collisions = 0
+        self.fell = False
+        self.fall_reason = ""
+        self.fall_time = math.nan
+        self.max_wheel = 0.0
+        self.wheel_over_limit = 0
+        self._on_ground = False
+        self._airborne_since = 0.0
+        self._in_collision = False
+        self._impact_err: list[float] = []
+        self._cont_err: list[float] = []
+        self._est_err: list[float] = []
+
+    def update(self, t: float, now_ns: int, data: mujoco.MjData, reference: m.ComReference | None,
+               estimate: m.StateEstimate | None, applied: tuple[float, float, float, float]) -> None:
+        """After the physics step at sim time ``t`` [s]; ``now_ns`` is the time base of ``reference``."""
+        self.ticks += 1
+        if data.ncon:
+            foot_ground, body_ground, obstacle = self.contacts.classify(data)
+        else:
+            foot_ground = body_ground = obstacle = False
+        if foot_ground and not self._on_ground:
+            if self._airborne_since and t - self._airborne_since >= MIN_FLIGHT_S:
+                self.hops += 1
+            if reference is not None:
+                (px, py, _), _ = self.truth.com(data)
+                rx, ry = reference_at(reference, now_ns)
+                self._impact_err.append(math.hypot(px - rx, py - ry))
+                self.trace.impacts.append((t, px, py, rx, ry))
+            self._on_ground = True
+        elif not foot_ground and self._on_ground:
+            self._on_ground = False
+            self._airborne_since = t
+        elif not foot_ground and self._airborne_since == 0.0:
+            self._airborne_since = t  # the initial drop: a flight start for timing
+        if obstacle and not self._in_collision:
+            self.collisions += 1
+        self._in_collision = obstacle
+        qpos = data.qpos.tolist()
+        qvel = data.qvel.tolist()
+        qx, qy = qpos[self.qp_root + 4], qpos[self.qp_root + 5]
+        if not self.fell and (body_ground or 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max):
+            self.fell = True
+            self.falls += 1
+            self.fall_time = t
+            self.fall_reason = "body on the ground" if body_ground else "tilt"
+        mw = self.max_wheel
+        for dof in self.wheel_dof:
+            s = abs(qvel[dof])
+            if s > mw:
+                mw = s
+        self.max_wheel = mw
+        if mw > self.safety.wheel_speed_max:
+            self.wheel_over_limit += 1
+
+        if self.ticks % TRACE_EVERY == 0:
+            tr = self.trace
+            (px, py, pz), _ = self.truth.com(data)
+            rx, ry = reference_at(reference, now_ns) if reference is not None else self.target
+            err = math.hypot(px - rx, py - ry)
+            self._cont_err.append(err)
+            tr.t.append(t)
+            tr.com.append((px, py, pz))
+            if estimate is not None:
+                sp = estimate.position
+                self._est_err.append(math.dist((px, py, pz), sp))
+                tr.est.append((sp[0], sp[1], sp[2]))
+            tr.ref.append((rx, ry))
+            tr.wheel_vel.append(tuple(qvel[d] for d in self.wheel_dof))
+            tr.torque.append(applied)
+            tr.tracking_error.append(err)
+
+    def summary(self, data: mujoco.MjData, actuation: Actuation) -> dict:
+        (px, py, _), _ = self.truth.com(data)
+        final_err = math.hypot(px - self.target[0], py - self.target[1])
+        goal = self.scenario.goal()
+        tol = goal.tolerance if goal is not None else sc.GOAL_TOLERANCE
+        impact, cont = self._impact_err, self._cont_err
+        return {
+            "hops": self.hops,
+            "falls": self.falls,
+            "fall_time_s": None if math.isnan(self.fall_time) else round(self.fall_time, 4),
+            "fall_reason": self.fall_reason,
+            "collisions": self.collisions,
+            "goal_reached": bool(final_err <= tol and not self.fell),
+            "final_goal_error_m": round(final_err, 4),
+            "rms_tracking_error_m": _rms(impact),
+            "max_tracking_error_m": round(max(impact), 4) if impact else None,
+            "rms_tracking_error_continuous_m": _rms(cont),
+            "max_tracking_error_continuous_m": round(max(cont), 4) if cont else None,
+            "estimate_rms_error_m": _rms(self._est_err),
+            "max_wheel_speed_rad_s": round(self.max_wheel, 3),
+            "wheel_speed_over_limit_ticks": self.wheel_over_limit,
+            "torque_saturation_fraction": round(actuation.saturation_fraction, 5),
+            "commands_refused": {k: v for k, v in actuation.counters.items() if k != "applied" and v},
+        }
