@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "topics": ("services.cmd_introspect", "print the topic table"),
     "echo": ("services.cmd_introspect", "print decoded live messages of one topic"),
     "status": ("services.cmd_introspect", "list live services and their status"),
+    "emulate": ("services.cmd_emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
     "sim": ("sim_twin.cmd_sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "bench": ("services.bench", "measure speed and print figures"),
     "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),

@@ -12,6 +12,7 @@ from services.runtime import Service, add_service_arguments, run_service, setup_
 SERVICE_CLASSES: dict[str, str] = {
     "perception": "services.perception:PerceptionService",
     "router": "services.router:RouterService",
+    "hardware": "services.hardware:HardwareService",
 }
 
 

@@ -54,13 +54,16 @@ class JointDrive:
     sign: int  # +1 or -1: motor direction vs joint direction
 
 
-def joint_drives(params: HardwareParams) -> list[JointDrive]:
+def joint_drives(params: HardwareParams, gear_ratios: Sequence[float]) -> list[JointDrive]:
+    """One :class:`JointDrive` per node id; ``gear_ratios`` from the MJCF model (joint order)."""
     n = len(params.node_ids)
-    for name in ("torque_constant", "current_max", "gear_ratio", "joint_sign"):
+    for name in ("torque_constant", "current_max", "joint_sign"):
         if len(getattr(params, name)) != n:
             raise ValueError(f"hardware.{name} needs {n} values, one per node id")
+    if len(gear_ratios) != n:
+        raise ValueError(f"{n} gear ratios needed, got {len(gear_ratios)}")
     return [
-        JointDrive(params.node_ids[i], params.torque_constant[i], params.current_max[i], params.gear_ratio[i], params.joint_sign[i])
+        JointDrive(params.node_ids[i], params.torque_constant[i], params.current_max[i], float(gear_ratios[i]), params.joint_sign[i])
         for i in range(n)
     ]
 

@@ -407,6 +407,8 @@ class EmulatedDrive:
             self._last_sync_s = now
             return []
         self._count("syncs")
+        if not self._pending_rpdo and int(self.value(c.RPDO_COMM, 1)) & c.PDO_COB_INVALID == 0:
+            self._count("sync_without_rpdo")  # the host's command for this cycle is late or lost
         for n in sorted(self._pending_rpdo):
             self._apply_rpdo(n, self._pending_rpdo[n])
         self._pending_rpdo.clear()
@@ -550,6 +552,9 @@ class EmulatedDrive:
         self._queued = []
         if self.muted:
             return []
+        if self.state == c.DriveState.FAULT_REACTION_ACTIVE:
+            self.state = c.DriveState.FAULT  # the reaction (torque off) is done
+            self._publish_statusword()
         producer_ms = int(self.value(c.PRODUCER_HEARTBEAT))
         if producer_ms and now >= self._next_heartbeat_s:
             out.append(c.make_heartbeat(self.node_id, self.nmt))
@@ -667,6 +672,17 @@ class DriveBusEmulator:
             self.frames_out += len(out)
             return out
 
+    def summary(self) -> dict[str, object]:
+        """Counters of the bus and of every drive."""
+        with self._lock:
+            return {
+                "frames_in": self.frames_in,
+                "frames_out": self.frames_out,
+                "frames_ignored": self.frames_ignored,
+                "syncs": self.syncs,
+                "drives": {str(d.node_id): dict(d.counters) for d in self.drives},
+            }
+
     def next_wake(self, now: float) -> float:
         return min((d.next_timer() for d in self.drives), default=now + SERVICE_PERIOD_S)
 
@@ -775,3 +791,49 @@ def make_emulator(params: HardwareParams, motors: Sequence[MotorModel] | None = 
         motor = motors[i] if motors is not None else None
         drives.append(EmulatedDrive(node_id, drive_config(params, i, serial_number=i + 1), motor))
     return DriveBusEmulator(drives, params.host_node_id)
+
+
+class SocketcandRunner:
+    """Serves a :class:`DriveBusEmulator` as a socketcand bus on 127.0.0.1 (``archer emulate drives``).
+
+    Requests are answered on the connection's own thread; a timer thread runs the
+    heartbeats, consumer timeouts and fault injections every ``SERVICE_PERIOD_S``.
+    """
+
+    def __init__(self, emulator: DriveBusEmulator, channel: str = "can0", port: int = 0) -> None:
+        from drivers.socketcand import SocketcandServer  # the emulator core does not need TCP
+
+        self.emulator = emulator
+        self.server = SocketcandServer(emulator.handle, channel, port)
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="drive-emulator-timers", daemon=True)
+
+    def bus_kwargs(self) -> dict[str, object]:
+        return self.server.bus_kwargs()
+
+    def start(self) -> SocketcandRunner:
+        self.server.start()
+        self.server.broadcast(self.emulator.boot(time.monotonic()))
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+        self.server.stop()
+
+    def __enter__(self) -> SocketcandRunner:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(SERVICE_PERIOD_S):
+                self.server.broadcast(self.emulator.service(time.monotonic()))
+        except BaseException as exc:  # surfaced to the owner through .error
+            self.error = exc
+            log.exception("drive emulator timers crashed")

@@ -20,7 +20,7 @@ import tempfile
 import threading
 import time
 import tty
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from drivers.elmo.emulator import InertiaLoad, MotorModel
@@ -72,6 +72,7 @@ class TeensyEmulator:
     def __init__(
         self,
         params: HardwareParams | None = None,
+        gear_ratios: Sequence[float] = (1.0, 1.0, 1.0, 1.0),
         motors: list[MotorModel] | None = None,
         body: BodyState | None = None,
         link_dir: str | None = None,
@@ -83,8 +84,8 @@ class TeensyEmulator:
         self.motors: list[MotorModel] = motors or [InertiaLoad() for _ in range(n)]
         self.body = body or BodyState()
         self.clamp = [
-            self.params.current_max[i] * self.params.torque_constant[i] * self.params.gear_ratio[i] for i in range(n)
-        ]  # [N m] at the joint
+            self.params.current_max[i] * self.params.torque_constant[i] * gear_ratios[i] for i in range(n)
+        ]  # [N m] at the joint: the drive's current clamp through the gearbox
         self.gains = p.Gains((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self.applied = [0.0] * n  # joint torques applied now [N m]
         self.armed = False
