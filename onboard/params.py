@@ -134,6 +134,12 @@ class ControlParams:
 
     rate_hz: float = 1000.0  # control loop rate [Hz]
     auto_arm: bool = True  # arm on the first valid estimate (else wait for an arm request)
+    robot: str = "indoor"  # MJCF variant the parameters are read from (sim_twin/models)
+    rt_priority: int = 80  # SCHED_FIFO priority of the loop process (0: leave the scheduler alone)
+    cpu: int = -1  # CPU the loop process is pinned to (-1: no pinning)
+    tube_period_s: float = 0.5  # publish the measured tube this often [s]
+    arm_request: int = 0  # operator command: set a new value to arm (after a latched disarm)
+    disarm_request: int = 0  # operator command: set a new value to disarm
     # flight: quaternion PD (thesis 2201-2216)
     kp_tilt: float = 40.0  # [N m/rad] roll and pitch
     kd_tilt: float = 3.0  # [N m s/rad]

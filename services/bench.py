@@ -15,6 +15,7 @@ import sys
 BENCHES: dict[str, tuple[str, str]] = {
     # subject: (module, one-line help)
     "perception": ("services.bench_perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
+    "control": ("services.bench_control", "the 1 kHz control loop in its own process with the other core busy: tick time, period jitter, overruns"),
     "messaging": ("services.bench_messaging", "Zenoh latency and loss between two processes at 1 kHz"),
     "hardware": ("services.bench_hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
     "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),

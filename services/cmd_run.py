@@ -13,6 +13,7 @@ SERVICE_CLASSES: dict[str, str] = {
     "perception": "services.perception:PerceptionService",
     "router": "services.router:RouterService",
     "hardware": "services.hardware:HardwareService",
+    "control": "services.control:ControlService",
 }
 
 

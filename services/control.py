@@ -1,23 +1,63 @@
 """The ``control`` service: the 1 kHz low level (issue 4).
 
-Builds the :class:`onboard.low_level.LowLevelController` from the MJCF
-(:func:`build_controller`, also used by the lockstep runner).
+Subscribes (latest value): ``state`` (StateEstimate), ``reference`` (ComReference),
+``joints`` (JointSensors: the foot's cable spool angle).
+Computes: :class:`onboard.low_level.LowLevelController` every 1 ms.
+Publishes: ``torque_cmd`` every tick (disarmed zeros until a valid estimate arms it),
+``phase`` and ``safety`` events as they happen, ``tube`` every
+``ControlParams.tube_period_s``.
+
+Timing: the loop runs in a child process of its own (:class:`ControlLoop`), on a
+:class:`services.realtime.DeadlineLoop` with absolute deadlines, real-time priority and
+a pinned CPU when the kernel allows (logged and skipped when not). The child has no
+asyncio loop and no other Python thread that competes for the GIL at 1 kHz except the
+Zenoh callbacks that drop decoded messages into latest-value slots; the parent process
+(this :class:`ControlService`) keeps the asyncio duties: liveliness, status, parameters,
+logging every safety trip. Every ``STATS_PERIOD_S`` the child reports its loop
+statistics (period jitter, compute time, overruns) and the safety trips to the parent
+over a pipe, so the tick never logs. Control parameters are read when the loop starts;
+a parameter change restarts the loop process.
+
+:func:`build_controller` builds the controller from the MJCF (the robot's parameters
+and the reduced hopper model) and the policy weights file; the twin's lockstep runner
+uses it too.
 """
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
 import functools
+import logging
+import multiprocessing as mp
+import threading
+from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
 
+from onboard import messages as msgs
 from onboard import zdp
 from onboard.low_level import LowLevelController
 from onboard.params import ControlParams, SafetyLimits
+from onboard.topics import TOPICS
+from services.clock import WallClock
+from services.realtime import DeadlineLoop, make_realtime
+from services.runtime import LatestSlot, Service, TypedPublisher
+from services.zenoh_session import open_session
 from sim_twin import model as twin_model
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "onboard" / "data"
+STATS_PERIOD_S = 0.5  # child -> parent report period [s]
+START_TIMEOUT_S = 30.0  # building the controller (linearization) and opening Zenoh [s]
+STOP_TIMEOUT_S = 3.0
+
+log = logging.getLogger("archer.control")
+
+
+# --- building the controller from the MJCF ------------------------------------------------------
 
 
 @functools.lru_cache(maxsize=None)
@@ -99,3 +139,332 @@ def build_controller(
     params = params or ControlParams()
     weights = load_policy_weights(params.mlp_weights) if params.policy == "mlp" else None
     return LowLevelController(params, twin_model.robot_params(variant), hopper_model(variant), safety, weights)
+
+
+# --- the loop process -----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Everything the loop process needs (picklable: it crosses the process boundary)."""
+
+    ns: str
+    endpoint: str
+    zenoh_config: str | None
+    control: ControlParams
+    safety: SafetyLimits
+    duration_s: float = 0.0  # > 0: stop by itself after this long (the bench)
+
+
+class ControlLoop:
+    """The 1 kHz loop with its own Zenoh session; runs in the loop process."""
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        self.cfg = cfg
+        self.clock = WallClock()
+        self.ctrl = build_controller(cfg.control.robot, cfg.control, cfg.safety)
+        self.session = open_session(cfg.endpoint, "peer", cfg.zenoh_config)
+        self.rejected: dict[str, int] = {}
+        self.received: dict[str, int] = {}
+        self.slots = {name: self._latest(name) for name in ("state", "reference", "joints")}
+        self.pubs = {name: TypedPublisher(self.session, TOPICS[name], cfg.ns, self.clock)
+                     for name in ("torque_cmd", "phase", "safety", "tube")}
+        self._tube_every = max(1, int(cfg.control.tube_period_s * cfg.control.rate_hz))
+        self._ticks = 0
+        self._unsent_trips: list[msgs.SafetyEvent] = []
+        self._trip_lock = threading.Lock()
+        self.safe_ticks = 0  # ticks without a usable estimate or disarmed
+        self.loop = DeadlineLoop(1.0 / cfg.control.rate_hz, self.tick, name="control-loop")
+
+    def _latest(self, name: str) -> LatestSlot:
+        topic = TOPICS[name]
+        slot: LatestSlot = LatestSlot()
+        clock = self.clock
+        self.rejected[name] = 0
+        self.received[name] = 0
+
+        def on_sample(sample: Any) -> None:  # Zenoh thread: decode, drop in the slot
+            try:
+                msg = msgs.decode(sample.payload.to_bytes(), topic.msg_type)
+            except msgs.MessageError:
+                self.rejected[name] += 1
+                return
+            self.received[name] += 1
+            slot.put(msg, clock.now_ns())
+
+        self.session.declare_subscriber(topic.key(self.cfg.ns), on_sample)
+        return slot
+
+    def tick(self, _deadline_s: float) -> None:
+        now = self.clock.now_ns()
+        ctrl = self.ctrl
+        st = self.slots["state"].get()
+        if st is None:
+            cmd = msgs.TorqueCommand(stamp_ns=now, wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
+        else:
+            ref = self.slots["reference"].get()
+            jn = self.slots["joints"].get()
+            cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None)
+        if not cmd.armed:
+            self.safe_ticks += 1
+        self.pubs["torque_cmd"].put(cmd)
+        for ev in ctrl.drain_phase_events():
+            self.pubs["phase"].put(ev)
+        trips = ctrl.drain_safety_events()
+        if trips:
+            for ev in trips:
+                self.pubs["safety"].put(ev)
+            with self._trip_lock:
+                self._unsent_trips.extend(trips)
+        self._ticks += 1
+        if self._ticks % self._tube_every == 0:
+            self.pubs["tube"].put(ctrl.tube(now))
+        if self.cfg.duration_s > 0 and self._ticks >= self.cfg.duration_s * self.cfg.control.rate_hz:
+            self.loop.stop(timeout_s=0)
+
+    def report(self) -> dict[str, Any]:
+        """Loop statistics and what happened since the last report (for the parent)."""
+        with self._trip_lock:
+            trips, self._unsent_trips = self._unsent_trips, []
+        tube = self.ctrl.tube(0)
+        return {
+            "loop": self.loop.recorder.stats().as_dict(),
+            "armed": self.ctrl.armed,
+            "disarm_reason": self.ctrl.supervisor.disarm_reason,
+            "hops": self.ctrl.phase.hop,
+            "safe_ticks": self.safe_ticks,
+            "tube_p95_m": tube.impact_err_p95,
+            "trip_counts": dict(self.ctrl.supervisor.counts),
+            "trips": [msgs.encode(t) for t in trips],
+            "rejected": dict(self.rejected),
+            "received": dict(self.received),
+        }
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
+    """Entry point of the loop process: build, report ready, loop until told to stop."""
+    try:
+        applied = make_realtime(cfg.control.rt_priority or None, cfg.control.cpu if cfg.control.cpu >= 0 else None)
+        loop = ControlLoop(cfg)
+    except Exception as exc:  # reported to the parent, which fails the service
+        conn.send({"error": repr(exc)})
+        return
+    send_lock = threading.Lock()
+    done = threading.Event()
+
+    def send(obj: Any) -> bool:
+        try:
+            with send_lock:
+                conn.send(obj)
+            return True
+        except (BrokenPipeError, OSError):
+            return False
+
+    send({"ready": True, "realtime": applied})
+
+    def serve() -> None:  # parent requests; blocks in poll (no GIL held while waiting)
+        while not done.is_set():
+            try:
+                if not conn.poll(STATS_PERIOD_S):
+                    if not send(loop.report()):
+                        break
+                    continue
+                req = conn.recv()
+            except (EOFError, OSError):
+                break
+            if req == "stop":
+                break
+            if req == "arm":
+                loop.ctrl.request_arm()
+            elif req == "disarm":
+                loop.ctrl.disarm(loop.clock.now_ns())
+        loop.loop.stop(timeout_s=0)  # parent gone or asked: end the loop
+
+    server = threading.Thread(target=serve, name="control-pipe", daemon=True)
+    server.start()
+    loop.loop.run_here()
+    done.set()
+    final = loop.report()
+    final["final"] = True
+    if loop.loop.error is not None:
+        final["error"] = repr(loop.loop.error)
+    send(final)
+    loop.close()
+
+
+class LoopProcess:
+    """Starts and talks to the loop process (used by the service and the bench)."""
+
+    def __init__(self, cfg: LoopConfig) -> None:
+        ctx = mp.get_context("spawn")  # a clean interpreter: no inherited threads or sessions
+        self._conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=loop_process_main, args=(cfg, child), name="archer-control-loop", daemon=True)
+        self.last: dict[str, Any] = {}
+        self.realtime: dict[str, str] = {}
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        self.proc.start()
+        if not self._conn.poll(timeout_s):
+            self.proc.kill()
+            raise RuntimeError("control loop process did not start")
+        first = self._conn.recv()
+        if "error" in first:
+            self.proc.join(1.0)
+            raise RuntimeError(f"control loop process failed: {first['error']}")
+        self.realtime = first.get("realtime", {})
+
+    def poll(self) -> list[dict[str, Any]]:
+        """Reports received since the last call (non-blocking)."""
+        out = []
+        try:
+            while self._conn.poll():
+                rep = self._conn.recv()
+                out.append(rep)
+                self.last = rep
+        except (EOFError, OSError):
+            pass
+        return out
+
+    def send(self, request: str) -> None:
+        try:
+            self._conn.send(request)
+        except (BrokenPipeError, OSError):
+            pass
+
+    def wait_final(self, timeout_s: float) -> dict[str, Any]:
+        """Wait for the loop's last report (after a stop or a timed run)."""
+        deadline = timeout_s
+        while deadline > 0:
+            if self._conn.poll(0.1):
+                try:
+                    rep = self._conn.recv()
+                except EOFError:
+                    break
+                self.last = rep
+                if rep.get("final"):
+                    break
+            deadline -= 0.1
+        self.proc.join(STOP_TIMEOUT_S)
+        if self.proc.is_alive():
+            self.proc.kill()
+        return self.last
+
+    def stop(self) -> dict[str, Any]:
+        self.send("stop")
+        return self.wait_final(STOP_TIMEOUT_S)
+
+    @property
+    def alive(self) -> bool:
+        return self.proc.is_alive()
+
+
+# --- the service ------------------------------------------------------------------------------------
+
+
+class ControlService(Service):
+    name: ClassVar[str] = "control"
+    params_sections: ClassVar[tuple[str, ...]] = ("control", "safety")
+
+    async def setup(self) -> None:
+        self._loop_proc: LoopProcess | None = None
+        self._restart = asyncio.Event()
+        self._trips_logged = 0
+        await self._start_loop()
+
+    def _loop_config(self) -> LoopConfig:
+        self._applied_control = self.params["control"]
+        return LoopConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
+                          control=self.params["control"], safety=self.params["safety"])
+
+    async def _start_loop(self) -> None:
+        proc = LoopProcess(self._loop_config())
+        await asyncio.to_thread(proc.start)
+        self._loop_proc = proc
+        self.log.info("control loop started", extra={"fields": {"pid": proc.proc.pid, "realtime": proc.realtime}})
+
+    async def main(self) -> None:
+        while not self.stopping.is_set():
+            try:
+                await asyncio.wait_for(self._restart.wait(), STATS_PERIOD_S)
+            except asyncio.TimeoutError:
+                pass
+            proc = self._loop_proc
+            if proc is None:
+                continue
+            for rep in proc.poll():
+                self._absorb(rep)
+            if self._restart.is_set():
+                self._restart.clear()
+                self.log.info("parameters changed: restarting the control loop")
+                await asyncio.to_thread(proc.stop)
+                await self._start_loop()
+            elif not proc.alive:
+                self.state = "error"
+                self.fail("control loop process exited")
+                self.log.error("control loop process exited", extra={"fields": {"exitcode": proc.proc.exitcode}})
+                return
+
+    def _absorb(self, rep: dict[str, Any]) -> None:
+        """Log every safety trip the loop reported; keep the figures for the status."""
+        if "error" in rep:
+            self.fail(rep["error"])
+        for raw in rep.get("trips", []):
+            ev = msgs.decode(raw, msgs.SafetyEvent)
+            self._trips_logged += 1
+            self.count(f"trip.{ev.trip}")
+            self.log.warning("safety trip", extra={"fields": {"trip": ev.trip, "value": ev.value, "limit": ev.limit,
+                                                              "armed": ev.armed, "count": ev.count}})
+        self.state = "running" if rep.get("armed") else "degraded"
+
+    async def teardown(self) -> None:
+        if self._loop_proc is not None:
+            final = await asyncio.to_thread(self._loop_proc.stop)
+            for rep in ([final] if final else []):
+                self._absorb(rep)
+            self._loop_proc = None
+
+    def on_params_changed(self, section: str) -> None:
+        """Operator arm/disarm requests go to the loop; other changes restart it."""
+        if section == "safety":
+            self._restart_soon()
+            return
+        now = self.params["control"]
+        before = self._applied_control
+        if dataclasses.replace(now, arm_request=before.arm_request, disarm_request=before.disarm_request) != before:
+            self._restart_soon()
+        else:
+            if now.arm_request != before.arm_request:
+                self.request_arm()
+            if now.disarm_request != before.disarm_request:
+                self.request_disarm()
+            self._applied_control = now
+
+    def _restart_soon(self) -> None:
+        loop = self._loop
+        if loop is not None:
+            loop.call_soon_threadsafe(self._restart.set)
+
+    def request_arm(self) -> None:
+        if self._loop_proc is not None:
+            self._loop_proc.send("arm")
+
+    def request_disarm(self) -> None:
+        if self._loop_proc is not None:
+            self._loop_proc.send("disarm")
+
+    def status_extra(self) -> dict[str, float]:
+        rep = self._loop_proc.last if self._loop_proc is not None else {}
+        out: dict[str, float] = {}
+        for k, v in rep.get("loop", {}).items():
+            out[f"loop_{k}"] = float(v)
+        out["armed"] = float(bool(rep.get("armed", False)))
+        out["hops"] = float(rep.get("hops", 0))
+        out["safe_ticks"] = float(rep.get("safe_ticks", 0))
+        out["tube_p95_m"] = float(rep.get("tube_p95_m", 0.0))
+        for name, n in rep.get("rejected", {}).items():
+            out[f"rejected_{name}"] = float(n)
+        out["safety_trips_logged"] = float(self._trips_logged)
+        return out
