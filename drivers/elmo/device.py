@@ -283,14 +283,33 @@ class DriveGroup:
             self.transport.send(self._host_heartbeat)
             self._next_heartbeat_s = now + self.params.host_heartbeat_period_s
 
-    def start(self) -> None:
+    def start(self, reset_communication: bool = True) -> None:
         """Reset communication, wait for every boot-up, configure every drive, go operational.
 
-        Blocking (SDO); raises :class:`DriveError` or :class:`SdoError` on failure.
+        ``reset_communication=False`` skips the reset and the wait, for slaves already in
+        PRE-OPERATIONAL that do not announce a boot-up on reset. Blocking (SDO); raises
+        :class:`DriveError` or :class:`SdoError` on failure.
         """
         self._cyclic = False
         for d in self.drives:
             d.feedback = Feedback()
+        if reset_communication:
+            self._reset_communication()
+        timeout_ms = max(1, round(self.heartbeat_timeout_s * 1000))
+        producer_ms = max(1, round(self.params.drive_heartbeat_period_s * 1000))
+        cycle_us = round(self.period_s * 1e6)
+        for d in self.drives:
+            d.configure(self._sdo(d), self.params.host_node_id, timeout_ms, producer_ms, self.params.position_every, cycle_us)
+        self._heartbeat_if_due()  # the drives' consumers start on this first heartbeat
+        self.transport.send(c.make_nmt(c.NmtCommand.START))
+        now = self.clock()
+        for d in self.drives:
+            d.feedback.last_heartbeat_s = now
+            self._consecutive_missed[d.node_id] = 0
+        self.sync_count = 0
+        self._cyclic = True
+
+    def _reset_communication(self) -> None:
         self.transport.send(c.make_nmt(c.NmtCommand.RESET_COMMUNICATION))
         booted: set[int] = set()
         deadline = self.clock() + BOOTUP_TIMEOUT_S
@@ -307,19 +326,6 @@ class DriveGroup:
             base, node = c.split_id(frame.can_id)
             if base == c.HEARTBEAT_BASE and node in self._by_id and frame.data[:1] == b"\x00":
                 booted.add(node)
-        timeout_ms = max(1, round(self.heartbeat_timeout_s * 1000))
-        producer_ms = max(1, round(self.params.drive_heartbeat_period_s * 1000))
-        cycle_us = round(self.period_s * 1e6)
-        for d in self.drives:
-            d.configure(self._sdo(d), self.params.host_node_id, timeout_ms, producer_ms, self.params.position_every, cycle_us)
-        self._heartbeat_if_due()  # the drives' consumers start on this first heartbeat
-        self.transport.send(c.make_nmt(c.NmtCommand.START))
-        now = self.clock()
-        for d in self.drives:
-            d.feedback.last_heartbeat_s = now
-            self._consecutive_missed[d.node_id] = 0
-        self.sync_count = 0
-        self._cyclic = True
 
     def recover(self) -> None:
         """Recovery on command: clear latched faults, restart and reconfigure, reset drive faults.
@@ -382,11 +388,15 @@ class DriveGroup:
     def _on_heartbeat(self, drive: ElmoDrive, state: c.NmtState) -> None:
         self.stats.heartbeats += 1
         fb = drive.feedback
-        fb.nmt = state
+        previous, fb.nmt = fb.nmt, state
         fb.last_heartbeat_s = self.clock()
-        if self._cyclic and state != c.NmtState.OPERATIONAL:
-            what = "rebooted" if state == c.NmtState.BOOTUP else f"left OPERATIONAL ({state.name})"
-            self.latch(f"node {drive.node_id} {what}")
+        if not self._cyclic:
+            return
+        if state == c.NmtState.BOOTUP:
+            self.latch(f"node {drive.node_id} rebooted")
+        elif previous == c.NmtState.OPERATIONAL and state != c.NmtState.OPERATIONAL:
+            # (a PRE-OPERATIONAL heartbeat sent before the START arrived is no transition)
+            self.latch(f"node {drive.node_id} left OPERATIONAL ({state.name})")
 
     def _on_emcy(self, emcy: c.Emergency) -> None:
         self.stats.emcy += 1
