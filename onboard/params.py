@@ -223,8 +223,13 @@ class TwinParams:
     depth_hfov_deg: float = 87.0  # [deg] horizontal field of view (D435 depth)
     depth_max_range_m: float = 6.0  # [m] no return beyond (reads 0)
     depth_noise_per_m2: float = 0.005  # [1/m] depth std = this * depth^2
-    # Real-time twin service
-    realtime_status_period_s: float = 1.0  # [s] real-time factor / overrun figures refreshed
+    # Real-time twin service (``archer run twin``): what it simulates and what it tells the stack
+    scenario: str = "hop-in-place"  # sim_twin.scenarios name
+    seed: int = 0  # seeds the scenario and the sensor noise
+    variant: str = "indoor"  # MJCF variant (sim_twin/models)
+    obstacles: int = -1  # forest: number of obstacles (-1: the scenario's default)
+    publish_world: bool = True  # publish the scenario's goal and ground-truth obstacle polytopes
+    world_period_s: float = 1.0  # [s] goal and polytopes are re-published this often (late joiners)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,8 @@ from services.config import ConfigError, load_params
 from services.runtime import Service, add_service_arguments, run_service, setup_logging
 
 SERVICE_CLASSES: dict[str, str] = {
+    "twin": "sim_twin.twin_service:TwinService",
+    "scenario_reference": "sim_twin.twin_service:ScenarioReferenceService",
     "perception": "services.perception:PerceptionService",
     "router": "services.router:RouterService",
     "hardware": "services.hardware:HardwareService",

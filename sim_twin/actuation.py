@@ -48,13 +48,17 @@ class Actuation:
         data.ctrl[self._foot_act] = 0.0
         self.last_applied = (0.0, 0.0, 0.0, 0.0)
 
-    def apply(self, cmd: TorqueCommand | None, now_ns: int, data: mujoco.MjData) -> None:
-        """Set ``data.ctrl`` from ``cmd`` at time ``now_ns``."""
+    def apply(self, cmd: TorqueCommand | None, now_ns: int, data: mujoco.MjData, received_ns: int | None = None) -> None:
+        """Set ``data.ctrl`` from ``cmd`` at time ``now_ns``.
+
+        The command's age is measured from ``received_ns`` when given (a command from another
+        process: only our own clock is trusted), else from its ``stamp_ns`` (lockstep: one clock).
+        """
         if cmd is None:
             return self._zero(data, "no_command")
         if not cmd.armed:
             return self._zero(data, "disarmed")
-        if now_ns - cmd.stamp_ns > self._stale_ns:
+        if now_ns - (cmd.stamp_ns if received_ns is None else received_ns) > self._stale_ns:
             return self._zero(data, "stale")
         wt = cmd.wheel_torque
         ft = cmd.foot_torque

@@ -1,25 +1,41 @@
 """``archer sim``: run a scenario on the digital twin with the onboard stack in the loop.
 
 ``--mode lockstep`` (default) steps physics and stack together on simulated time, as fast as the
-machine goes, deterministically per seed. With ``--json`` the last line of stdout is one JSON
-object of metrics (see :mod:`sim_twin.lockstep` for their definitions).
+machine goes, deterministically per seed.
+
+``--mode realtime`` is software in the loop: the twin service (:mod:`sim_twin.twin_service`) runs in
+this process paced to wall time, and every other service of the stack (``estimator``, ``control``,
+``planner``; whichever ``archer run`` knows) runs as its own process (``archer run NAME``) on the
+same Zenoh endpoint, exactly as on the robot with the twin in place of the hardware. With
+``--planner scenario`` (or ``auto`` in a scenario without obstacles) the scenario's own reference is
+published by :class:`sim_twin.twin_service.ScenarioReferenceService` instead of the planner.
+
+With ``--json`` the last line of stdout is one JSON object of metrics (definitions in
+:mod:`sim_twin.metrics`).
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import math
+import signal
+import subprocess
 import sys
 import time
 
+from onboard.params import with_overrides
 from services.config import ConfigError, load_params
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.lockstep import RunConfig, run
 
-MODES = ("lockstep",)
+MODES = ("lockstep", "realtime")
+STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode when archer run knows them
+STOP_TIMEOUT_S = 5.0  # [s] a child service gets this long after SIGTERM before SIGKILL
+START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 BAR_WIDTH = 30
 
@@ -28,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", required=True, choices=list(sc.SCENARIOS), help="what to run")
     parser.add_argument("--seed", type=int, default=0, help="seeds every random choice (sensor noise, world, pushes)")
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
-    parser.add_argument("--mode", choices=MODES, default="lockstep", help="lockstep: as fast as possible, deterministic")
+    parser.add_argument("--mode", choices=MODES, default="lockstep",
+                        help="lockstep: as fast as possible, deterministic; realtime: twin + services as processes, wall time")
     parser.add_argument("--variant", choices=tm.VARIANTS, default=tm.DEFAULT_VARIANT, help="robot model variant")
     parser.add_argument("--estimator", choices=st.ESTIMATORS, default="kalman",
                         help="kalman: the onboard estimator on the twin's sensors; truth: the twin's true state")
@@ -43,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", default=None, metavar="FILE.mcap", help="write every message to an MCAP file")
     parser.add_argument("--plot", default=None, metavar="FILE.png", help="write a PNG summary")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--endpoint", default=None, help="realtime: Zenoh endpoint (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--namespace", default=None, help="realtime: key namespace (default archer/robot0)")
+    parser.add_argument("--services", default="auto",
+                        help="realtime: comma list of services to run as processes, or 'none' "
+                             "(auto: estimator, control and planner, each if archer run knows it)")
 
 
 class _Progress:
@@ -73,8 +95,6 @@ def build_config(args: argparse.Namespace) -> RunConfig:
     params = load_params(args.config)
     twin = params["twin"]
     if args.no_noise:
-        from onboard.params import with_overrides
-
         twin = with_overrides(twin, {"noise": False})
     return RunConfig(
         scenario=args.scenario,
@@ -111,10 +131,106 @@ def run_lockstep(args: argparse.Namespace) -> dict:
     return result.metrics
 
 
+def _spawn(name: str, args: argparse.Namespace, endpoint: str, ns: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "services.cli", "run", name, "--endpoint", endpoint, "--namespace", ns, "--log-level", "WARNING"]
+    if args.config:
+        cmd += ["--config", args.config]
+    return subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+
+
+def _stop(procs: dict[str, subprocess.Popen]) -> dict[str, int | None]:
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    for p in procs.values():
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+    return {name: p.returncode for name, p in procs.items()}
+
+
+def run_realtime(args: argparse.Namespace) -> dict:
+    from services.cmd_run import SERVICE_CLASSES
+    from services.zenoh_session import default_endpoint
+    from onboard.topics import namespace
+    from sim_twin.twin_service import ScenarioReferenceService, TwinService
+
+    if args.estimator != "kalman" or args.controller != "lowlevel":
+        raise ValueError("realtime mode runs the estimator and control services: --estimator kalman --controller lowlevel only")
+    if args.record or args.plot:
+        raise ValueError("--record and --plot are lockstep options (the flight recorder service records real-time runs)")
+    params = load_params(args.config)
+    scenario = sc.make(args.scenario, args.seed, args.obstacles)
+    duration = args.duration if args.duration is not None else scenario.default_duration_s
+    if not (duration > 0 and math.isfinite(duration)):
+        raise ValueError(f"duration must be positive, got {duration}")
+    twin_params = with_overrides(params["twin"], {
+        "scenario": args.scenario, "seed": args.seed, "variant": args.variant,
+        "obstacles": -1 if args.obstacles is None else args.obstacles, "noise": params["twin"].noise and not args.no_noise})
+    endpoint = args.endpoint or default_endpoint()
+    ns = args.namespace or namespace()
+    planner = args.planner if args.planner != "auto" else ("graph" if scenario.obstacles else "scenario")
+    if args.services == "auto":
+        wanted = [s for s in STACK_SERVICES if not (s == "planner" and planner == "scenario")]
+    else:
+        wanted = [s for s in args.services.split(",") if s and s != "none"]
+        unknown = [s for s in wanted if s not in SERVICE_CLASSES]
+        if unknown:
+            raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICE_CLASSES)}")
+    missing = [s for s in wanted if s not in SERVICE_CLASSES]
+    progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
+
+    async def main() -> dict:
+        twin = TwinService(ns=ns, endpoint=endpoint, params={"twin": twin_params, "safety": params["safety"]})
+        local = [twin]
+        if planner == "scenario":
+            local.append(ScenarioReferenceService(ns=ns, endpoint=endpoint, params={"twin": twin_params}))
+        tasks = [asyncio.create_task(twin.run())]
+        procs: dict[str, subprocess.Popen] = {}
+        wall0 = time.perf_counter()
+        try:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while twin.state != "running":  # the twin serves the endpoint when no router does
+                if tasks[0].done():
+                    tasks[0].result()
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the twin did not start")
+                await asyncio.sleep(0.02)
+            tasks += [asyncio.create_task(s.run()) for s in local[1:]]
+            procs = {name: _spawn(name, args, endpoint, ns) for name in wanted if name in SERVICE_CLASSES}
+            wall0 = time.perf_counter()
+            while time.perf_counter() - wall0 < duration:
+                await asyncio.sleep(0.1)
+                progress(min(twin.sim_ns / 1e9, duration), duration)
+                if tasks[0].done():
+                    tasks[0].result()
+                if twin.metrics.fell and not args.keep_going:
+                    break
+        finally:
+            exit_codes = await asyncio.to_thread(_stop, procs)
+            for s in local:
+                s.request_stop()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        wall = time.perf_counter() - wall0
+        out = {"scenario": args.scenario, "seed": args.seed, "mode": "realtime", "variant": args.variant,
+               "estimator": "kalman", "planner": planner, "controller": "lowlevel", "wall_time_s": round(wall, 3)}
+        out.update(twin.summary())
+        out["services_started"] = sorted(procs) + (["scenario_reference"] if planner == "scenario" else [])
+        out["services_missing"] = missing
+        out["service_exit_codes"] = exit_codes
+        out["endpoint"] = endpoint
+        return out
+
+    return asyncio.run(main())
+
+
 def run_sim(args: argparse.Namespace) -> int:
     try:
-        metrics = run_lockstep(args)
-    except (ValueError, ConfigError) as exc:
+        metrics = run_realtime(args) if args.mode == "realtime" else run_lockstep(args)
+    except (ValueError, ConfigError, RuntimeError) as exc:
         print(f"archer sim: {exc}", file=sys.stderr)
         return 2
     if args.json:

@@ -51,3 +51,21 @@ def test_sim_rejects_bad_arguments(capsys) -> None:
     rc = main(["sim", "--scenario", "hop-in-place", "--duration", "-2", "--controller", "passive", "--estimator", "truth"])
     assert rc == 2
     assert "duration" in capsys.readouterr().err
+
+
+def test_sim_realtime_runs_the_twin_on_wall_time(capsys) -> None:
+    from services.zenoh_session import free_endpoint
+
+    rc = main(["sim", "--scenario", "setpoint", "--mode", "realtime", "--duration", "1.5", "--services", "none",
+               "--endpoint", free_endpoint(), "--namespace", "archer/clitest", "--json", "--quiet"])
+    assert rc == 0
+    metrics = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in REQUIRED:
+        assert key in metrics, key
+    assert metrics["mode"] == "realtime" and metrics["services_started"] == ["scenario_reference"]
+    assert metrics["wall_time_s"] >= 1.5
+    # paced to wall time: never faster than real time; the machine may make it slower
+    assert 0.3 < metrics["realtime_factor"] <= 1.05
+    assert metrics["sim_time_s"] == pytest.approx(metrics["loop_ticks"] / 1000.0)
+    assert metrics["commands_refused"]["no_command"] == metrics["loop_ticks"]  # nothing commands it
+    assert main(["sim", "--scenario", "setpoint", "--mode", "realtime", "--estimator", "truth"]) == 2

@@ -1,0 +1,222 @@
+"""The real-time twin: the MuJoCo robot in place of the ``hardware`` service, paced to wall time.
+
+Subscribes ``torque_cmd`` (latest value) and, for its metrics only, ``reference``, ``state`` and
+``contract``.
+A :class:`~services.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
+tick it:
+
+1. takes the newest torque command; one received more than ``SafetyLimits.command_stale_s`` ago,
+   not armed or not finite gives zero torque (as the hardware's own watchdog; a ``safety`` event is
+   published when commands stop being applied), otherwise clamps it to ``SafetyLimits`` and the
+   motor curve (:class:`sim_twin.actuation.Actuation`);
+2. advances the physics by one tick of simulated time;
+3. publishes what the sensors deliver now (``imu``, ``joints``, ``pose``, ``depth``), stamped with
+   the capture time on the stack's clock, exactly as the hardware service would.
+
+It also publishes the scenario's ``goal`` and ground-truth ``polytopes`` (``publish_world``).
+Simulated time advances one tick per loop tick; an overrun (a tick later than the next deadline)
+skips deadlines, so the real-time factor (simulated / wall seconds) drops below 1 and is reported
+with the overruns in the status (``archer status``), together with the physics metrics.
+
+:class:`ScenarioReferenceService` stands in for the planner when there is none: it publishes the
+scenario's own CoM reference (as ``archer sim --planner scenario`` does in lockstep).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Any
+
+import mujoco
+
+from onboard import messages as msgs
+from onboard.binary_messages import DepthImage, encode_depth
+from onboard.params import SafetyLimits, TwinParams, with_overrides
+from services.realtime import DeadlineLoop
+from services.runtime import Service
+from sim_twin import model as tm
+from sim_twin import scenarios as sc
+from sim_twin.actuation import Actuation
+from sim_twin.metrics import PhysicsMetrics
+from sim_twin.sensors import SensorSuite
+from sim_twin.stack import TruthEstimator
+
+NS = 1_000_000_000
+STATUS_POLL_S = 0.2  # how often main() checks the loop and republishes the world
+REFERENCE_PERIOD_S = 0.1  # [s] the scenario reference is republished this often (fresh for the low level)
+
+
+def make_scenario(tp: TwinParams) -> sc.Scenario:
+    return sc.make(tp.scenario, tp.seed, None if tp.obstacles < 0 else tp.obstacles)
+
+
+def twin_safety(safety: SafetyLimits, variant: str) -> SafetyLimits:
+    """The sim15nm variant runs with the thesis's raised wheel torque limit."""
+    if variant == "sim15nm":
+        return with_overrides(safety, {"wheel_torque_max": tm.robot_params(variant).wheel_torque_peak})
+    return safety
+
+
+class TwinService(Service):
+    name = "twin"
+    params_sections = ("twin", "safety")
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.loop: DeadlineLoop | None = None
+        self.sim_ns = 0
+        self._wall0 = 0.0
+        self._applying = False
+        self.contract_violations = 0
+
+    # --- what it subscribes and builds ------------------------------------------------------
+
+    async def setup(self) -> None:
+        tp: TwinParams = self.params["twin"]
+        self.scenario = make_scenario(tp)
+        self.robot = tm.robot_params(tp.variant)
+        self.safety = twin_safety(self.params["safety"], tp.variant)
+        spec = tm.load_spec(tp.variant)
+        self.scenario.build(spec)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.scenario.initialize(self.model, self.data, self.robot)
+        period_s = 1.0 / tp.control_rate_hz
+        substeps = period_s / self.model.opt.timestep
+        if abs(substeps - round(substeps)) > 1e-9 or round(substeps) < 1:
+            raise ValueError(f"control period {period_s} s is not a whole number of physics steps")
+        self.substeps = int(round(substeps))
+        self.tick_ns = int(round(period_s * NS))
+        self.sensors = SensorSuite(self.model, tp, tp.seed)
+        self.actuation = Actuation(self.model, self.robot, self.safety)
+        self.truth = TruthEstimator(self.model, self.robot)
+        self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
+
+        self.torque_slot = self.latest("torque_cmd")
+        self.reference_slot = self.latest("reference")
+        self.state_slot = self.latest("state")
+        self.subscribe("contract", self._on_contract)
+        self.pubs = {name: self.publisher(name) for name in ("imu", "joints", "pose", "depth")}
+        self.safety_pub = self.publisher("safety")
+        self.goal_pub = self.publisher("goal") if tp.publish_world else None
+        self.poly_pub = self.publisher("polytopes") if tp.publish_world else None
+        self.loop = DeadlineLoop(period_s, self._tick, name="twin-loop")
+
+    # --- every tick: command in, physics, sensors out ---------------------------------------------
+
+    def _tick(self, deadline: float) -> None:
+        now_ns = self.clock.now_ns()
+        data = self.data
+        slot = self.torque_slot.get()
+        cmd, recv_ns = slot if slot is not None else (None, 0)
+        t = self.sim_ns / NS
+        self.scenario.before_step(t, self.model, data)
+        act = self.actuation
+        applied_before = act.counters["applied"]
+        # staleness by receipt time on this clock (the commander's clock is not ours to trust)
+        act.apply(cmd, now_ns, data, received_ns=recv_ns)
+        applying = act.counters["applied"] != applied_before
+        if self._applying and not applying:
+            self._publish_trip(cmd, now_ns, recv_ns)
+        self._applying = applying
+        for _ in range(self.substeps):
+            mujoco.mj_step(self.model, data)
+        self.sim_ns += self.tick_ns
+        for topic, msg in self.sensors.tick(data, now_ns):
+            if isinstance(msg, DepthImage):
+                self.pubs[topic].put_bytes(encode_depth(msg))
+            else:
+                self.pubs[topic].put(msg)
+        ref = self.reference_slot.get()
+        state = self.state_slot.get()
+        self.metrics.update(self.sim_ns / NS, now_ns, data, ref[0] if ref else None, state[0] if state else None,
+                            act.last_applied)
+        self.rate("tick").tick()
+
+    async def _on_contract(self, report: msgs.ContractReport) -> None:
+        if report.violated:
+            self.contract_violations += 1
+
+    def _publish_trip(self, cmd: msgs.TorqueCommand | None, now_ns: int, recv_ns: int) -> None:
+        age = (now_ns - recv_ns) / NS if cmd is not None else float("inf")
+        trip = "command_stale" if cmd is not None and cmd.armed and age > self.safety.command_stale_s else "command_refused"
+        self.count(f"trip.{trip}")
+        limit = self.safety.command_stale_s
+        self.safety_pub.put(msgs.SafetyEvent(trip=trip, value=min(age, 1e9), limit=limit, armed=False,
+                                             count=self.counters.get(f"trip.{trip}")))
+
+    def _publish_world(self) -> None:
+        goal = self.scenario.goal()
+        if self.goal_pub is not None and goal is not None:
+            self.goal_pub.put(goal)
+        if self.poly_pub is not None:
+            self.poly_pub.put(self.scenario.polytopes())
+
+    # --- lifecycle --------------------------------------------------------------------------------------
+
+    async def main(self) -> None:
+        assert self.loop is not None
+        tp: TwinParams = self.params["twin"]
+        self._wall0 = time.perf_counter()
+        self.loop.start()
+        next_world = 0.0
+        try:
+            while not self.stopping.is_set():
+                now = time.perf_counter()
+                if now >= next_world:
+                    self._publish_world()
+                    next_world = now + tp.world_period_s
+                await asyncio.sleep(STATUS_POLL_S)
+                if self.loop.error is not None:
+                    self.fail(f"twin loop crashed: {self.loop.error!r}")
+                    raise RuntimeError("twin loop crashed") from self.loop.error
+                self.state = "degraded" if self.metrics.fell else "running"
+        finally:
+            self.loop.stop()
+
+    @property
+    def realtime_factor(self) -> float:
+        wall = time.perf_counter() - self._wall0 if self._wall0 else 0.0
+        return self.sim_ns / NS / wall if wall > 0 else 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """Physics metrics and pacing figures of the run so far."""
+        out: dict[str, Any] = {"sim_time_s": round(self.sim_ns / NS, 4),
+                               "realtime_factor": round(self.realtime_factor, 3)}
+        if self.loop is not None:
+            out.update({f"loop_{k}": v for k, v in self.loop.recorder.stats().as_dict().items()})
+        out.update(self.metrics.summary(self.data, self.actuation))
+        out["contract_violations"] = self.contract_violations
+        return out
+
+    def status_extra(self) -> dict[str, float]:
+        out: dict[str, float] = {"sim_time_s": self.sim_ns / NS, "realtime_factor": self.realtime_factor}
+        if self.loop is not None:
+            for key, value in self.loop.recorder.stats().as_dict().items():
+                out[f"loop.{key}"] = float(value)
+        mt = self.metrics
+        out.update({"hops": float(mt.hops), "falls": float(mt.falls), "collisions": float(mt.collisions),
+                    "max_wheel_speed_rad_s": mt.max_wheel, "torque_saturation_fraction": self.actuation.saturation_fraction})
+        for key, value in self.actuation.counters.items():
+            out[f"commands.{key}"] = float(value)
+        return out
+
+
+class ScenarioReferenceService(Service):
+    """Publishes the twin scenario's own CoM reference under the planner's name (no planner running)."""
+
+    name = "planner"
+    params_sections = ("twin",)
+
+    async def main(self) -> None:
+        scenario = make_scenario(self.params["twin"])
+        pub = self.publisher("reference")
+        t_ref_ns = self.clock.now_ns()
+        while not self.stopping.is_set():
+            pub.put(scenario.reference(t_ref_ns))
+            self.rate("reference").tick()
+            try:
+                await asyncio.wait_for(self.stopping.wait(), REFERENCE_PERIOD_S)
+            except asyncio.TimeoutError:
+                pass

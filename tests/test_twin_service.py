@@ -1,0 +1,88 @@
+"""The real-time twin service on a real Zenoh router over loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from onboard import messages as m
+from onboard.binary_messages import decode_depth
+from onboard.params import SafetyLimits, TwinParams
+from onboard.topics import TOPICS
+from services.cmd_introspect import query_status
+from services.zenoh_session import open_session
+from sim_twin.twin_service import ScenarioReferenceService, TwinService
+
+NS = "archer/twintest"
+TIMEOUT_S = 10.0
+
+
+async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.01)
+
+
+def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_router) -> None:
+    async def scenario() -> None:
+        twin = TwinService(ns=NS, endpoint=zenoh_router,
+                           params={"twin": TwinParams(scenario="forest", seed=2, depth_rate_hz=5.0), "safety": SafetyLimits()})
+        planner = ScenarioReferenceService(ns=NS, endpoint=zenoh_router, params={"twin": TwinParams(scenario="forest", seed=2)})
+        tasks = [asyncio.create_task(twin.run()), asyncio.create_task(planner.run())]
+        client = open_session(zenoh_router, "peer")
+        got: dict[str, list] = {name: [] for name in ("imu", "joints", "pose", "depth", "safety", "goal", "polytopes", "reference")}
+        subs = []
+        for name in got:
+            topic = TOPICS[name]
+
+            def on_sample(sample, name=name, topic=topic) -> None:
+                payload = sample.payload.to_bytes()
+                got[name].append(decode_depth(payload) if topic.binary else m.decode(payload, topic.msg_type))
+
+            subs.append(client.declare_subscriber(topic.key(NS), on_sample))
+        cmd_key = TOPICS["torque_cmd"].key(NS)
+        try:
+            await _wait_for(lambda: twin.state == "running" and len(got["imu"]) > 50)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 0.4:  # commands at about 500 Hz: wheel x spins up
+                client.put(cmd_key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[0.05, 0.0, 0.0],
+                                                             foot_torque=0.0, armed=True)))
+                await asyncio.sleep(0.002)
+            spin = twin.data.qvel[twin.model.joint("wheel_x").dofadr[0]]
+            assert spin > 5.0  # 0.05 N m for ~0.4 s on the wheel's 1.1e-3 kg m^2: about 18 rad/s
+            await asyncio.sleep(0.3)  # silence: the twin's watchdog zeroes the torque
+            assert twin.actuation.last_applied == (0.0, 0.0, 0.0, 0.0)
+            await _wait_for(lambda: len(got["safety"]) >= 1 and len(got["goal"]) >= 1 and len(got["reference"]) >= 1)
+            assert got["safety"][0].trip == "command_stale" and not got["safety"][0].armed
+
+            status = await asyncio.to_thread(query_status, client, NS, "twin")
+            assert status.extra["commands.applied"] > 100
+            assert status.extra["commands.stale"] > 100
+            assert 0.5 < status.extra["realtime_factor"] < 1.1
+            assert status.extra["sim_time_s"] > 0.5 and status.extra["loop.ticks"] == pytest.approx(status.extra["sim_time_s"] * 1000, abs=50)
+        finally:
+            for s in subs:
+                s.undeclare()
+            client.close()
+            twin.request_stop()
+            planner.request_stop()
+            await asyncio.wait_for(asyncio.gather(*tasks), TIMEOUT_S)
+
+        # every sensor arrived, stamped with its capture time and in order
+        wall = twin.sim_ns / 1e9
+        assert len(got["imu"]) > 0.5 * 1000 * wall
+        assert len(got["pose"]) > 0.5 * 100 * wall
+        assert len(got["depth"]) >= 2 and got["depth"][0].depth.shape == (48, 64)
+        stamps = [s.stamp_ns for s in got["imu"]]
+        assert stamps == sorted(stamps)
+        assert got["goal"][0].position == pytest.approx([6.0, 0.0])
+        assert len(got["polytopes"][0].polytopes) == len(twin.scenario.obstacles)
+        assert got["reference"][0].segments[0].control_points[0] == pytest.approx([0.0, 0.0])
+        summary = twin.summary()
+        assert summary["sim_time_s"] > 0.5 and summary["falls"] == 0
+
+    asyncio.run(scenario())
