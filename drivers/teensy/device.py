@@ -108,6 +108,10 @@ class Teensy:
                     self.sensors_rx_s = now
                     self.fresh = True
                     self.stats.sensors += 1
+                    if self.sensors.flags & p.SENSOR_WATCHDOG:
+                        self.latch("Teensy command watchdog tripped: commands did not arrive")
+                    if self.sensors.flags & p.SENSOR_FAULT:
+                        self.latch("Teensy reports a drive fault")
                 elif frame.frame_type == p.FrameType.STATUS:
                     self._on_status(p.parse_status(frame.payload))
                 elif frame.frame_type == p.FrameType.HEARTBEAT:

@@ -4,7 +4,8 @@ It streams a SENSORS frame every millisecond from its own clock, applies TORQUE 
 ATTITUDE frames (the attitude PD runs here, as on the Teensy), rejects non-finite
 commands, clamps torques at the drives' current limit, and zeroes every motor when
 no command frame arrived for 100 ms (the real Teensy's watchdog), reporting it with
-a STATUS frame and a sensor flag. Faults to inject: corrupted or dropped outgoing
+a STATUS frame and a sensor flag that stays set, torque off, until a disarmed
+command arrives. Faults to inject: corrupted or dropped outgoing
 frames, garbage bytes, and unplugging the port (optionally plugging it back).
 
 The host opens :attr:`TeensyEmulator.port`, a symlink to the current pty (as udev's
@@ -96,7 +97,7 @@ class TeensyEmulator:
         self.attitude: p.AttitudeCmd | None = None
         self.decoder = p.FrameDecoder()
         self.inject = Injection()
-        self.counts = {"commands": 0, "rejected": 0, "heartbeats": 0, "sensors": 0, "tx_dropped": 0, "watchdog_trips": 0}
+        self.counts = {"commands": 0, "rejected": 0, "heartbeats": 0, "sensors": 0, "tx_dropped": 0, "watchdog_trips": 0, "refused_while_tripped": 0}
         self.on_step: Callable[[float, list[float]], None] | None = None  # the twin hook
         self._lock = threading.Lock()
         self._seq = 0
@@ -216,6 +217,8 @@ class TeensyEmulator:
         return max(-limit, min(limit, torque))
 
     def _apply_torque(self, cmd: p.TorqueCmd) -> None:
+        if not self._may_arm(cmd.armed):
+            return
         self.armed = cmd.armed
         self.attitude = None
         values = (*cmd.wheel_torque, cmd.foot_torque)
@@ -241,6 +244,9 @@ class TeensyEmulator:
                 self._apply_torque(p.parse_torque(frame.payload))
             elif frame.frame_type == p.FrameType.ATTITUDE:
                 cmd = p.parse_attitude(frame.payload)
+                if not self._may_arm(cmd.armed):
+                    self.last_cmd_s = now
+                    return
                 self.armed = cmd.armed
                 self.attitude = cmd if cmd.armed else None
                 if not cmd.armed:
@@ -261,8 +267,16 @@ class TeensyEmulator:
         self.counts["commands"] += 1
         self.last_cmd_seq = frame.seq
         self.last_cmd_s = now
-        if self.watchdog_tripped:
-            self.watchdog_tripped = False
+
+    def _may_arm(self, armed: bool) -> bool:
+        """After a watchdog trip, torque stays off until a disarmed command was seen."""
+        if not self.watchdog_tripped:
+            return True
+        if armed:
+            self.counts["refused_while_tripped"] += 1
+            return False
+        self.watchdog_tripped = False
+        return True
 
     def step(self, now: float, dt: float) -> None:
         """One millisecond of the Teensy's loop: read, watchdog, motors, sensor frame."""
