@@ -26,6 +26,8 @@ Model (thesis line 2751 and :mod:`onboard.com_filter`, :mod:`onboard.attitude_fi
   touchdown impact stops the foot; the pose sensor's position is fused at its capture
   time on a delayed horizon; Mahalanobis gating rejects outliers;
 - contact: the foot switch with hysteresis in time (consecutive samples to switch);
+  without a foot sensor (``JointSensors.foot_sensed`` False) the specific force with
+  hysteresis in level, and no leg kinematics;
 - wheel speeds, foot compression and rate: the latest valid sensor values.
 
 Frames: world z up; body = torso frame, origin at the point the pose sensor reports
@@ -48,6 +50,7 @@ from onboard.params import EstimatorParams
 NS = 1_000_000_000
 QUAT_NORM_TOL = 0.1  # a pose quaternion further than this from unit norm is malformed
 FOOT_RANGE_MARGIN_M = 0.01  # [m] foot compression reading tolerated outside its travel
+FOOT_EXTENDED_M = 0.001  # [m] below this compression the spring (~12 N) no longer holds the foot down
 ATTITUDE_HISTORY_S = 0.25  # [s] oldest pose whose attitude can still be fused
 NOMINAL_IMU_HZ = 1000.0  # sizes the attitude history only
 
@@ -108,6 +111,8 @@ class StateEstimator:
         self._impact_var = p.impact_vel_std_m_s ** 2
         self._tilt_var = p.tilt_std_rad ** 2
         self._static_hold_ns = int(p.static_hold_s * NS)
+        self._accel_delay = p.accel_delay_s
+        self._leg_settle_ns = int(p.leg_settle_s * NS)
         self._static_gyro2 = p.static_gyro_max_rad_s ** 2
         self._gyro_range2 = p.gyro_range_rad_s ** 2
         self._accel_range2 = p.accel_range_m_s2 ** 2
@@ -121,6 +126,7 @@ class StateEstimator:
         self._t_pose_fused = -1
         self._accel = (0.0, 0.0, 0.0)  # CoM acceleration at the newest sample [m/s^2, world]
         self._sf_prev = (0.0, 0.0, 0.0)  # specific force at the previous sample [m/s^2, world]
+        self._pending: tuple[int, float, float, float, float] | None = None  # IMU interval not yet integrated
         self._rot = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # R at the newest sample, row-major
         self._static_since = -1
         self.wheel_vel = (0.0, 0.0, 0.0)
@@ -131,6 +137,8 @@ class StateEstimator:
         self._contact_run = 0
         self._switch = False  # the raw contact reading
         self._switch_on_ns = 0  # when the switch last closed
+        self._impact: tuple[float, float, float] | None = None  # applied, not yet confirmed
+        self._foot_sensed = True  # False: contact from the specific force (no foot sensor)
         self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
         self._att_rejected_in_row = 0
 
@@ -167,6 +175,8 @@ class StateEstimator:
         att = self.att
         if not att.initialized:
             return self._start(msg)
+        if self._pending is not None:
+            self._step_com()
         dt = (t - self._t_imu) / NS
         self._t_imu = t
         att.propagate(t, gx, gy, gz, dt)
@@ -191,26 +201,45 @@ class StateEstimator:
         r21 = 2.0 * (y * z + w * x)
         r22 = 1.0 - 2.0 * (x * x + y * y)
         self._rot = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
-        g = self._g
-        # specific force in the world frame; the previous one for the trapezoid
+        # specific force in the world frame; the CoM step waits for this tick's contact reading
         sx = r00 * fx + r01 * fy + r02 * fz
         sy = r10 * fx + r11 * fy + r12 * fz
         sz = r20 * fx + r21 * fy + r22 * fz
+        self._pending = (t, dt, sx, sy, sz)
+        if not self._foot_sensed:
+            # the spring's push is the only large specific force on a hopping robot's body
+            f = math.sqrt(fn2)
+            reading = f > p.accel_contact_on_m_s2 or (self._switch and f > p.accel_contact_off_m_s2)
+            self._contact_reading(reading, t)
+        return True
+
+    def _step_com(self) -> None:
+        """Integrate the CoM over the newest IMU interval.
+
+        Deferred until the joint frame of the same tick (or the next IMU sample, or an
+        estimate) so that the contact reading at the interval's end picks the model: at
+        touchdown the accelerometer already feels the spring in that sample. Stance dynamics
+        hold while the foot is on the ground and the spring pushes it there; at full extension
+        the foot is about to be yanked off its stop, an internal impulse the accelerometer
+        sees and the CoM does not. Projectile dynamics are exact once the foot is airborne.
+        """
+        t, dt, sx, sy, sz = self._pending
+        self._pending = None
         px, py, pz = self._sf_prev
         self._sf_prev = (sx, sy, sz)
-        # The switch (as read at the previous sample) picks the model: stance dynamics hold only
-        # while the foot is on the ground, and projectile dynamics are exact once it is not.
-        stance = self._switch
-        if stance:
-            # foot pinned: the CoM accelerates with the sprung mass's share of the body's;
-            # IMU samples are instantaneous, so the interval's mean is the trapezoid
+        g = self._g
+        if self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed):
+            # foot pinned: the CoM accelerates with the sprung mass's share of the body's. The
+            # interval's mean from two samples each describing accel_delay_s before its stamp:
+            # the trapezoid shifted by the delay.
             m = self._mu_sprung
             self._accel = (m * sx, m * sy, m * (sz - g))
-            self.com.push(t, dt, 0.5 * m * (sx + px), 0.5 * m * (sy + py), m * (0.5 * (sz + pz) - g), True, self.foot_pos)
+            w1 = 0.5 + min(self._accel_delay / dt, 0.5)
+            w0 = 1.0 - w1
+            self.com.push(t, dt, m * (w0 * px + w1 * sx), m * (w0 * py + w1 * sy), m * (w0 * pz + w1 * sz - g), True, self.foot_pos)
         else:
             self._accel = (0.0, 0.0, -g)  # projectile
             self.com.push(t, dt, 0.0, 0.0, -g, False, self.foot_pos)
-        return True
 
     def _start(self, msg: ImuSample) -> bool:
         """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
@@ -240,28 +269,53 @@ class StateEstimator:
             return self._reject("joints_out_of_range")
         self._t_joints = t
         self.wheel_vel = (float(wv[0]), float(wv[1]), float(wv[2]))
+        if not msg.foot_sensed:
+            # No foot sensor: the foot fields are zeros, not readings. Contact comes from the
+            # specific force instead (in update_imu); no leg kinematics.
+            self._foot_sensed = False
+            if self._pending is not None:
+                self._step_com()
+            return True
+        self._foot_sensed = True
         self.foot_pos = s
         self.foot_vel = sd
-        if not msg.foot_contact:
-            self._free_foot = (s, sd)
-        elif not self._switch:
+        self._contact_reading(msg.foot_contact, t)
+        if self.contact and msg.foot_contact and t - self._switch_on_ns >= self._leg_settle_ns and self.att.initialized:
+            # not while the foot still bounces off the ground after the impact, nor while
+            # lift-off is being debounced: in both the foot is not pinned
+            vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
+            self.com.add_leg_velocity(vx, vy, vz, self._leg_var)
+        return True
+
+    def _contact_reading(self, reading: bool, t: int) -> None:
+        """One contact reading at ``t``: raw switch, impact map, debounced contact."""
+        closed = reading and not self._switch
+        if not reading:
+            self._free_foot = (self.foot_pos, self.foot_vel)
+        elif closed:
             self._switch_on_ns = t
-        self._switch = msg.foot_contact
-        if msg.foot_contact == self.contact:
+        self._switch = reading
+        if self._pending is not None:
+            self._step_com()
+        if closed and not self.contact and self.att.initialized:
+            # the impact map applies at once, taken back if the debounce refuses the contact
+            self._impact = self._touchdown_impulse()
+        if reading == self.contact:
             self._contact_run = 0
+            if self._impact is not None:  # the switch reopened before the contact was confirmed
+                dvx, dvy, dvz = self._impact
+                self.com.add_impulse(-dvx, -dvy, -dvz, 0.0, self._switch_on_ns)
+                self._impact = None
+                self._count("contact_bounces")
         else:
             self._contact_run += 1
             needed = self.params.contact_off_samples if self.contact else self.params.contact_on_samples
             if self._contact_run >= needed:
                 self._contact_run = 0
-                self.contact = msg.foot_contact
-                if self.contact and self.att.initialized:
-                    self._touchdown()
-        if self.contact and msg.foot_contact and self.att.initialized:
-            # (not while lift-off is being debounced: the foot is no longer pinned)
-            vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
-            self.com.add_leg_velocity(vx, vy, vz, self._leg_var)
-        return True
+                self.contact = reading
+                if self.contact and self._impact is not None:
+                    self._impact = None
+                    self._count("touchdowns")
 
     def _leg_velocity(self, s: float, sd: float, rolling: bool) -> tuple[float, float, float]:
         """CoM velocity [m/s, world] relative to the foot sphere's contact point
@@ -287,15 +341,17 @@ class StateEstimator:
             ox * ly - oy * lx + r[8] * d,
         )
 
-    def _touchdown(self) -> None:
-        """Impact map: the ground stops the foot; the CoM loses the foot's momentum share."""
+    def _touchdown_impulse(self) -> tuple[float, float, float]:
+        """Impact map: the ground stops the foot, the CoM loses the foot's share of momentum.
+        Applies the velocity jump at the switch closure and returns it [m/s, world]."""
         # the foot's motion relative to the body just before it hit (now the spring is compressing)
         rx, ry, rz = self._leg_velocity(*self._free_foot, rolling=False)
         vx, vy, vz = self.com.velocity
         m = self._mu_foot
         # foot velocity = CoM velocity - (CoM relative to the foot)'
-        self.com.add_impulse(-m * (vx - rx), -m * (vy - ry), -m * (vz - rz), self._impact_var, self._switch_on_ns)
-        self._count("touchdowns")
+        dv = (-m * (vx - rx), -m * (vy - ry), -m * (vz - rz))
+        self.com.add_impulse(dv[0], dv[1], dv[2], self._impact_var, self._switch_on_ns)
+        return dv
 
     # --- pose -------------------------------------------------------------------------
 
@@ -317,6 +373,8 @@ class StateEstimator:
         if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
             return self._reject("pose_future")
         qm = (qm[0] / n, qm[1] / n, qm[2] / n, qm[3] / n)
+        if self._pending is not None:
+            self._step_com()
         if self.params.compensate_latency:
             fused = self.att.correct_pose(qm, t, self._pose_att_var, self._gate3)
         else:  # as if captured now
@@ -345,6 +403,8 @@ class StateEstimator:
         """The state at ``now_ns``, predicted from the newest IMU sample by at most
         ``max_extrapolation_s``; ``stamp_ns`` says the time it is valid at."""
         p = self.params
+        if self._pending is not None:
+            self._step_com()
         t_imu = self._t_imu
         lag_ns = min(max(now_ns - t_imu, 0), int(p.max_extrapolation_s * NS)) if t_imu >= 0 else 0
         tau = lag_ns / NS

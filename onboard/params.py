@@ -95,9 +95,13 @@ class EstimatorParams:
     gate_probability: float = 0.9995  # chi-square acceptance probability
     gate_reset_after: int = 20  # consecutive gated poses: re-initialize on the next one
     # CoM process model: white acceleration noise around projectile / stance dynamics.
-    accel_psd_flight: float = 0.05  # [(m/s^2)^2/Hz] flight (projectile model error)
+    accel_psd_flight: float = 0.003  # [(m/s^2)^2/Hz] flight: what projectile dynamics leave out (drag)
     accel_psd_stance: float = 2.0  # [(m/s^2)^2/Hz] stance (accelerometer-driven)
     leg_vel_std_m_s: float = 0.03  # [m/s] stance CoM velocity from leg kinematics
+    leg_settle_s: float = 0.006  # [s] after touchdown the foot bounces off the ground this long
+    accel_delay_s: float = 0.0005  # [s] accelerometer samples describe this long before their
+    # stamp (the twin's MuJoCo accelerometer reads the state one 0.5 ms physics step back;
+    # on hardware: the IMU's filter group delay), at most half a sample
     impact_vel_std_m_s: float = 0.1  # [m/s] CoM velocity uncertainty added at touchdown
     # Attitude: gyro propagation with bias, pose and gravity corrections.
     gyro_noise_density: float = 0.003  # [rad/s/sqrt(Hz)]
@@ -114,6 +118,8 @@ class EstimatorParams:
     # Contact and phase: switch debounce (hysteresis in time).
     contact_on_samples: int = 2  # consecutive contact readings to enter stance
     contact_off_samples: int = 3  # consecutive no-contact readings to enter flight
+    accel_contact_on_m_s2: float = 15.0  # [m/s^2] no foot sensor: specific force reading contact
+    accel_contact_off_m_s2: float = 4.0  # [m/s^2] ... and no longer contact
     # Input sanity and validity.
     gyro_range_rad_s: float = 35.0  # [rad/s] beyond the gyro's range: rejected
     accel_range_m_s2: float = 160.0  # [m/s^2] beyond the accelerometer's range: rejected
@@ -284,10 +290,12 @@ class PerceptionParams:
     ransac_inlier_m: float = 0.03  # plane distance of a RANSAC inlier
     ground_min_points: int = 30  # fewer inliers: fall back to the plane z = 0
     ground_tilt_max_deg: float = 25.0  # a ground-plane candidate tilted more is rejected
-    ground_tol_m: float = 0.04  # points this close to the ground plane are ground
+    ground_tol_m: float = 0.04  # points this close to the ground plane are ground...
+    ground_tol_per_m: float = 0.012  # ...plus this per metre of range (depth noise grows with range)
     slope_max_deg: float = 25.0  # ground points whose surface is steeper are obstacles
     obstacle_height_max_m: float = 1.0  # points higher above the ground are ignored (overhangs)
-    depth_jump_m: float = 0.10  # neighbours farther apart than this give no surface normal
+    depth_jump_m: float = 0.10  # neighbours farther apart than this (per pixel) give no surface normal
+    normal_step_px: int = 2  # surface normals from neighbours this many pixels away (noise vs detail)
     seed: int = 0  # RANSAC and K-means randomness
     # occupancy grid: world frame, square, follows the robot by whole cells
     grid_cells: int = 200  # the published pipeline: 200 x 200 cells of 5 cm
