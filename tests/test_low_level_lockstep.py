@@ -1,0 +1,58 @@
+"""The low level on the MuJoCo twin in lockstep: hundreds of hops in place, a 2 m setpoint
+with the onboard estimator on noisy sensors, and the stale-reference fallback.
+
+Long runs (3000 hops, every scenario, the ZDP/LQR comparison) are for reports:
+``archer sim --scenario NAME --json``.
+"""
+
+from __future__ import annotations
+
+from onboard.params import SafetyLimits
+from sim_twin.lockstep import LockstepRunner, RunConfig, run
+
+LIMITS = SafetyLimits()
+
+
+def test_hundreds_of_hops_in_place_without_a_fall():
+    res = run(RunConfig(scenario="hop-in-place", estimator="truth", duration_s=72.0))
+    m = res.metrics
+    assert m["falls"] == 0
+    assert m["hops"] >= 200
+    assert m["final_goal_error_m"] < 0.05
+    assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
+    assert m["max_tracking_error_m"] < 0.05
+
+
+def test_setpoint_two_metres_with_the_kalman_estimator():
+    res = run(RunConfig(scenario="setpoint", estimator="kalman", seed=3))
+    m = res.metrics
+    assert m["falls"] == 0
+    assert m["goal_reached"] and m["final_goal_error_m"] <= 0.10
+    assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
+    assert m["rms_tracking_error_m"] < 0.10
+
+
+def test_dead_planner_falls_back_to_hopping_in_place():
+    runner = LockstepRunner(RunConfig(scenario="setpoint", estimator="truth", duration_s=8.0))
+    ref = runner.planner.reference
+    frozen = {"stamp": None}
+
+    def update(now_ns, state):  # the planner publishes until 2 s, then dies
+        if now_ns <= 2_000_000_000:
+            ref.stamp_ns = now_ns
+            frozen["stamp"] = now_ns
+        else:
+            ref.stamp_ns = frozen["stamp"]
+        return ref
+
+    runner.planner.update = update
+    res = runner.run()
+    ctrl = runner.controller.ctrl
+    assert res.metrics["falls"] == 0
+    assert ctrl.supervisor.counts.get("reference_stale") == 1
+    assert ctrl.holding
+    # it stopped near where it was when the planner died, far from the 2 m goal
+    x_final = res.trace.com[-1][0]
+    assert 0.0 < x_final < 1.0
+    assert res.metrics["final_goal_error_m"] > 1.0
+
