@@ -51,10 +51,15 @@ def _node_ids(text: str) -> tuple[int, ...]:
     return ids
 
 
-def _wait_for_signal() -> None:
+def _stop_on_signal() -> threading.Event:
+    """Installed before the JSON line goes out: a client may signal as soon as it reads it."""
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
+    return done
+
+
+def _wait(done: threading.Event) -> None:
     while not done.wait(0.5):
         pass
 
@@ -72,6 +77,7 @@ def run_drives(params: HardwareParams, port: int, channel: str) -> int:
         if len(values) < n:  # more drives than configured joints: repeat the last joint's settings
             per_joint[name] = tuple(values) + (values[-1],) * (n - len(values))
     params = dataclasses.replace(params, **per_joint)
+    done = _stop_on_signal()
     emulator = make_emulator(params)
     eds_dir = tempfile.mkdtemp(prefix="archer-drives-")
     eds_path = os.path.join(eds_dir, "archer_elmo.eds")
@@ -97,7 +103,7 @@ def run_drives(params: HardwareParams, port: int, channel: str) -> int:
         flush=True,
     )
     try:
-        _wait_for_signal()
+        _wait(done)
     finally:
         runner.stop()
         os.unlink(eds_path)
@@ -107,6 +113,7 @@ def run_drives(params: HardwareParams, port: int, channel: str) -> int:
 
 
 def run_teensy(params: HardwareParams) -> int:
+    done = _stop_on_signal()
     emulator = TeensyEmulator(params, _gear_ratios()).start()
     print(
         json.dumps(
@@ -122,7 +129,7 @@ def run_teensy(params: HardwareParams) -> int:
         flush=True,
     )
     try:
-        _wait_for_signal()
+        _wait(done)
     finally:
         emulator.stop()
         print(json.dumps({"final": emulator.counts}), file=sys.stderr, flush=True)  # counters for benches

@@ -1,0 +1,122 @@
+"""``archer emulate drives|teensy`` as processes: the one JSON line and stock clients.
+
+A stock python-can client opens the printed bus and talks raw CANopen to the drives;
+the ``canopen`` package loads the printed EDS over the same socketcand bus; pyserial
+opens the printed Teensy port.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+import time
+
+import can
+import canopen
+import pytest
+import serial
+
+ARCHER = [sys.executable, "-m", "services.cli", "emulate"]
+
+
+def start(*args: str) -> tuple[subprocess.Popen, dict]:
+    proc = subprocess.Popen(ARCHER + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    if not line:
+        proc.wait(10)
+        raise AssertionError(proc.stderr.read())
+    return proc, json.loads(line)
+
+
+def stop(proc: subprocess.Popen) -> dict:
+    proc.terminate()
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert out == ""  # exactly one line on stdout
+    return next(json.loads(line)["final"] for line in err.splitlines() if line.startswith('{"final"'))
+
+
+def recv_until(bus: can.BusABC, predicate, timeout_s: float) -> list[can.Message]:
+    got = []
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not predicate(got):
+        msg = bus.recv(0.05)
+        if msg is not None:
+            got.append(msg)
+    return got
+
+
+def test_drives_print_one_line_a_stock_python_can_client_can_use() -> None:
+    proc, info = start("drives", "--node-ids", "1,2,3,4")
+    try:
+        assert info["interface"] == "socketcand" and info["channel"] == "can0"
+        assert info["bus"]["host"] == "127.0.0.1" and info["node_ids"] == [1, 2, 3, 4]
+        assert os.path.exists(info["eds"])
+        bus = can.Bus(**info["bus"])
+        try:
+            time.sleep(0.15)  # the server's raw mode settles
+            bus.send(can.Message(arbitration_id=0x000, data=[0x82, 0], is_extended_id=False))  # NMT reset communication
+            got = recv_until(bus, lambda m: sum(x.arbitration_id in (0x701, 0x702, 0x703, 0x704) for x in m) >= 4, 3.0)
+            bootups = {m.arbitration_id for m in got if 0x701 <= m.arbitration_id <= 0x704 and bytes(m.data) == b"\x00"}
+            assert bootups == {0x701, 0x702, 0x703, 0x704}
+            bus.send(can.Message(arbitration_id=0x603, data=[0x40, 0x00, 0x10, 0, 0, 0, 0, 0], is_extended_id=False))  # SDO read 0x1000
+            got = recv_until(bus, lambda m: any(x.arbitration_id == 0x583 for x in m), 3.0)
+            reply = next(m for m in got if m.arbitration_id == 0x583)
+            assert reply.data[0] == 0x43 and struct.unpack_from("<I", reply.data, 4)[0] & 0xFFFF == 0x0192  # CiA 402
+        finally:
+            bus.shutdown()
+    finally:
+        final = stop(proc)
+    assert final["frames_in"] >= 2 and set(final["drives"]) == {"1", "2", "3", "4"}
+
+
+def test_canopen_package_reads_the_drive_over_the_printed_bus() -> None:
+    proc, info = start("drives", "--node-ids", "7")
+    network = canopen.Network()
+    try:
+        network.connect(**info["bus"])
+        node = network.add_node(7, info["eds"])
+        time.sleep(0.15)
+        assert node.sdo["Manufacturer device name"].raw.startswith("ELMO")
+        assert node.sdo[0x6502].raw & (1 << 9)  # cyclic synchronous torque supported
+        assert node.sdo[0x6076].raw == 996  # rated torque [mN m] = 12 A x 0.083 N m/A
+    finally:
+        network.disconnect()
+        stop(proc)
+
+
+def test_bad_node_ids_are_a_clear_error() -> None:
+    result = subprocess.run(ARCHER + ["drives", "--node-ids", "1,x"], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 2 and "--node-ids" in result.stderr and result.stdout == ""
+    result = subprocess.run(ARCHER + ["drives", "--node-ids", "0,200"], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 2
+
+
+def test_teensy_prints_a_port_pyserial_opens() -> None:
+    proc, info = start("teensy")
+    try:
+        assert info["device"] == "teensy" and info["pty"].startswith("/dev/pts/")
+        port = serial.Serial(info["port"], timeout=0.2)
+        try:
+            data = b""
+            end = time.monotonic() + 2.0
+            while data.count(b"\x00") < 5 and time.monotonic() < end:
+                data += port.read(4096)
+            assert data.count(b"\x00") >= 5  # sensor frames, delimited, without being asked
+        finally:
+            port.close()
+    finally:
+        final = stop(proc)
+    assert final["sensors"] > 0
+
+
+@pytest.mark.parametrize("device", ["drives", "teensy"])
+def test_the_line_is_json_with_a_pid(device: str) -> None:
+    proc, info = start(device)
+    try:
+        assert info["pid"] == proc.pid and info["device"] == device
+    finally:
+        stop(proc)
