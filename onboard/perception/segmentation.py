@@ -97,34 +97,37 @@ def fit_ground_plane(pts: np.ndarray, params: PerceptionParams, rng: np.random.G
     return Plane(nrm, float(-nrm @ centroid), int(inl[:, k].sum()))
 
 
-def surface_normals(points: np.ndarray, valid: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals of an organized cloud from central differences; ``(normals, ok)``.
+def surface_normals(points: np.ndarray, valid: np.ndarray, jump: float, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of an organized cloud from central differences ``step`` pixels wide.
 
-    A pixel has a normal when its four neighbours are valid and within ``jump`` [m]
-    (no depth discontinuity).
+    Returns ``(normals, ok)``; a pixel has a normal when its four neighbours at ``step``
+    are valid and within ``2 step jump`` [m] (no depth discontinuity). A wider step
+    averages out more depth noise and blurs small features.
     """
     h, w = valid.shape
+    k = step
     nrm = np.zeros((h, w, 3))
     ok = np.zeros((h, w), dtype=bool)
-    if h < 3 or w < 3:
+    if h < 2 * k + 1 or w < 2 * k + 1:
         return nrm, ok
     p = points
-    du = p[1:-1, 2:] - p[1:-1, :-2]
-    dv = p[2:, 1:-1] - p[:-2, 1:-1]
-    good = valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1] & valid[1:-1, 1:-1]
-    good &= (np.linalg.norm(du, axis=2) <= 2 * jump) & (np.linalg.norm(dv, axis=2) <= 2 * jump)
+    du = p[k:-k, 2 * k:] - p[k:-k, :-2 * k]
+    dv = p[2 * k:, k:-k] - p[:-2 * k, k:-k]
+    good = valid[k:-k, 2 * k:] & valid[k:-k, :-2 * k] & valid[2 * k:, k:-k] & valid[:-2 * k, k:-k] & valid[k:-k, k:-k]
+    good &= (np.linalg.norm(du, axis=2) <= 2 * k * jump) & (np.linalg.norm(dv, axis=2) <= 2 * k * jump)
     n = np.cross(du, dv)
     length = np.linalg.norm(n, axis=2)
     good &= length > 1e-12
     n[good] /= length[good][:, None]
     n[n[..., 2] < 0] *= -1.0
-    nrm[1:-1, 1:-1] = n
-    ok[1:-1, 1:-1] = good
+    nrm[k:-k, k:-k] = n
+    ok[k:-k, k:-k] = good
     return nrm, ok
 
 
 class GeometricSegmenter:
-    """Ground plane by RANSAC; ground = near the plane and not steep; obstacles = the
+    """Ground plane by RANSAC; ground = near the plane (a tolerance growing with range)
+    and not steep; obstacles = the
     rest up to ``obstacle_height_max_m`` above the plane (and anything well below it,
     a drop-off); higher points are ignored."""
 
@@ -140,9 +143,10 @@ class GeometricSegmenter:
         plane = fit_ground_plane(pts, p, self.rng)
         self.plane = plane if plane is not None else FLAT_GROUND
         h = self.plane.height(cloud.points)
-        nrm, has_nrm = surface_normals(cloud.points, cloud.valid, p.depth_jump_m)
+        nrm, has_nrm = surface_normals(cloud.points, cloud.valid, p.depth_jump_m, p.normal_step_px)
         steep = has_nrm & (nrm @ self.plane.normal < math.cos(math.radians(p.slope_max_deg)))
-        near = np.abs(h) <= p.ground_tol_m
+        rng = np.linalg.norm(cloud.points - cloud.cam_pos, axis=-1)
+        near = np.abs(h) <= p.ground_tol_m + p.ground_tol_per_m * rng
         ground = cloud.valid & near & ~steep
         obstacle = cloud.valid & ~ground & (h <= p.obstacle_height_max_m)
         labels[ground] = TRAVERSABLE
