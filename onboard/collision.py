@@ -47,6 +47,7 @@ QP_TOL = 1e-7  # OSQP absolute/relative tolerance for the distance QP
 QP_MARGIN_SLACK = 1e-4  # [m] the QP answer is trusted only this far from the margin
 SET_TOL = 1e-8  # [m] round-off accepted on the faces of a free polygon
 EMPTY_CELL_SIZE = 1.0  # [m] broad-phase cell when there is nothing to size it by
+MIN_CELL = 0.05  # [m] smallest broad-phase cell
 
 
 class PolygonError(ValueError):
@@ -56,43 +57,120 @@ class PolygonError(ValueError):
 # --- polygons ---------------------------------------------------------------------
 
 
-def validate_polygon(points: object) -> np.ndarray:
-    """The polygon as a counter-clockwise ``(k, 2)`` float array, or :class:`PolygonError`.
+_POLYGON_ERRORS = {
+    1: "polygon needs at least 3 vertices",
+    2: "polygon has a non-finite coordinate",
+    3: "polygon has a repeated vertex",
+    4: "polygon has zero area",
+    5: "polygon is not convex",
+    6: "polygon is not simple (its boundary winds more than once)",
+}
 
-    Rejected: non-finite coordinates, fewer than 3 vertices, repeated consecutive
-    vertices, zero area, and non-convex polygons (a reflex corner, or a boundary that
-    winds more than once).
-    """
+
+@nb.njit(cache=True)
+def _pack_kernel(raw, offsets):  # pragma: no cover - compiled
+    """Validate polygons and build CCW vertices, outward unit normals, face offsets,
+    boxes and bounding circles; ``err[i]`` is a ``_POLYGON_ERRORS`` code (0: fine)."""
+    M = offsets.shape[0] - 1
+    V = raw.shape[0]
+    verts = np.empty((V, 2))
+    normals = np.empty((V, 2))
+    face = np.empty(V)
+    aabb = np.empty((M, 4))
+    center = np.empty((M, 2))
+    radius = np.empty(M)
+    err = np.zeros(M, dtype=np.int64)
+    for i in range(M):
+        a = offsets[i]
+        n = offsets[i + 1] - a
+        if n < 3:
+            err[i] = 1
+            continue
+        finite = True
+        for k in range(n):
+            if not (np.isfinite(raw[a + k, 0]) and np.isfinite(raw[a + k, 1])):
+                finite = False
+        if not finite:
+            err[i] = 2
+            continue
+        area2 = 0.0
+        for k in range(n):
+            k1 = (k + 1) % n
+            area2 += raw[a + k, 0] * raw[a + k1, 1] - raw[a + k1, 0] * raw[a + k, 1]
+        for k in range(n):  # counter-clockwise copy
+            src = k if area2 >= 0 else n - 1 - k
+            verts[a + k, 0] = raw[a + src, 0]
+            verts[a + k, 1] = raw[a + src, 1]
+        turning = 0.0
+        for k in range(n):
+            k1 = (k + 1) % n
+            k2 = (k + 2) % n
+            ex = verts[a + k1, 0] - verts[a + k, 0]
+            ey = verts[a + k1, 1] - verts[a + k, 1]
+            fx = verts[a + k2, 0] - verts[a + k1, 0]
+            fy = verts[a + k2, 1] - verts[a + k1, 1]
+            le = math.sqrt(ex * ex + ey * ey)
+            lf = math.sqrt(fx * fx + fy * fy)
+            if le <= VERTEX_MERGE_TOL or lf <= VERTEX_MERGE_TOL:
+                err[i] = 3
+                break
+            cross = ex * fy - ey * fx
+            if cross < -1e-12 * le * lf:
+                err[i] = 5
+            turning += math.atan2(cross, ex * fx + ey * fy)
+            normals[a + k, 0] = ey / le
+            normals[a + k, 1] = -ex / le
+            face[a + k] = normals[a + k, 0] * verts[a + k, 0] + normals[a + k, 1] * verts[a + k, 1]
+        if err[i] == 3:
+            continue
+        if abs(area2) / 2 <= POLYGON_AREA_TOL:
+            err[i] = 4
+            continue
+        if err[i] != 0:
+            continue
+        if abs(turning - 2 * math.pi) > 1e-6:
+            err[i] = 6
+            continue
+        x0 = y0 = np.inf
+        x1 = y1 = -np.inf
+        for k in range(n):
+            x0 = min(x0, verts[a + k, 0])
+            y0 = min(y0, verts[a + k, 1])
+            x1 = max(x1, verts[a + k, 0])
+            y1 = max(y1, verts[a + k, 1])
+        aabb[i, 0] = x0
+        aabb[i, 1] = y0
+        aabb[i, 2] = x1
+        aabb[i, 3] = y1
+        cx = (x0 + x1) / 2
+        cy = (y0 + y1) / 2
+        center[i, 0] = cx
+        center[i, 1] = cy
+        r = 0.0
+        for k in range(n):
+            r = max(r, math.hypot(verts[a + k, 0] - cx, verts[a + k, 1] - cy))
+        radius[i] = r
+    return verts, normals, face, aabb, center, radius, err
+
+
+def _as_point_array(points: object) -> np.ndarray:
     try:
         pts = np.asarray(points, dtype=float)
     except (TypeError, ValueError) as exc:
         raise PolygonError(f"polygon is not an array of [x, y] points: {exc}") from None
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise PolygonError(f"polygon must be a list of [x, y] points, got shape {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise PolygonError("polygon has a non-finite coordinate")
-    if len(pts) < 3:
-        raise PolygonError(f"polygon needs at least 3 vertices, got {len(pts)}")
-    edges = np.roll(pts, -1, axis=0) - pts
-    lengths = np.hypot(edges[:, 0], edges[:, 1])
-    if np.any(lengths <= VERTEX_MERGE_TOL):
-        raise PolygonError("polygon has a repeated vertex")
-    area2 = float(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
-    if abs(area2) / 2 <= POLYGON_AREA_TOL:
-        raise PolygonError("polygon has zero area")
-    if area2 < 0:
-        pts = pts[::-1].copy()
-        edges = np.roll(pts, -1, axis=0) - pts
-        lengths = np.hypot(edges[:, 0], edges[:, 1])
-    nxt = np.roll(edges, -1, axis=0)
-    cross = edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
-    # Relative tolerance: collinear vertices are allowed, reflex ones are not.
-    if np.any(cross < -1e-12 * lengths * np.roll(lengths, -1)):
-        raise PolygonError("polygon is not convex")
-    turning = float(np.sum(np.arctan2(cross, np.sum(edges * nxt, axis=1))))
-    if abs(turning - 2 * math.pi) > 1e-6:
-        raise PolygonError("polygon is not simple (its boundary winds more than once)")
     return pts
+
+
+def validate_polygon(points: object) -> np.ndarray:
+    """The polygon as a counter-clockwise ``(k, 2)`` float array, or :class:`PolygonError`.
+
+    Rejected: non-finite coordinates, fewer than 3 vertices, repeated consecutive
+    vertices, zero area, and non-convex polygons (a reflex corner, or a boundary that
+    winds more than once). Collinear vertices are allowed.
+    """
+    return pack_polygons([points]).polygon(0).copy()
 
 
 def polygon_from_halfspaces(A: np.ndarray, b: np.ndarray, bounds: np.ndarray | None = None) -> np.ndarray:
@@ -168,57 +246,93 @@ class PolygonSet:
         return self.vertices[self.offsets[i]:self.offsets[i + 1]]
 
 
-def pack_polygons(polygons: list[np.ndarray] | tuple[np.ndarray, ...]) -> PolygonSet:
-    """Validate and pack convex polygons (any orientation) for the kernels."""
-    polys = [validate_polygon(p) for p in polygons]
-    counts = np.array([len(p) for p in polys], dtype=np.int64)
-    offsets = np.zeros(len(polys) + 1, dtype=np.int64)
+def pack_polygons(polygons: list | tuple) -> PolygonSet:
+    """Validate and pack convex polygons (any orientation) for the kernels.
+
+    Raises :class:`PolygonError` naming the first bad polygon (see :func:`validate_polygon`).
+    """
+    arrays = [_as_point_array(p) for p in polygons]
+    counts = np.array([len(p) for p in arrays], dtype=np.int64)
+    offsets = np.zeros(len(arrays) + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
-    if polys:
-        vertices = np.ascontiguousarray(np.concatenate(polys))
-        halfspaces = [polygon_halfspaces(p) for p in polys]
-        normals = np.ascontiguousarray(np.concatenate([h[0] for h in halfspaces]))
-        face_offsets = np.concatenate([h[1] for h in halfspaces])
-        aabb = np.array([[p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()] for p in polys])
-    else:
-        vertices = np.zeros((0, 2))
-        normals = np.zeros((0, 2))
-        face_offsets = np.zeros(0)
-        aabb = np.zeros((0, 4))
-    center = (aabb[:, :2] + aabb[:, 2:]) / 2
-    radius = np.array([np.max(np.hypot(*(p - c).T)) for p, c in zip(polys, center)]) if polys else np.zeros(0)
-    return PolygonSet(vertices, offsets, normals, face_offsets, aabb, center, radius)
+    raw = np.ascontiguousarray(np.concatenate(arrays)) if arrays else np.zeros((0, 2))
+    verts, normals, face, aabb, center, radius, err = _pack_kernel(raw, offsets)
+    bad = np.flatnonzero(err)
+    if len(bad):
+        i = int(bad[0])
+        where = f" (polygon {i})" if len(arrays) > 1 else ""
+        raise PolygonError(_POLYGON_ERRORS[int(err[i])] + where)
+    return PolygonSet(verts, offsets, normals, face, aabb, center, radius)
 
 
 # --- control-point hulls -------------------------------------------------------------
 
 
 @dataclass(frozen=True)
+class _Grid:
+    x0: float
+    y0: float
+    h: float
+    nx: int
+    ny: int
+
+
+def _grid_for(boxes: np.ndarray, cell: float, pad: float) -> _Grid:
+    if len(boxes) == 0:
+        return _Grid(0.0, 0.0, EMPTY_CELL_SIZE, 1, 1)
+    x0 = float(boxes[:, 0].min() - pad)
+    y0 = float(boxes[:, 1].min() - pad)
+    x1 = float(boxes[:, 2].max() + pad)
+    y1 = float(boxes[:, 3].max() + pad)
+    h = max(cell, 1e-6)
+    # Bound the cell count (memory) for very sparse, very wide scenes.
+    while (x1 - x0) / h * (y1 - y0) / h > 4e6:
+        h *= 2
+    return _Grid(x0, y0, h, int((x1 - x0) // h) + 1, int((y1 - y0) // h) + 1)
+
+
+def _typical_extent(boxes: np.ndarray) -> float:
+    if len(boxes) == 0:
+        return EMPTY_CELL_SIZE
+    return float(np.median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])))
+
+
+@dataclass(frozen=True)
 class HullSet:
     """Control-point sets of many curves, with what the kernels precompute once.
 
-    Built once per graph: the cut then only touches obstacle data.
+    Built once per graph: the cut then only touches obstacle data. The curves are
+    binned by the centre of their box on a uniform grid (``cell`` per curve, ``order``
+    sorting them by cell); a cut bins the obstacles on the same grid, grown by the
+    largest curve half-size and the margin, so each curve reads one cell.
     """
 
     points: np.ndarray  # (E, K, 2) position control points [m]
     aabb: np.ndarray  # (E, 4) xmin, ymin, xmax, ymax [m]
-    center: np.ndarray  # (E, 2) bounding-circle centre [m]
+    center: np.ndarray  # (E, 2) bounding-circle centre (box centre) [m]
     radius: np.ndarray  # (E,) bounding-circle radius [m]
     axes: np.ndarray  # (E, K (K-1) / 2, 2) unit normals to the directions between control points; 0 if coincident
+    grid: _Grid  # over the box centres
+    half_max: np.ndarray  # (2,) largest box half-size [m]
+    cell: np.ndarray  # (E,) grid cell of each curve
+    order: np.ndarray  # (E,) curves sorted by cell
+    by_cell: tuple[np.ndarray, ...]  # points, aabb, center, radius, axes, cell in ``order`` (memory locality)
 
     def __len__(self) -> int:
         return len(self.points)
 
 
 def hull_set(points: np.ndarray) -> HullSet:
-    """Precompute boxes, circles and candidate axes for ``(E, K, 2)`` control points."""
+    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points."""
     pts = np.ascontiguousarray(points, dtype=float)
     if pts.ndim != 3 or pts.shape[2] != 2 or pts.shape[1] < 1:
         raise ValueError(f"control points must be (E, K, 2), got {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("control points must be finite")
     lo = pts.min(axis=1)
     hi = pts.max(axis=1)
     aabb = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
-    center = (lo + hi) / 2
+    center = np.ascontiguousarray((lo + hi) / 2)
     radius = np.sqrt(np.max(np.sum((pts - center[:, None, :]) ** 2, axis=2), axis=1)) if len(pts) else np.zeros(0)
     i, j = np.triu_indices(pts.shape[1], k=1)
     d = pts[:, j, :] - pts[:, i, :]
@@ -226,7 +340,15 @@ def hull_set(points: np.ndarray) -> HullSet:
     safe = np.where(length > VERTEX_MERGE_TOL, length, 1.0)
     axes = np.stack([-d[..., 1], d[..., 0]], axis=-1) / safe[..., None]
     axes[length <= VERTEX_MERGE_TOL] = 0.0
-    return HullSet(pts, aabb, np.ascontiguousarray(center), radius, np.ascontiguousarray(axes))
+    half_max = (hi - lo).max(axis=0) / 2 if len(pts) else np.zeros(2)
+    grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
+    cx = np.clip(((center[:, 0] - grid.x0) // grid.h).astype(np.int64), 0, grid.nx - 1)
+    cy = np.clip(((center[:, 1] - grid.y0) // grid.h).astype(np.int64), 0, grid.ny - 1)
+    cell = cy * grid.nx + cx
+    order = np.argsort(cell, kind="stable").astype(np.int64)
+    axes = np.ascontiguousarray(axes)
+    by_cell = tuple(np.ascontiguousarray(a[order]) for a in (pts, aabb, center, radius, axes, cell))
+    return HullSet(pts, aabb, center, radius, axes, grid, half_max, cell, order, by_cell)
 
 
 # --- compiled kernels ------------------------------------------------------------------
@@ -237,28 +359,39 @@ def _hull_clear_of_polygon_impl(pts, axes, verts, norms, offs, margin):  # pragm
     K = pts.shape[0]
     n = verts.shape[0]
     thresh = margin + GAP_EPS
-    # Obstacle faces. Also note whether a curve end point (on the curve) is inside.
-    first_in = -np.inf
-    last_in = -np.inf
+    # Obstacle faces: the cheapest separating axes.
     for f in range(n):
         nx = norms[f, 0]
         ny = norms[f, 1]
-        c = offs[f]
         mn = np.inf
         for k in range(K):
             s = nx * pts[k, 0] + ny * pts[k, 1]
             if s < mn:
                 mn = s
-        if mn - c > thresh:
+        if mn - offs[f] > thresh:
             return True
-        s0 = nx * pts[0, 0] + ny * pts[0, 1] - c
-        s1 = nx * pts[K - 1, 0] + ny * pts[K - 1, 1] - c
-        if s0 > first_in:
-            first_in = s0
-        if s1 > last_in:
-            last_in = s1
-    if first_in <= 0.0 or last_in <= 0.0:
-        return False  # a point of the curve itself is inside the obstacle
+    # A control point within the margin puts the hull within it: the cheap "blocked".
+    for k in range(K):
+        px = pts[k, 0]
+        py = pts[k, 1]
+        worst = -np.inf
+        for f in range(n):
+            worst = max(worst, norms[f, 0] * px + norms[f, 1] * py - offs[f])
+        if worst <= 0.0:
+            return False  # inside the obstacle
+        if worst <= thresh:  # near a face: the exact distance decides
+            for f in range(n):
+                ax = verts[f, 0]
+                ay = verts[f, 1]
+                g = f + 1 if f + 1 < n else 0
+                bx = verts[g, 0] - ax
+                by = verts[g, 1] - ay
+                t = ((px - ax) * bx + (py - ay) * by) / (bx * bx + by * by)
+                t = min(max(t, 0.0), 1.0)
+                dx = px - ax - t * bx
+                dy = py - ay - t * by
+                if dx * dx + dy * dy <= thresh * thresh:
+                    return False
     # Directions between control points (hull faces among them), both sides.
     for a in range(axes.shape[0]):
         ax = axes[a, 0]
@@ -334,50 +467,70 @@ def _bin_boxes(aabb, x0, y0, h, nx, ny):  # pragma: no cover - compiled
     return start, items, ranges
 
 
-def _cut_obstacles_kernel_py(pts, aabb, center, radius, axes, active,
-                          verts, offsets, norms, face_offs, oaabb, ocenter, oradius,
-                          start, items, oranges, x0, y0, h, nx, ny, margin):  # pragma: no cover - compiled
-    E = pts.shape[0]
+def _cut_obstacles_kernel_py(pts, aabb, center, radius, axes, cell_of, order, active,
+                             verts, offsets, norms, face_offs, oaabb, ocenter, oradius,
+                             start, items, margin):  # pragma: no cover - compiled
+    """Curve arrays come sorted by cell (neighbours share the cell's obstacles in cache);
+    ``order`` maps them back for the result."""
+    E = order.shape[0]
     blocked = np.zeros(E, dtype=np.bool_)
     for e in nb.prange(E):
-        if not active[e]:
+        if not active[order[e]]:
             continue
-        ex0 = int(math.floor((aabb[e, 0] - margin - x0) / h))
-        ey0 = int(math.floor((aabb[e, 1] - margin - y0) / h))
-        ex1 = int(math.floor((aabb[e, 2] + margin - x0) / h))
-        ey1 = int(math.floor((aabb[e, 3] + margin - y0) / h))
-        ex0 = min(max(ex0, 0), nx - 1)
-        ey0 = min(max(ey0, 0), ny - 1)
-        ex1 = min(max(ex1, 0), nx - 1)
-        ey1 = min(max(ey1, 0), ny - 1)
-        hit = False
-        for cy in range(ey0, ey1 + 1):
-            if hit:
+        c = cell_of[e]
+        for k in range(start[c], start[c + 1]):
+            o = items[k]
+            if (aabb[e, 0] - oaabb[o, 2] > margin or oaabb[o, 0] - aabb[e, 2] > margin
+                    or aabb[e, 1] - oaabb[o, 3] > margin or oaabb[o, 1] - aabb[e, 3] > margin):
+                continue
+            dx = center[e, 0] - ocenter[o, 0]
+            dy = center[e, 1] - ocenter[o, 1]
+            reach = radius[e] + oradius[o] + margin
+            if dx * dx + dy * dy > reach * reach:
+                continue
+            a = offsets[o]
+            b = offsets[o + 1]
+            if not _hull_clear_of_polygon(pts[e], axes[e], verts[a:b], norms[a:b], face_offs[a:b], margin):
+                blocked[order[e]] = True
                 break
-            for cx in range(ex0, ex1 + 1):
-                if hit:
-                    break
-                c = cy * nx + cx
-                for k in range(start[c], start[c + 1]):
-                    o = items[k]
-                    # Test each pair once: in the first cell both ranges share.
-                    if cx != max(ex0, oranges[o, 0]) or cy != max(ey0, oranges[o, 1]):
-                        continue
-                    if (aabb[e, 0] - oaabb[o, 2] > margin or oaabb[o, 0] - aabb[e, 2] > margin
-                            or aabb[e, 1] - oaabb[o, 3] > margin or oaabb[o, 1] - aabb[e, 3] > margin):
-                        continue
-                    dx = center[e, 0] - ocenter[o, 0]
-                    dy = center[e, 1] - ocenter[o, 1]
-                    reach = radius[e] + oradius[o] + margin
-                    if dx * dx + dy * dy > reach * reach:
-                        continue
-                    a = offsets[o]
-                    b = offsets[o + 1]
-                    if not _hull_clear_of_polygon(pts[e], axes[e], verts[a:b], norms[a:b], face_offs[a:b], margin):
-                        hit = True
-                        break
-        blocked[e] = hit
     return blocked
+
+
+@nb.njit(cache=True)
+def _bin_grown(boxes, grow_x, grow_y, x0, y0, h, nx, ny):  # pragma: no cover - compiled
+    """CSR (start, items) of boxes grown by (grow_x, grow_y) over the cells they touch;
+    boxes entirely off the grid are left out."""
+    m = boxes.shape[0]
+    x1 = x0 + nx * h
+    y1 = y0 + ny * h
+    ranges = np.full((m, 4), -1, dtype=np.int64)
+    counts = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(m):
+        bx0 = boxes[i, 0] - grow_x
+        by0 = boxes[i, 1] - grow_y
+        bx1 = boxes[i, 2] + grow_x
+        by1 = boxes[i, 3] + grow_y
+        if bx1 < x0 or by1 < y0 or bx0 > x1 or by0 > y1:
+            continue
+        ranges[i, 0] = min(max(int(math.floor((bx0 - x0) / h)), 0), nx - 1)
+        ranges[i, 1] = min(max(int(math.floor((by0 - y0) / h)), 0), ny - 1)
+        ranges[i, 2] = min(max(int(math.floor((bx1 - x0) / h)), 0), nx - 1)
+        ranges[i, 3] = min(max(int(math.floor((by1 - y0) / h)), 0), ny - 1)
+        for cy in range(ranges[i, 1], ranges[i, 3] + 1):
+            for cx in range(ranges[i, 0], ranges[i, 2] + 1):
+                counts[cy * nx + cx + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    items = np.empty(start[-1], dtype=np.int64)
+    for i in range(m):
+        if ranges[i, 0] < 0:
+            continue
+        for cy in range(ranges[i, 1], ranges[i, 3] + 1):
+            for cx in range(ranges[i, 0], ranges[i, 2] + 1):
+                c = cy * nx + cx
+                items[fill[c]] = i
+                fill[c] += 1
+    return start, items
 
 
 def _free_cell_kernel_py(pts, active, norms, face_offs, offsets, start, items, x0, y0, h, nx, ny, margin):  # pragma: no cover
@@ -530,7 +683,6 @@ def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, ora
     M = offsets.shape[0] - 1
     out = np.zeros((S, count, 3))
     out[:, :, 2] = np.inf  # unused rows: 0.x <= inf
-    gaps = np.empty(M)
     for s in range(S):
         cxs = 0.0
         cys = 0.0
@@ -541,13 +693,23 @@ def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, ora
         rs = 0.0
         for k in range(K):
             rs = max(rs, math.hypot(pts[s, k, 0] - cxs, pts[s, k, 1] - cys))
+        # The ``count`` nearest by bounding circles (insertion into a short sorted list).
+        best_gap = np.full(count, np.inf)
+        best_o = np.full(count, -1, dtype=np.int64)
         for o in range(M):
-            gaps[o] = math.hypot(cxs - ocenter[o, 0], cys - ocenter[o, 1]) - oradius[o] - rs
-        order = np.argsort(gaps)
-        filled = 0
-        for i in range(M):
-            o = order[i]
-            if filled == count or gaps[o] > reach:
+            gap = math.hypot(cxs - ocenter[o, 0], cys - ocenter[o, 1]) - oradius[o] - rs
+            if gap > reach or gap >= best_gap[count - 1]:
+                continue
+            i = count - 1
+            while i > 0 and best_gap[i - 1] > gap:
+                best_gap[i] = best_gap[i - 1]
+                best_o[i] = best_o[i - 1]
+                i -= 1
+            best_gap[i] = gap
+            best_o[i] = o
+        for filled in range(count):
+            o = best_o[filled]
+            if o < 0:
                 break
             a = offsets[o]
             b = offsets[o + 1]
@@ -556,7 +718,6 @@ def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, ora
             out[s, filled, 0] = -nx
             out[s, filled, 1] = -ny
             out[s, filled, 2] = -(ho + margin)
-            filled += 1
     return out
 
 
@@ -575,35 +736,6 @@ def _pick(kernels: tuple, count: int):
 # --- public entry points ----------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class _Grid:
-    x0: float
-    y0: float
-    h: float
-    nx: int
-    ny: int
-
-
-def _grid_for(boxes: np.ndarray, cell: float, pad: float) -> _Grid:
-    if len(boxes) == 0:
-        return _Grid(0.0, 0.0, EMPTY_CELL_SIZE, 1, 1)
-    x0 = float(boxes[:, 0].min() - pad)
-    y0 = float(boxes[:, 1].min() - pad)
-    x1 = float(boxes[:, 2].max() + pad)
-    y1 = float(boxes[:, 3].max() + pad)
-    h = max(cell, 1e-6)
-    # Bound the cell count (memory) for very sparse, very wide scenes.
-    while (x1 - x0) / h * (y1 - y0) / h > 4e6:
-        h *= 2
-    return _Grid(x0, y0, h, int((x1 - x0) // h) + 1, int((y1 - y0) // h) + 1)
-
-
-def _typical_extent(boxes: np.ndarray) -> float:
-    if len(boxes) == 0:
-        return EMPTY_CELL_SIZE
-    return float(np.median(np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])))
-
-
 def cut_obstacles(hulls: HullSet, obstacles: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
     """``blocked[e]``: the hull of curve ``e`` comes within ``margin`` [m] of an obstacle.
 
@@ -616,14 +748,14 @@ def cut_obstacles(hulls: HullSet, obstacles: PolygonSet, margin: float, active: 
     act = np.ones(E, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
     if len(obstacles) == 0 or E == 0:
         return np.zeros(E, dtype=np.bool_)
-    cell = max(_typical_extent(obstacles.aabb) + 2 * margin, _typical_extent(hulls.aabb))
-    grid = _grid_for(obstacles.aabb, cell, margin)
-    start, items, oranges = _bin_boxes(obstacles.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
+    g = hulls.grid
+    # A curve's box overlaps an obstacle's (grown by the margin) only if its centre cell
+    # meets the obstacle's box grown by the margin and the largest curve half-size.
+    start, items = _bin_grown(obstacles.aabb, float(hulls.half_max[0] + margin), float(hulls.half_max[1] + margin),
+                              g.x0, g.y0, g.h, g.nx, g.ny)
     return _pick(_cut_obstacles_kernel, E)(
-        hulls.points, hulls.aabb, hulls.center, hulls.radius, hulls.axes, act,
-        obstacles.vertices, obstacles.offsets, obstacles.normals, obstacles.face_offsets,
-        obstacles.aabb, obstacles.center, obstacles.radius,
-        start, items, oranges, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
+        *hulls.by_cell, hulls.order, act, obstacles.vertices, obstacles.offsets, obstacles.normals, obstacles.face_offsets,
+        obstacles.aabb, obstacles.center, obstacles.radius, start, items, float(margin))
 
 
 def free_cell_of(hulls: HullSet, cells: PolygonSet, margin: float, active: np.ndarray | None = None) -> np.ndarray:
