@@ -14,8 +14,10 @@ import argparse
 import dataclasses
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from onboard import messages as m
@@ -27,23 +29,35 @@ from sim_twin import stack as st
 NS = 1_000_000_000
 
 
+@dataclass
+class Faults:
+    """What the wrapper does to the sensor stream before the estimator sees it."""
+
+    outlier_every: int = 0  # every n-th pose moved ``outlier_m`` in a random direction (0: none)
+    outlier_m: float = 1.0
+    pose_outage: tuple[float, float] | None = None  # [s] poses captured in this window are lost
+    nan_every: int = 0  # every n-th IMU, joint and pose message gets a NaN (0: none)
+    no_foot_sensor: bool = False  # joint frames without foot readings (CAN-only hardware)
+
+
 class MeasuredEstimator:
     """Wraps the lockstep runner's estimator adapter: times it and scores it against the truth.
 
-    ``outlier_every``: every n-th pose delivered is moved ``outlier_m`` in a random
-    direction before the estimator sees it (0: none).
+    ``closed_loop``: the low level flies on the estimate; otherwise on the truth (the
+    estimator is only scored, so two configurations see the same trajectory).
     """
 
     def __init__(self, inner: st.Estimator, truth: st.TruthEstimator, settle_s: float,
-                 outlier_every: int = 0, outlier_m: float = 1.0, seed: int = 0) -> None:
+                 faults: Faults | None = None, closed_loop: bool = True, seed: int = 0) -> None:
         self.inner = inner
         self.name = inner.name
         self.truth = truth
         self.settle_ns = int(settle_s * NS)
-        self.outlier_every = outlier_every
-        self.outlier_m = outlier_m
+        self.faults = faults or Faults()
+        self.closed_loop = closed_loop
         self.outliers_injected = 0
-        self._poses = 0
+        self.nans_injected = 0
+        self._n = {"imu": 0, "joints": 0, "pose": 0}
         self._rng = np.random.default_rng(seed)
         self._tick_ns = 0
         self.update_ns: list[int] = []
@@ -54,16 +68,36 @@ class MeasuredEstimator:
         self.att_err: list[float] = []
         self.pos_std: list[float] = []
         self.valid: list[bool] = []
+        self.modes: list[str] = []
         self.contact_agree: list[bool] = []
 
-    def feed(self, topic: str, msg: object) -> None:
-        if topic == "pose" and self.outlier_every:
-            self._poses += 1
-            if self._poses % self.outlier_every == 0:
+    def _tamper(self, topic: str, msg: Any) -> Any:
+        f = self.faults
+        n = self._n[topic] = self._n.get(topic, 0) + 1
+        if f.nan_every and n % f.nan_every == 0:
+            self.nans_injected += 1
+            if topic == "imu":
+                return msgspec.structs.replace(msg, gyro=[math.nan, msg.gyro[1], msg.gyro[2]])
+            if topic == "joints":
+                return msgspec.structs.replace(msg, foot_vel=math.nan)
+            return msgspec.structs.replace(msg, position=[msg.position[0], math.nan, msg.position[2]])
+        if topic == "pose":
+            if f.pose_outage is not None and f.pose_outage[0] * NS <= msg.stamp_ns < f.pose_outage[1] * NS:
+                return None
+            if f.outlier_every and n % f.outlier_every == 0:
                 d = self._rng.normal(size=3)
-                d *= self.outlier_m / float(np.linalg.norm(d))
-                msg = dataclasses.replace(msg, position=[p + float(v) for p, v in zip(msg.position, d)])
+                d *= f.outlier_m / float(np.linalg.norm(d))
                 self.outliers_injected += 1
+                return msgspec.structs.replace(msg, position=[p + float(v) for p, v in zip(msg.position, d)])
+        if topic == "joints" and f.no_foot_sensor:
+            return msgspec.structs.replace(msg, foot_pos=0.0, foot_vel=0.0, foot_contact=False, foot_sensed=False)
+        return msg
+
+    def feed(self, topic: str, msg: object) -> None:
+        if topic in self._n:
+            msg = self._tamper(topic, msg)
+            if msg is None:
+                return
         t0 = time.perf_counter_ns()
         self.inner.feed(topic, msg)
         self._tick_ns += time.perf_counter_ns() - t0
@@ -76,16 +110,17 @@ class MeasuredEstimator:
             self.update_ns.append(self._tick_ns)
             self.estimate_ns.append(t1 - t0)
         self._tick_ns = 0
+        true = self.truth.estimate(now_ns, data)
         if now_ns >= self.settle_ns:
-            true = self.truth.estimate(now_ns, data)
             self.t.append(now_ns / NS)
             self.pos_err.append(math.dist(est.position, true.position))
             self.vel_err.append(math.dist(est.velocity, true.velocity))
             self.att_err.append(quat.angle_between(est.quat, true.quat))
             self.pos_std.append(math.sqrt(est.pos_vel_cov[0]))
             self.valid.append(est.valid)
+            self.modes.append(str(self.inner.est.status()["mode"]))
             self.contact_agree.append(est.contact == true.contact)
-        return est
+        return est if self.closed_loop else true
 
     def counters(self) -> dict[str, int]:
         return self.inner.counters()
@@ -120,17 +155,17 @@ def run_twin(
     settle_s: float = 0.5,
     twin: TwinParams | None = None,
     params: EstimatorParams | None = None,
-    outlier_every: int = 0,
-    outlier_m: float = 1.0,
+    faults: Faults | None = None,
+    closed_loop: bool = True,
     controller: str = "lowlevel",
 ) -> tuple[MeasuredEstimator, dict[str, Any]]:
-    """One lockstep run with the Kalman estimator in the loop; returns the wrapper and the run's metrics."""
+    """One lockstep run with the Kalman estimator; returns the wrapper and the run's metrics."""
     cfg = ls.RunConfig(
         scenario=scenario, seed=seed, duration_s=duration_s, estimator="kalman",
         twin=twin or TwinParams(), estimator_params=params or EstimatorParams(), controller=controller,
     )
     runner = ls.LockstepRunner(cfg)
-    measured = MeasuredEstimator(runner.estimator, runner.truth, settle_s, outlier_every, outlier_m, seed)
+    measured = MeasuredEstimator(runner.estimator, runner.truth, settle_s, faults, closed_loop, seed)
     runner.estimator = measured
     result = runner.run()
     return measured, result.metrics
@@ -151,9 +186,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     twin = dataclasses.replace(TwinParams(), pose_latency_s=args.pose_latency, pose_dropout=args.pose_dropout)
     params = dataclasses.replace(EstimatorParams(), kf_backend=args.backend, compensate_latency=not args.no_latency_compensation)
+    faults = Faults(outlier_every=args.outlier_every, outlier_m=args.outlier_m)
     measured, metrics = run_twin(
-        scenario=args.scenario, seed=args.seed, duration_s=args.duration, twin=twin, params=params,
-        outlier_every=args.outlier_every, outlier_m=args.outlier_m,
+        scenario=args.scenario, seed=args.seed, duration_s=args.duration, twin=twin, params=params, faults=faults,
     )
     counters = measured.counters()
     figures = measured.figures()
