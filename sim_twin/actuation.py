@@ -32,6 +32,9 @@ class Actuation:
         self.safety = safety
         self._wheel_act = [int(model.actuator(n).id) for n in tm.WHEEL_ACTUATORS]
         self._foot_act = int(model.actuator(tm.FOOT_ACTUATOR).id)
+        acts = self._wheel_act + [self._foot_act]
+        # one slice write per tick when the actuators are contiguous (they are in the MJCF)
+        self._acts = slice(acts[0], acts[0] + 4) if acts == list(range(acts[0], acts[0] + 4)) else acts
         self._wheel_dof = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
         self._stale_ns = int(safety.command_stale_s * NS)
         self._wheel_max = min(safety.wheel_torque_max, robot.wheel_torque_peak)
@@ -43,9 +46,7 @@ class Actuation:
 
     def _zero(self, data: mujoco.MjData, reason: str) -> None:
         self.counters[reason] += 1
-        for a in self._wheel_act:
-            data.ctrl[a] = 0.0
-        data.ctrl[self._foot_act] = 0.0
+        data.ctrl[self._acts] = 0.0
         self.last_applied = (0.0, 0.0, 0.0, 0.0)
 
     def apply(self, cmd: TorqueCommand | None, now_ns: int, data: mujoco.MjData, received_ns: int | None = None) -> None:
@@ -67,21 +68,23 @@ class Actuation:
         lim = self._wheel_max
         qvel = data.qvel.tolist()
         robot = self.robot
-        out = [0.0, 0.0, 0.0]
+        knee = robot.wheel_speed_knee
+        out = [0.0, 0.0, 0.0, 0.0]
         for i in range(3):
             want = wt[i]
             tau = lim if want > lim else -lim if want < -lim else want
-            tau = robot.wheel_torque_available(qvel[self._wheel_dof[i]], tau)
+            speed = qvel[self._wheel_dof[i]]
+            if tau * speed > 0.0 and (speed > knee or speed < -knee):  # driving past the knee: motor curve
+                tau = robot.wheel_torque_available(speed, tau)
             if tau != want:
                 self.wheel_saturated += 1
             out[i] = tau
-            data.ctrl[self._wheel_act[i]] = tau
         fl = self._foot_max
-        foot = fl if ft > fl else -fl if ft < -fl else ft
-        data.ctrl[self._foot_act] = foot
+        out[3] = fl if ft > fl else -fl if ft < -fl else ft
+        data.ctrl[self._acts] = out
         self.wheel_ticks += 3
         self.counters["applied"] += 1
-        self.last_applied = (out[0], out[1], out[2], foot)
+        self.last_applied = (out[0], out[1], out[2], out[3])
 
     @property
     def saturation_fraction(self) -> float:
