@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--planner", choices=st.PLANNERS, default="auto",
                         help="scenario: the scenario's own reference; graph: the onboard planner; auto: graph when there are obstacles")
     parser.add_argument("--controller", choices=st.CONTROLLERS, default="lowlevel", help="passive: no torque (physics only)")
+    parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
+                        help="lockstep: the planner sees ground-truth obstacles, or what perception makes of the depth camera")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -110,6 +112,8 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         estimator_params=params.get("estimator"),
         planner_params=params.get("planner"),
         control_params=params.get("control"),
+        perception=args.perception,
+        perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
         record=bool(args.record),
     )

@@ -31,6 +31,7 @@ import mujoco
 from onboard import messages as m
 from onboard.params import SafetyLimits, TwinParams, with_overrides
 from sim_twin import model as tm
+from sim_twin import perception_plug
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.actuation import Actuation
@@ -56,6 +57,8 @@ class RunConfig:
     estimator_params: object | None = None
     planner_params: object | None = None
     control_params: object | None = None
+    perception: str = "truth"  # "depth": the planner sees what onboard.perception makes of the depth camera
+    perception_params: object | None = None
     stop_on_fall: bool = True
     record: bool = False  # keep every message for --record
 
@@ -97,7 +100,8 @@ class LockstepRunner:
         self.actuation = Actuation(self.model, self.robot, safety)
         self.truth = st.TruthEstimator(self.model, self.robot)
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
-        self.planner = st.make_planner(cfg.planner, self.scenario, self.robot, cfg.planner_params)
+        self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
+                                                    cfg.perception_params)
         self.controller = st.make_controller(cfg.controller, cfg.variant, safety, cfg.control_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, safety)
 
@@ -125,6 +129,7 @@ class LockstepRunner:
         now_ns = 0
         t = 0.0
         k = 0
+        planner_feed = getattr(planner, "feed", None)  # a perceiving planner eats the depth images
         wall0 = time.perf_counter()
         for k in range(1, n_ticks + 1):
             scenario.before_step(t, model, data)
@@ -137,6 +142,8 @@ class LockstepRunner:
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
                 estimator.feed(topic, msg)
+                if planner_feed is not None:
+                    planner_feed(topic, msg)
                 if topic == "joints":
                     joints = msg
                 if record:

@@ -101,3 +101,40 @@ def polytopes_of_grid(
 
 def _dec_stats(st: DecompositionStats) -> dict[str, float]:
     return {k: float(v) for k, v in vars(st).items()}
+
+
+class PerceptionLoop:
+    """Perception on the caller's clock (the lockstep runner): every depth image is fused
+    as it arrives; a new set of convex sets is made every ``1 / rate_hz``."""
+
+    def __init__(self, params: PerceptionParams = PerceptionParams()) -> None:
+        if not params.rate_hz > 0:
+            raise ValueError("perception rate must be positive")
+        self.params = params
+        self.view = Perception(params)
+        self.period_ns = int(round(NS / params.rate_hz))
+        self.next_ns = 0
+        self.sets = 0
+        self.last_stamp_ns = -1
+
+    def feed(self, img: DepthImage, robot_xy: tuple[float, float] | None) -> bool:
+        """Fuse one depth image; False (and nothing fused) when it is older than the last."""
+        if img.stamp_ns <= self.last_stamp_ns:
+            return False
+        self.view.integrate(img, robot_xy)
+        self.last_stamp_ns = img.stamp_ns
+        return True
+
+    def update(
+        self, now_ns: int, robot_xy: tuple[float, float] | None, goal_xy: tuple[float, float] | None = None
+    ) -> list[ConvexPolygon] | None:
+        """A new set when one is due and a view has been fused, else None. In ``free``
+        mode the robot's free region is decomposed, keeping the robot and the goal inside."""
+        if now_ns < self.next_ns or self.view.map.views == 0:
+            return None
+        self.next_ns = now_ns + self.period_ns
+        cover = tuple(p for p in (robot_xy, goal_xy) if p is not None)
+        free = self.params.mode == "free"
+        polys, _ = self.view.polytopes(robot_xy=robot_xy if free else None, must_cover=cover if free else ())
+        self.sets += 1
+        return polys

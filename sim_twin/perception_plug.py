@@ -1,0 +1,63 @@
+"""``--perception depth``: the graph planner on what ``onboard.perception`` makes of the
+twin's depth camera, instead of the scenario's ground-truth obstacles.
+
+Depth images are fused as the sensors deliver them (with the robot's estimated
+position); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
+``perception.mode = "free"``) replace the planner's world, which makes it replan. Before
+the first view the planner knows no obstacle at all.
+"""
+
+from __future__ import annotations
+
+from onboard import messages as m
+from onboard.params import PerceptionParams
+from onboard.perception.pipeline import PerceptionLoop
+from sim_twin import model as tm
+from sim_twin.scenarios import Scenario
+from sim_twin.stack import GraphPlannerPlug
+
+PERCEPTIONS = ("truth", "depth")
+
+
+class PerceivedGraphPlannerPlug(GraphPlannerPlug):
+    name = "graph+perception"
+
+    def __init__(self, scenario: Scenario, robot: tm.RobotParams, params: object | None = None,
+                 perception_params: PerceptionParams | None = None) -> None:
+        super().__init__(scenario, robot, params)
+        self.planner.set_obstacles([])  # nothing is known before the first view
+        self.loop = PerceptionLoop(perception_params or PerceptionParams())
+        self.mode = self.loop.params.mode
+        self._xy: tuple[float, float] = scenario.start
+        self._goal = scenario.target()
+        self.polygons = 0
+
+    def feed(self, topic: str, msg: object) -> None:
+        if topic == "depth":
+            self.loop.feed(msg, self._xy)  # type: ignore[arg-type]
+
+    def update(self, now_ns: int, state: m.StateEstimate) -> m.ComReference | None:
+        self._xy = (state.position[0], state.position[1])
+        polys = self.loop.update(now_ns, self._xy, self._goal)
+        if polys is not None:
+            self.polygons = len(polys)
+            verts = [p.vertices for p in polys]
+            if self.mode == "free":
+                self.planner.set_free_cells(verts)
+            else:
+                self.planner.set_obstacles(verts)
+        return super().update(now_ns, state)
+
+
+def make_planner(name: str, perception: str, scenario: Scenario, robot: tm.RobotParams, params: object | None = None,
+                 perception_params: PerceptionParams | None = None):
+    """The planner the runner asks for, on ground truth or on perception."""
+    from sim_twin.stack import make_planner as make_truth_planner
+
+    if perception == "truth":
+        return make_truth_planner(name, scenario, robot, params)
+    if perception != "depth":
+        raise ValueError(f"unknown perception {perception!r}; known: {', '.join(PERCEPTIONS)}")
+    if name not in ("auto", "graph"):
+        raise ValueError("--perception depth feeds the graph planner; use --planner graph or auto")
+    return PerceivedGraphPlannerPlug(scenario, robot, params, perception_params)
