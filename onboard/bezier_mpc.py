@@ -103,8 +103,17 @@ class BezierMpc:
 
     ``init_radius`` (``(n,)``) is how far ``x_0`` may sit from the measured state (the
     tube, 7.2b); a zero component is an equality. ``terminal="equal"`` pins ``x_N`` to
-    the reference. ``margin`` tightens every inequality; ``eps`` is the solver accuracy;
-    ``max_iter`` caps OSQP's iterations (the thesis ran 50).
+    the reference. ``margin`` tightens every inequality (in each row's physical unit);
+    ``eps`` is the solver accuracy; ``max_iter`` caps OSQP's iterations (the thesis ran 50).
+
+    Accuracy and speed: acceleration rows have ``(p / tau)^2``-sized coefficients on the
+    positions, so a physical residual of ``margin`` on them needs position accuracy of
+    about ``margin * tau^2 / 6``. With ``unit_rows=True`` (default) the solver sees unit
+    rows and stops early (relative tolerance); polishing then usually makes the answer
+    exact, and the certificate rejects the few answers it does not (``ok=False``: the
+    caller keeps its previous plan). ``unit_rows=False`` keeps physical rows with an
+    absolute tolerance: every converged answer certifies, at several times the
+    iterations.
     """
 
     reach: BezierReachability
@@ -115,10 +124,11 @@ class BezierMpc:
     max_planes: int = 0
     terminal: Literal["equal", "free"] = "equal"
     backend: Backend = "osqp"
-    eps: float = 1e-5
-    margin: float = 1e-4
-    max_iter: int = 4000
-    polish: bool = False  # OSQP active-set polishing: more accurate, slower
+    eps: float = 1e-4  # OSQP tolerance (PIQP: eps / 100)
+    margin: float = 1e-3  # [units of each row: m, m/s, m/s^2] tightening seen by the solver
+    max_iter: int = 500  # bounds the solve time; an unconverged answer is used only if certified
+    polish: bool = True  # OSQP active-set polishing: exact answers from loose ADMM iterates
+    unit_rows: bool = True  # see above
     _ready: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
@@ -236,8 +246,10 @@ class BezierMpc:
             add(row + k * kn + rr, k * n + cc, self.node_A[rr, cc])
         row += kn * (N + 1)
         # (c) segment reachability rows
-        # unit rows: acceleration rows carry (p / tau)^2-sized coefficients, which slows ADMM
-        self.seg_scale = np.abs(R.F_full[self.seg_rows]).max(axis=1)
+        # Rows scaled by seg_scale (1: physical units, so that margin and solver residual
+        # mean the same on every row; unit rows condition ADMM better but then need an
+        # accuracy of margin / scale).
+        self.seg_scale = np.abs(R.F_full[self.seg_rows]).max(axis=1) if self.unit_rows else np.ones(len(self.seg_rows))
         Fs = R.F_full[self.seg_rows] / self.seg_scale[:, None]
         ks = len(self.seg_rows)
         self.r_seg = slice(row, row + ks * N)
@@ -285,6 +297,8 @@ class BezierMpc:
         self._coo_vals = v_all
         self.n_rows = row
         # static bounds
+        self.row_margin = np.full(row, self.margin)
+        self.row_margin[self.r_seg] = np.tile(self.margin / self.seg_scale, N)
         self.l_static = np.full(row, -np.inf)
         self.u_static = np.full(row, np.inf)
         self.u_static[self.r_node] = np.tile(self.node_b, N + 1)
@@ -304,7 +318,7 @@ class BezierMpc:
             self._solver.setup(
                 self.P, q, A, l, u,
                 verbose=False, warm_starting=True, polishing=self.polish,
-                eps_abs=self.eps, eps_rel=self.eps, max_iter=self.max_iter,
+                eps_abs=self.eps, eps_rel=self.eps if self.unit_rows else 0.0, max_iter=self.max_iter,
                 eps_prim_inf=1e-6, eps_dual_inf=1e-6,
             )  # fmt: skip
         elif self.backend == "piqp":
@@ -376,12 +390,16 @@ class BezierMpc:
         reference: np.ndarray,
         planes: tuple[np.ndarray, np.ndarray] | None = None,
         warm_start: np.ndarray | None = None,
+        shift: int = 0,
     ) -> MpcSolution:
         """Solve for measured ``x_init`` ``(n,)`` and reference waypoints ``(N + 1, n)``.
 
         ``planes``: ``(a, b)`` of shapes ``(N, max_planes, m)`` and ``(N, max_planes)``;
         unused planes have ``b = inf``. ``warm_start``: waypoints ``(N + 1, n)`` (for
-        example the graph path); OSQP otherwise starts from the previous solution.
+        example the graph path). ``shift``: knots the window advanced since the last
+        solve; OSQP then starts from the last solution shifted by as many knots, the new
+        knots on the reference (otherwise from the last solution as it is).
+        ``warm_start`` replaces the primal waypoints.
         """
         R, N = self.reach, self.horizon
         n = R.n
@@ -418,8 +436,8 @@ class BezierMpc:
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
         # the solver sees every inequality tightened by the margin
         eq = l == u
-        ls = np.where(eq, l, l + self.margin)
-        us = np.where(eq, u, u - self.margin)
+        ls = np.where(eq, l, l + self.row_margin)
+        us = np.where(eq, u, u - self.row_margin)
         if np.any(ls > us):
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
         if self.backend == "osqp":
@@ -427,12 +445,11 @@ class BezierMpc:
             if a_changed:
                 upd["Ax"] = A.data
             self._solver.update(**upd)
-            if warm_start is not None:
-                y0 = np.zeros(self.nvar)
-                y0[: self.nx] = np.asarray(warm_start, float).reshape(-1)
-                self._solver.warm_start(x=y0)
+            self._osqp_warm_start(warm_start, shift, ref)
             res = self._solver.solve(raise_error=False)  # the status is checked below
             y, status, iters, obj = res.x, str(res.info.status), int(res.info.iter), float(res.info.obj_val)
+            if np.all(np.isfinite(res.x)):
+                self._last = res.x.copy()
         else:
             x_l, x_u, b, g_l, g_u = self._piqp_split(ls, us)
             kw = {"c": q, "b": b, "h_l": g_l, "h_u": g_u, "x_l": x_l, "x_u": x_u}
@@ -443,6 +460,26 @@ class BezierMpc:
             rs = self._solver.result
             y, status, iters, obj = rs.x, str(st).split(".")[-1], int(rs.info.iter), float(rs.info.primal_obj)
         return self._certify(y, A, l, u, status, iters, obj)
+
+    def _osqp_warm_start(self, warm_start: np.ndarray | None, shift: int, ref: np.ndarray) -> None:
+        """Primal warm start; OSQP keeps its last dual. Shifting the duals too was measured
+        to cost iterations (plane rows are re-chosen per tick, so their duals do not carry)."""
+        R, N, n = self.reach, self.horizon, self.reach.n
+        last = getattr(self, "_last", None)
+        if shift < 0 or shift > N:
+            raise ValueError(f"shift must be in [0, {N}]")
+        if warm_start is None and not (shift and last is not None):
+            return  # OSQP starts from its last solution
+        if last is None:
+            x = np.zeros(self.nvar)
+        elif shift:
+            x = _shift_blocks(last, [(0, N + 1, n), (self.nx, N, R.nz)], shift)
+            x[(N + 1 - shift) * n : self.nx] = ref[N + 1 - shift :].reshape(-1)  # new knots: the reference
+        else:
+            x = last.copy()
+        if warm_start is not None:
+            x[: self.nx] = np.asarray(warm_start, float).reshape(-1)
+        self._solver.warm_start(x=x)
 
     def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
         """Check the answer against the true (untightened) bounds."""
@@ -467,3 +504,17 @@ class BezierMpc:
             ok=bool(ok), status=status, waypoints=X, control_points=C, tau=float(R.tau),
             objective=obj, iterations=iters, max_violation=viol, equality_residual=eq_res,
         )  # fmt: skip
+
+
+def _shift_blocks(vec: np.ndarray, blocks: list[tuple[int, int, int]], shift: int) -> np.ndarray:
+    """Shift knot-major blocks ``(start, units, size)`` of ``vec`` by ``shift`` units; the tail repeats the last."""
+    out = vec.copy()
+    for start, units, size in blocks:
+        if size == 0 or units == 0:
+            continue
+        blk = vec[start : start + units * size].reshape(units, size)
+        new = np.empty_like(blk)
+        new[: units - shift] = blk[shift:]
+        new[units - shift :] = blk[-1]
+        out[start : start + units * size] = new.reshape(-1)
+    return out

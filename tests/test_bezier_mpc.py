@@ -16,6 +16,8 @@ FAST = settings(max_examples=15, deadline=None)
 SAMPLES = 100  # dense samples per segment
 
 V_MAX, A_MAX, TUBE = 0.6, 1.0, 0.05
+# converged answers always certify with physical rows and an absolute tolerance
+ACCURATE = {"unit_rows": False, "eps": 1e-5, "max_iter": 50000}
 WEIGHTS = bm.MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=1.0)
 
 
@@ -72,7 +74,7 @@ def check_dynamics_and_continuity(sol: bm.MpcSolution, reach: rc.BezierReachabil
 def test_double_integrator_solutions_satisfy_constraints_when_densely_sampled(seed, backend, order):
     N, tau, P = 20, 0.1, 3
     reach = di_reach(tau, order)
-    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], init_radius=[0.02, 0.02, 0.0, 0.0], max_planes=P, backend=backend)
+    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], init_radius=[0.02, 0.02, 0.0, 0.0], max_planes=P, backend=backend, **ACCURATE)
     ref = sine_reference(seed, N, tau)
     a, b = planes_around(seed, ref, P, clearance=0.0)
     x_init = ref[0] + np.array([0.01, -0.01, 0.0, 0.0])
@@ -101,7 +103,7 @@ def test_osqp_and_piqp_agree(seed, order):
     target[1:-1, :2] += 0.15
     sols = {}
     for backend in ("osqp", "piqp"):
-        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=P, backend=backend, eps=1e-6, polish=True, max_iter=50000)
+        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=P, backend=backend, **{**ACCURATE, "eps": 1e-6})
         sols[backend] = mpc.solve(ref[0], target, (a, b))
     o, q = sols["osqp"], sols["piqp"]
     assert o.ok and q.ok
@@ -137,7 +139,7 @@ def test_nonlinear_model_solutions_are_feasible_for_the_true_dynamics(seed, back
         ref.append(x.copy())
     ref = np.array(ref)
     assume(np.all(reach.test(ref[:-1], ref[1:])))
-    mpc = bm.BezierMpc(reach, N, bm.MpcWeights(state=(1.0, 0.1), terminal=(1.0, 0.1), effort=1e-3), trust_region=[0.2, 0.3], backend=backend)
+    mpc = bm.BezierMpc(reach, N, bm.MpcWeights(state=(1.0, 0.1), terminal=(1.0, 0.1), effort=1e-3), trust_region=[0.2, 0.3], backend=backend, **ACCURATE)
     target = np.zeros_like(ref)  # drive toward the origin (thesis section 6.1)
     target[-1] = ref[-1]
     target[0] = ref[0]
@@ -182,7 +184,7 @@ def test_bad_planes_and_settings_are_rejected():
 def test_per_tick_updates_reuse_the_setup_and_warm_start():
     reach = di_reach()
     N = 30
-    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2)
+    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2, **ACCURATE)
     pattern = (mpc._A.indices.copy(), mpc._A.indptr.copy())
     ref = sine_reference(3, N + 5, 0.1)
     a, b = planes_around(3, ref, 2, 0.0)
@@ -194,7 +196,7 @@ def test_per_tick_updates_reuse_the_setup_and_warm_start():
         iters.append(sol.iterations)
         assert np.array_equal(mpc._A.indices, pattern[0]) and np.array_equal(mpc._A.indptr, pattern[1])
     again = mpc.solve(window[0], window, (a[4 : 4 + N], b[4 : 4 + N]))  # same data: warm start is the answer
-    assert again.iterations <= max(1, min(iters))
+    assert again.iterations <= 25  # OSQP's first termination check
     np.testing.assert_allclose(again.waypoints, sol.waypoints, atol=1e-4)
 
 
@@ -206,7 +208,7 @@ def test_unconverged_answers_are_only_ok_when_they_are_feasible():
     target = ref.copy()
     target[1:-1, :2] += 0.3
     for max_iter in (1, 3, 10, 30):
-        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2, max_iter=max_iter)
+        mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], max_planes=2, max_iter=max_iter, polish=False)
         sol = mpc.solve(ref[0], target, (a, b))
         if sol.ok:
             assert np.all(reach.violation(sol.control_points, SAMPLES) <= 0.0)
@@ -231,3 +233,23 @@ def test_solution_becomes_a_com_reference_message():
     np.testing.assert_allclose(sol.evaluate(t)[2], bz.evaluate(sol.control_points[3], 0.1, 0.05), atol=1e-12)
     np.testing.assert_allclose(sol.evaluate(t)[-1], sol.waypoints[-1, :2], atol=1e-9)
     np.testing.assert_allclose(sol.evaluate(t, 1)[0], sol.waypoints[0, 2:], atol=1e-9)
+
+
+@FAST
+@given(seed=st.integers(0, 2**32 - 1))
+def test_default_fast_settings_certify_most_ticks_and_only_feasible_ones(seed):
+    """Defaults (unit rows, early stop, polish): ok answers are feasible; most ticks are ok."""
+    reach = di_reach()
+    N, P = 20, 2
+    mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], init_radius=[0.02, 0.02, 0.0, 0.0], max_planes=P)
+    ref = sine_reference(seed, N + 10, 0.1)
+    a, b = planes_around(seed, ref, P, 0.0)
+    oks = []
+    for tick in range(10):
+        w = ref[tick : tick + N + 1]
+        sol = mpc.solve(w[0] + np.array([0.01, 0.0, 0.0, 0.0]), w, (a[tick : tick + N], b[tick : tick + N]), shift=1 if tick else 0)
+        oks.append(sol.ok)
+        if sol.ok:
+            assert np.all(reach.violation(sol.control_points, SAMPLES) <= 0.0)
+            assert dense_plane_violation(sol, a[tick : tick + N], b[tick : tick + N]) <= 0.0
+    assert np.mean(oks) >= 0.7
