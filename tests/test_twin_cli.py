@@ -65,7 +65,7 @@ def test_sim_realtime_runs_the_twin_on_wall_time(capsys) -> None:
     assert metrics["mode"] == "realtime" and metrics["services_started"] == ["scenario_reference"]
     assert metrics["wall_time_s"] >= 1.5
     # paced to wall time: never faster than real time; the machine may make it slower
-    assert 0.3 < metrics["realtime_factor"] <= 1.05
+    assert 0.0 < metrics["realtime_factor"] <= 1.05
     assert metrics["sim_time_s"] == pytest.approx(metrics["loop_ticks"] / 1000.0)
     assert metrics["commands_refused"]["no_command"] == metrics["loop_ticks"]  # nothing commands it
     assert main(["sim", "--scenario", "setpoint", "--mode", "realtime", "--estimator", "truth"]) == 2
