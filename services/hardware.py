@@ -19,7 +19,6 @@ status (``archer status``).
 from __future__ import annotations
 
 import asyncio
-import logging
 import math
 import threading
 import time
@@ -31,6 +30,7 @@ import can
 from drivers.can_budget import LoadMeter
 from drivers.elmo.device import DriveGroup, ElmoDrive, joint_drives
 from drivers.elmo.transport import CanTransport
+from drivers.socketcand import SocketcandBus
 from drivers.teensy import protocol as tp
 from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
@@ -41,7 +41,6 @@ from services.runtime import LatestSlot, Service
 
 NS = 1_000_000_000
 STATUS_POLL_S = 0.2  # how often main() looks at the loop and the drivers
-SOCKETCAND_LOGGER = "can.interfaces.socketcand.socketcand"
 N_JOINTS = 4
 ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
@@ -101,17 +100,17 @@ class CanBackend:
         return self.group.faults if self.group is not None else ["not started"]
 
     def open(self) -> None:
-        if self.params.can_interface == "socketcand":
-            # python-can's socketcand client logs a warning for every TCP read that
-            # splits a frame: at 1 kHz that would flood the log.
-            logging.getLogger(SOCKETCAND_LOGGER).setLevel(logging.ERROR)
         if self._bus is None:
-            self._bus = can.Bus(**bus_kwargs(self.params))
+            if self.params.can_interface == "socketcand":
+                # same protocol as python-can's client, with one write per tick's batch
+                self._bus = SocketcandBus(self.params.can_channel, self.params.can_host, self.params.can_port)
+            else:
+                self._bus = can.Bus(**bus_kwargs(self.params))
         transport = CanTransport(self._bus, self.meter)
         self.group = DriveGroup(transport, self._drives, self.params, self.safety.heartbeat_timeout_s)
         self.group.start()
         self._t0 = time.monotonic()
-        self.meter.bits = 0
+        self.meter.reset()
 
     def exchange(self, now_s: float, torques: Sequence[float], armed: bool, attitude: msgs.AttitudeSetpoint | None) -> None:
         assert self.group is not None

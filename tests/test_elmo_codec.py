@@ -67,6 +67,20 @@ def test_four_drives_at_one_kilohertz_fill_a_megabit_bus() -> None:
     assert 0.8 < load.nominal < load.worst < 1.0
 
 
+def test_load_meter_sampling_matches_the_exact_count() -> None:
+    import random
+
+    rng = random.Random(7)
+    meter = cb.LoadMeter()
+    exact = 0
+    for _ in range(5000):
+        data = bytes(rng.randrange(256) for _ in range(8))
+        meter.add(0x181, data)
+        exact += cb.frame_bits(0x181, data)
+    assert meter.frames == 5000
+    assert meter.bits == pytest.approx(exact, rel=0.01)
+
+
 def test_load_meter_counts_exact_bits() -> None:
     meter = cb.LoadMeter()
     meter.add(0x080, b"")
