@@ -667,7 +667,7 @@ class GraphPlanner:
     def path_reference(self, stamp_ns: int = 0) -> msgs.ComReference:
         """The graph path as the CoM reference (time 0 at the path's start)."""
         assert self.path is not None
-        segs = [msgs.BezierSegment(t0=k * self.path.tau, duration=self.path.tau, control_points=c.tolist())
+        segs = [msgs.BezierSegment(t0=float(k * self.path.tau), duration=float(self.path.tau), control_points=c.tolist())
                 for k, c in enumerate(self.path.control_points)]
         return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=self.path_t0_ns, segments=segs, hold=False)
 
@@ -744,11 +744,11 @@ class GraphPlanner:
             blocked, _ = self._blocked(hulls)
             if not blocked.any():
                 self._last_solution = (j0, sol.waypoints)
-                segs = [msgs.BezierSegment(t0=k * dt, duration=dt, control_points=c.tolist())
+                segs = [msgs.BezierSegment(t0=float(k * dt), duration=float(dt), control_points=c.tolist())
                         for k, c in enumerate(sol.control_points)]
                 t = N * dt
-                for dur, c in chain_tail(path.control_points, path.tau, times[-1]):
-                    segs.append(msgs.BezierSegment(t0=t, duration=dur, control_points=c.tolist()))
+                for dur, c in chain_tail(path.control_points, path.tau, float(times[-1])):
+                    segs.append(msgs.BezierSegment(t0=float(t), duration=float(dur), control_points=c.tolist()))
                     t += dur
                 return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=False)
         self.stats.refine_failures += 1

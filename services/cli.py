@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("sim_twin.cmd_sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "bench": ("services.bench", "measure speed and print figures"),
     "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
+    "plan": ("services.cmd_plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
+    "goal": ("services.cmd_plan", "send the robot a goal position X Y [m]"),
 }
 
 

@@ -1,0 +1,330 @@
+"""The ``planner`` service: Bezier graph planning and MPC refinement (thesis ch. 6-7).
+
+Subscribes (latest value): ``state`` (StateEstimate), ``goal`` (Goal), ``polytopes``
+(PolytopeSet: convex obstacles or free cells), ``tube`` (TrackingTube, the low level's
+measured guarantee).
+Computes: :class:`onboard.graph_planner.GraphPlanner`. Every tick (``refine_hz``,
+100 Hz by default) one SQP iteration of the MPC refines the current path; when the
+world, the goal or the tube changed, or the CoM strayed ``replan_deviation`` from the
+path, it recuts and replans, at most ``replan_hz`` times a second. The graph is built
+(or loaded from the on-disk cache) in a background thread when the planning region
+changes; until it is ready the robot holds.
+Publishes: ``reference`` (ComReference, every tick: the refined path, or a hold
+reference -- hop in place -- when there is no path), ``waypoints`` (the graph path and
+its convex sets, after each replan), ``contract`` (ContractReport on every broken
+promise: the low level's tube p95 above the tube planned with; the planner then plans
+with the achieved tube times ``tube_growth``).
+Status: ``path`` (1/0), planning and refinement times, edges, tube, violations; the
+state is ``degraded`` with ``last_error`` saying so while there is no path.
+
+Also here: the on-disk graph cache (:func:`load_or_build_graph`) and the robot's
+footprint radius from the MJCF (:func:`robot_footprint_radius`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import functools
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from onboard import collision as col
+from onboard import graph_planner as gp
+from onboard import messages as msgs
+from onboard.params import PlannerParams
+from services.runtime import Service
+from sim_twin import model as twin_model
+
+CACHE_ENV = "ARCHER_CACHE_DIR"
+
+
+# --- graph cache (file I/O lives here, not in onboard) ---------------------------------------
+
+
+def graph_cache_dir() -> Path:
+    """``$ARCHER_CACHE_DIR/graphs``, else ``$XDG_CACHE_HOME/archer/graphs``, else ``~/.cache/archer/graphs``."""
+    root = os.environ.get(CACHE_ENV)
+    if root:
+        return Path(root) / "graphs"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "archer" / "graphs"
+
+
+def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.BezierGraph, bool]:
+    """The graph for ``spec`` from ``cache_dir/<key>.npz`` if it is there and sound, else
+    built and written there (atomically). Returns ``(graph, from_cache)``; no cache with
+    ``cache_dir=None``. A corrupt or foreign file is rebuilt over."""
+    path = None if cache_dir is None else Path(cache_dir) / f"{spec.key()}.npz"
+    if path is not None and path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                return gp.BezierGraph.from_arrays(spec, dict(data)), True
+        except (OSError, ValueError, KeyError):
+            pass  # rebuilt below
+    graph = gp.build_graph(spec)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **graph.to_arrays())
+            os.replace(tmp, path)
+        except OSError:
+            Path(tmp).unlink(missing_ok=True)
+    return graph, False
+
+
+# --- robot footprint from the MJCF ----------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=None)
+def robot_footprint_radius(variant: str = twin_model.DEFAULT_VARIANT) -> float:
+    """Radius [m] of the vertical cylinder about the torso axis holding every robot geom, upright.
+
+    Read from the MJCF (the one source of physical parameters). Spheres, cylinders and
+    capsules by their axis and radius, boxes by their corners, anything else by its
+    bounding sphere.
+    """
+    model = twin_model.load_model(variant)
+    data = mujoco.MjData(model)
+    adr = int(model.joint(twin_model.ROOT_JOINT).qposadr[0])
+    data.qpos[adr:adr + 7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]
+    mujoco.mj_forward(model, data)
+    axis = data.xpos[model.body(twin_model.TORSO).id][:2]
+    radius = 0.0
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] == 0:
+            continue  # the world's geoms
+        centre = data.geom_xpos[g]
+        R = data.geom_xmat[g].reshape(3, 3)
+        size = model.geom_size[g]
+        kind = int(model.geom_type[g])
+        off = float(np.hypot(*(centre[:2] - axis)))
+        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+            reach = off + size[0]
+        elif kind in (int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_CAPSULE)):
+            # Inside the spheres of radius r about both axis ends' horizontal hull.
+            ends = [centre[:2] + s * size[1] * R[:2, 2] - axis for s in (-1.0, 1.0)]
+            reach = max(float(np.hypot(*e)) for e in ends) + size[0]
+        elif kind == int(mujoco.mjtGeom.mjGEOM_BOX):
+            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
+            pts = centre + corners @ R.T
+            reach = float(np.max(np.hypot(*(pts[:, :2] - axis).T)))
+        else:
+            reach = off + model.geom_rbound[g]
+        radius = max(radius, float(reach))
+    return radius
+
+
+# --- the service ------------------------------------------------------------------------------
+
+
+def polygons_from_message(msg: msgs.PolytopeSet) -> list[np.ndarray]:
+    """Vertices of each polytope; H-form only polytopes get exact vertices. Raises PolygonError."""
+    out = []
+    for k, p in enumerate(msg.polytopes):
+        try:
+            if p.vertices:
+                out.append(col.validate_polygon(p.vertices))
+            else:
+                out.append(col.polygon_from_halfspaces(np.array(p.A, dtype=float).reshape(-1, 2), np.array(p.b, dtype=float)))
+        except col.PolygonError as exc:
+            raise col.PolygonError(f"polytope {k}: {exc}") from None
+    return out
+
+
+class PlannerService(Service):
+    name = "planner"
+    params_sections = ("planner",)
+
+    def __init__(self, *, robot_radius: float | None = None, cache_dir: Path | None | bool = True, **kw: Any) -> None:
+        super().__init__(**kw)
+        self._robot_radius = robot_radius
+        self._cache_dir = graph_cache_dir() if cache_dir is True else (None if cache_dir is False else cache_dir)
+        self._builder = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner-graph")
+        self._build: concurrent.futures.Future | None = None
+        self._build_spec: gp.GraphSpec | None = None
+        self._hold_xy: list[float] | None = None
+        self._last_plan_ns = -(10**18)
+        self._plan_ms = 0.0
+        self._refine_ms = 0.0
+        self._violations = 0
+        self._has_path = False
+
+    @property
+    def prm(self) -> PlannerParams:
+        return self.params["planner"]
+
+    async def setup(self) -> None:
+        radius = self._robot_radius
+        if radius is None:
+            radius = self.prm.robot_radius or robot_footprint_radius()
+        self.planner = gp.GraphPlanner(self.prm, radius)
+        self.state_in = self.latest("state")
+        self.goal_in = self.latest("goal")
+        self.polytopes_in = self.latest("polytopes")
+        self.tube_in = self.latest("tube")
+        self.pub_reference = self.publisher("reference")
+        self.pub_waypoints = self.publisher("waypoints")
+        self.pub_contract = self.publisher("contract")
+
+    async def teardown(self) -> None:
+        self._builder.shutdown(wait=False, cancel_futures=True)
+
+    def status_extra(self) -> dict[str, float]:
+        st = self.planner.stats
+        graph = self.planner.graph
+        return {
+            "path": float(self._has_path),
+            "plans": st.plans,
+            "no_path": st.no_path,
+            "cuts": st.cuts,
+            "edges_free": st.edges_free,
+            "graph_nodes": graph.n_nodes if graph else 0,
+            "graph_edges": graph.n_edges if graph else 0,
+            "plan_ms": round(self._plan_ms, 3),
+            "refine_ms": round(self._refine_ms, 3),
+            "refine_failures": st.refine_failures,
+            "tube_m": self.planner.tube,
+            "margin_m": self.planner.margin,
+            "contract_violations": self._violations,
+        }
+
+    async def main(self) -> None:
+        period = 1.0 / self.prm.refine_hz
+        rate = self.rate("tick")
+        while not self.stopping.is_set():
+            started = time.monotonic()
+            try:
+                await asyncio.to_thread(self.tick)
+            except Exception as exc:  # keep serving; the low level holds on a stale reference
+                self.fail(f"tick: {exc!r}")
+                self.log.exception("planner tick failed")
+            rate.tick()
+            await asyncio.sleep(max(0.0, period - (time.monotonic() - started)))
+
+    # --- one tick (runs in a worker thread; the only user of self.planner) -------------------
+
+    def tick(self) -> None:
+        now = self.clock.now_ns()
+        self._ingest()
+        got = self.state_in.get()
+        if got is None:
+            return
+        est, _ = got
+        if not est.valid or (now - est.stamp_ns) * 1e-9 > self.prm.state_stale_s:
+            self.count("stale_state")
+            return
+        pos = np.array(est.position[:2])
+        vel = np.array(est.velocity[:2])
+        if self.planner.goal is None:
+            return
+        if not self._graph_ready(pos):
+            self._publish_hold(pos, now)
+            return
+        due = now - self._last_plan_ns >= 1e9 / self.prm.replan_hz
+        if due and self.planner.needs_replan(pos, now, self.prm.replan_deviation):
+            t0 = time.perf_counter()
+            ref = self.planner.plan(pos, vel, now)
+            self._plan_ms = (time.perf_counter() - t0) * 1e3
+            self._last_plan_ns = now
+            self.rate("plan").tick()
+            self._has_path = ref is not None
+            if ref is None:
+                self.state = "degraded"
+                self.last_error = f"no path to goal {self.planner.goal.tolist()}"
+                self.count("no_path")
+            else:
+                self.state = "running"
+                self._hold_xy = None
+                self.pub_waypoints.put(self.planner.waypoints(now))
+        if not self._has_path:
+            self._publish_hold(pos, now)
+            return
+        t0 = time.perf_counter()
+        ref = self.planner.refine(pos, vel, now)
+        self._refine_ms = (time.perf_counter() - t0) * 1e3
+        if ref is not None:
+            ref.stamp_ns = now
+            self.pub_reference.put(ref)
+
+    def _publish_hold(self, pos: np.ndarray, now: int) -> None:
+        if self._hold_xy is None:
+            self._hold_xy = [float(pos[0]), float(pos[1])]  # hold where the robot was: no drift
+        self.pub_reference.put(self.planner.hold_reference(self._hold_xy, now))
+
+    def _graph_ready(self, pos: np.ndarray) -> bool:
+        spec = self.planner.graph_spec_for(pos)
+        graph = self.planner.graph
+        if graph is not None and graph.spec == spec:
+            return True
+        if self._build is not None and self._build_spec == spec:
+            if not self._build.done():
+                return False
+            try:
+                g, cached = self._build.result()
+            except Exception as exc:
+                self.fail(f"graph build: {exc!r}")
+                self._build = None
+                return False
+            self.planner.set_graph(g)
+            self.count("graph_cache_hits" if cached else "graph_builds")
+            self._build = None
+            return True
+        self._build_spec = spec
+        self._build = self._builder.submit(load_or_build_graph, spec, self._cache_dir)
+        return False
+
+    def _ingest(self) -> None:
+        got = self.goal_in.take()
+        if got is not None:
+            goal, _ = got
+            try:
+                self.planner.set_goal(goal.position, goal.tolerance)
+            except gp.PlanningError as exc:
+                self.count("rejected.goal_value")
+                self.fail(f"goal: {exc}")
+        got = self.polytopes_in.take()
+        if got is not None:
+            msg, _ = got
+            try:
+                polys = polygons_from_message(msg)
+                if msg.mode == "free":
+                    self.planner.set_free_cells(polys)
+                else:
+                    self.planner.set_obstacles(polys)
+            except (col.PolygonError, gp.PlanningError) as exc:
+                self.count("rejected.polytopes_geometry")
+                self.fail(f"polytopes: {exc}")
+        got = self.tube_in.take()
+        if got is not None:
+            self._check_contract(got[0])
+
+    def _check_contract(self, tube: msgs.TrackingTube) -> None:
+        promised = self.planner.tube
+        achieved = tube.impact_err_p95
+        if tube.hops < self.prm.contract_min_hops or not math.isfinite(achieved) or achieved <= promised:
+            if self._violations and self.contract_state == "violated" and achieved <= promised:
+                self.contract_state = "ok"
+            elif self.contract_state == "unknown" and tube.hops >= self.prm.contract_min_hops:
+                self.contract_state = "ok"
+            return
+        self._violations += 1
+        self.count("contract_violations")
+        self.contract_state = "violated"
+        new_tube = min(achieved * self.prm.tube_growth, self.prm.tube_max)
+        self.pub_contract.put(msgs.ContractReport(
+            layer="planner", promised=promised, achieved=achieved, violated=True, violations=self._violations,
+            detail=f"tube p95 {achieved:.3f} m over {tube.hops} impacts > {promised:.3f} m planned; replanning with {new_tube:.3f} m"))
+        self.log.warning("contract violated", extra={"fields": {"promised": promised, "achieved": achieved, "new_tube": new_tube}})
+        if new_tube > promised:
+            self.planner.set_tube(new_tube)
+

@@ -1,0 +1,166 @@
+"""The ``planner`` service on a real Zenoh session over loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+
+from onboard import collision as col
+from onboard import messages as m
+from onboard.params import PlannerParams
+from onboard.topics import TOPICS
+from services.cmd_introspect import query_status
+from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
+from services.zenoh_session import open_session
+
+NS = "archer/planner-test"
+TIMEOUT_S = 30.0
+PARAMS = PlannerParams(nodes=900, tube=0.05)
+ROBOT_RADIUS = 0.13
+
+
+async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.02)
+
+
+def _state(x: float, y: float) -> m.StateEstimate:
+    return m.StateEstimate(
+        stamp_ns=time.monotonic_ns(), position=[x, y, 0.5], velocity=[0.0, 0.0, 0.0], quat=[1.0, 0.0, 0.0, 0.0],
+        omega=[0.0, 0.0, 0.0], wheel_vel=[0.0, 0.0, 0.0], foot_pos=0.0, foot_vel=0.0, contact=False, phase="flight",
+        pos_vel_cov=[0.0] * 36, att_cov=[0.0, 0.0, 0.0],
+    )
+
+
+def _box(cx: float, cy: float, h: float) -> m.Polytope:
+    verts = [[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]]
+    A, b = col.polygon_halfspaces(np.array(verts))
+    return m.Polytope(A=A.tolist(), b=b.tolist(), vertices=verts)
+
+
+def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_router, tmp_path):
+    async def scenario() -> None:
+        service = PlannerService(ns=NS, endpoint=zenoh_router, params={"planner": PARAMS}, robot_radius=ROBOT_RADIUS,
+                                 cache_dir=tmp_path)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        refs: list[m.ComReference] = []
+        wps: list[m.Waypoints] = []
+        reports: list[m.ContractReport] = []
+        subs = [
+            client.declare_subscriber(TOPICS["reference"].key(NS), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference))),
+            client.declare_subscriber(TOPICS["waypoints"].key(NS), lambda s: wps.append(m.decode(s.payload.to_bytes(), m.Waypoints))),
+            client.declare_subscriber(TOPICS["contract"].key(NS), lambda s: reports.append(m.decode(s.payload.to_bytes(), m.ContractReport))),
+        ]
+        stop_state = asyncio.Event()
+
+        async def stream_state() -> None:  # the estimator at 50 Hz, robot resting at the start
+            while not stop_state.is_set():
+                client.put(TOPICS["state"].key(NS), m.encode(_state(0.0, 0.0)))
+                await asyncio.sleep(0.02)
+
+        feeder = asyncio.create_task(stream_state())
+        try:
+            await _wait_for(lambda: service.state == "running")
+            await asyncio.sleep(0.3)
+            obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)])
+            client.put(TOPICS["polytopes"].key(NS), m.encode(obstacles))
+            client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[3.0, 0.0], tolerance=0.1)))
+            await _wait_for(lambda: any(not r.hold for r in refs) and wps)
+            ref = next(r for r in refs if not r.hold)
+            first = np.array(ref.segments[0].control_points[0])
+            assert np.max(np.abs(first)) <= PARAMS.tube + 1e-6  # starts within the tube (box) of the state
+            assert np.allclose(ref.segments[-1].control_points[-1], [3.0, 0.0], atol=1e-6)
+            t = 0.0
+            for seg in ref.segments:  # consecutive, gap-free segments
+                assert seg.t0 == pytest.approx(t, abs=1e-9)
+                t += seg.duration
+            assert np.allclose(wps[-1].points[-1], [3.0, 0.0]) and len(wps[-1].sets) == len(wps[-1].points)
+            # Refined at the tick rate.
+            n0 = len(refs)
+            await asyncio.sleep(1.0)
+            assert len(refs) - n0 >= 0.5 * PARAMS.refine_hz
+            # A malformed (non-convex) polytope set is rejected, counted, and the world kept.
+            bad = m.Polytope(A=[], b=[], vertices=[[0, 0], [2, 0], [1, 0.2], [2, 2], [0, 2]])
+            client.put(TOPICS["polytopes"].key(NS), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[bad])))
+            # The low level reports a tube over the promise: a contract report, and a larger tube.
+            client.put(TOPICS["tube"].key(NS), m.encode(m.TrackingTube(hops=20, impact_err_p50=0.1, impact_err_p95=0.2,
+                                                                         impact_err_max=0.3, attitude_err_p95=0.05)))
+            await _wait_for(lambda: reports)
+            rep = reports[0]
+            assert rep.layer == "planner" and rep.violated and rep.violations == 1
+            assert rep.promised == pytest.approx(0.05) and rep.achieved == pytest.approx(0.2)
+            status = await asyncio.to_thread(query_status, client, NS, "planner")
+            assert status.contract == "violated" and status.counters["contract_violations"] == 1
+            assert status.extra["tube_m"] == pytest.approx(0.2 * PARAMS.tube_growth)
+            assert status.counters["rejected.polytopes_geometry"] >= 1 and status.extra["path"] == 1.0
+            # A goal inside an obstacle: no path, a hold reference (hop in place), and the status says so.
+            client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[1.5, 0.0], tolerance=0.1)))
+            await _wait_for(lambda: service.status_extra()["path"] == 0.0 and refs[-1].hold)
+            hold = refs[-1]
+            assert hold.segments[0].control_points[0] == [0.0, 0.0]
+            status = await asyncio.to_thread(query_status, client, NS, "planner")
+            assert status.state == "degraded" and "no path" in status.last_error
+            assert status.extra["no_path"] >= 1
+        finally:
+            stop_state.set()
+            await feeder
+            for sub in subs:
+                sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 120))
+
+
+def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
+    async def scenario() -> None:
+        service = PlannerService(ns=NS + "2", endpoint=zenoh_router, params={"planner": PARAMS},
+                                 robot_radius=ROBOT_RADIUS, cache_dir=tmp_path)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        refs: list[bytes] = []
+        sub = client.declare_subscriber(TOPICS["reference"].key(NS + "2"), lambda s: refs.append(s.payload.to_bytes()))
+        try:
+            await _wait_for(lambda: service.state == "running")
+            await asyncio.sleep(0.3)
+            old = _state(0.0, 0.0)
+            old.stamp_ns -= int(2e9)
+            client.put(TOPICS["state"].key(NS + "2"), m.encode(old))
+            client.put(TOPICS["goal"].key(NS + "2"), m.encode(m.Goal(position=[2.0, 0.0])))
+            await _wait_for(lambda: service.counters.get("stale_state") > 5)
+            assert refs == []
+        finally:
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
+def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
+    from onboard import graph_planner as gp
+
+    spec = gp.spec_from_params(PARAMS, (0.0, 0.0, 3.0, 3.0), nodes=300)
+    g1, cached1 = load_or_build_graph(spec, tmp_path)
+    g2, cached2 = load_or_build_graph(spec, tmp_path)
+    assert not cached1 and cached2 and np.array_equal(g1.control_points, g2.control_points)
+    (tmp_path / f"{spec.key()}.npz").write_bytes(b"not a zip")
+    g3, cached3 = load_or_build_graph(spec, tmp_path)
+    assert not cached3 and np.array_equal(g3.dst, g1.dst)
+    assert load_or_build_graph(dataclasses.replace(spec, seed=9), tmp_path)[1] is False
+
+
+def test_footprint_radius_comes_from_the_mjcf():
+    r = robot_footprint_radius()
+    # The housing is a 0.13 m cylinder; the wheels stick out a little further.
+    assert 0.13 <= r <= 0.2
