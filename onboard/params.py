@@ -267,7 +267,10 @@ class PlannerParams:
     mpc_trust: float = 0.5  # [m] trust region of each MPC knot around the graph path (L1)
     halfspaces: int = 4  # separating halfspaces per MPC segment (nearest obstacles)
     halfspace_reach: float = 2.0  # [m] obstacles farther than this from a segment are ignored
-    reference_horizon_s: float = 20.0  # [s] longest reference published (tail of the path dropped)
+    replan_deviation: float = 0.3  # [m] replan when the CoM is this far from where the path puts it
+    tube_max: float = 0.5  # [m] the tube the planner grows to at most after broken promises
+    contract_min_hops: int = 5  # impacts in the low level's tube window before it is judged
+    state_stale_s: float = 0.1  # [s] an older state estimate is not planned from
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ SERVICE_CLASSES: dict[str, str] = {
     "router": "services.router:RouterService",
     "hardware": "services.hardware:HardwareService",
     "control": "services.control:ControlService",
+    "planner": "services.planner:PlannerService",
 }
 
 
