@@ -347,7 +347,8 @@ class Forest(Scenario):
     description = "random convex obstacles between the start and a goal beyond them (--obstacles N)"
     default_duration_s = 60.0
     DEFAULT_COUNT = 10
-    REGION = ((0.8, 5.0), (-2.0, 2.0))  # [m] x and y range of obstacle centres
+    REGION = ((0.8, 5.0), (-1.5, 1.5))  # [m] x and y range of obstacle centres
+    BLOCKER_X = (2.0, 4.0)  # [m] x range of the first obstacle, placed on the start-goal line
     RADIUS = (0.15, 0.35)  # [m] circumradius range
     GAP = 0.45  # [m] minimum free gap between obstacles (the robot is 0.26 m wide)
     GOAL = (6.0, 0.0)
@@ -364,17 +365,18 @@ class Forest(Scenario):
             if tries > 20000:
                 raise ValueError(f"cannot place {count} obstacles with {self.GAP} m gaps in the forest region")
             r = float(self.rng.uniform(*self.RADIUS))
-            cx, cy = float(self.rng.uniform(x0, x1)), float(self.rng.uniform(y0, y1))
+            if not placed:  # the first one stands on the straight line to the goal: a path must go around
+                cx, cy = float(self.rng.uniform(*self.BLOCKER_X)), float(self.rng.uniform(-0.05, 0.05))
+            else:
+                cx, cy = float(self.rng.uniform(x0, x1)), float(self.rng.uniform(y0, y1))
             if any(math.dist((cx, cy), (px, py)) < r + pr + self.GAP for px, py, pr in placed):
                 continue
             placed.append((cx, cy, r))
-            nv = int(self.rng.integers(3, 7))
-            ang = np.sort(self.rng.uniform(0, 2 * math.pi, nv))
+            # 3-6 vertices on the circumcircle, evenly spaced with jitter: no slivers
+            nv = int(self.rng.integers(3, 7)) if len(placed) > 1 else 6  # the blocker: a fat hexagon
+            ang = (np.arange(nv) + self.rng.uniform(-0.3, 0.3, nv)) * (2 * math.pi / nv) + self.rng.uniform(0, 2 * math.pi)
             pts = np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1)
-            hull = _ccw_hull(pts)
-            if len(hull) < 3:  # degenerate draw: use a triangle
-                hull = _ccw_hull(np.array([[cx + r, cy], [cx - r / 2, cy + r * 0.87], [cx - r / 2, cy - r * 0.87]]))
-            self.obstacles.append(Obstacle(hull))
+            self.obstacles.append(Obstacle(_ccw_hull(pts)))
         self.goal_xy = self.GOAL
         self.segments = straight_reference(self.start, self.goal_xy)
 

@@ -72,6 +72,9 @@ def test_seed_changes_every_random_choice() -> None:
     assert len(sc.make("forest", seed=2, obstacles=4).obstacles) == 4
     with pytest.raises(ValueError):
         sc.make("forest", seed=0, obstacles=500)
+    for seed in range(20):  # the first forest obstacle blocks the straight line to the goal
+        ys = [v[1] for v in sc.make("forest", seed=seed).obstacles[0].vertices]
+        assert min(ys) < 0.0 < max(ys)
     assert sc.make("maze", seed=1).obstacles != sc.make("maze", seed=2).obstacles
     assert sc.make("setpoint", seed=0).goal_xy == (2.0, 0.0)
     g = sc.make("setpoint", seed=9).goal_xy
