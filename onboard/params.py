@@ -84,6 +84,8 @@ class EstimatorParams:
     """
 
     rate_hz: float = 1000.0  # [Hz] state estimate publication rate
+    robot: str = "indoor"  # MJCF variant the robot's parameters are read from (sim_twin/models)
+    input_queue: int = 256  # sensor messages buffered between two ticks; the oldest dropped beyond
     # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
     pose_delay_s: float = 0.025  # [s] fusion horizon: covers the pose sensor's latency
     compensate_latency: bool = True  # False: fuse each pose as if it were current

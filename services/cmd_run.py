@@ -17,6 +17,7 @@ SERVICE_CLASSES: dict[str, str] = {
     "hardware": "services.hardware:HardwareService",
     "control": "services.control:ControlService",
     "planner": "services.planner:PlannerService",
+    "estimator": "services.estimator:EstimatorService",
 }
 
 

@@ -1,0 +1,131 @@
+"""The ``estimator`` service: the state estimate at 1 kHz (issue 5).
+
+Subscribes: ``imu`` and ``joints`` (1 kHz), ``pose`` (motion capture / tracking camera,
+stamped with its capture time). Every message is kept, in arrival order: a Zenoh
+callback decodes it (malformed payloads are rejected and counted by the runtime) and
+appends it to a bounded queue, never blocking. Latest-value slots would not do here:
+the filter integrates every IMU interval.
+
+Computes: :class:`onboard.estimator.StateEstimator` (robot parameters from the MJCF
+variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
+:class:`services.realtime.DeadlineLoop` thread drains the queue into the estimator and
+publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
+
+Status: the estimator's mode (``degraded`` while it has no pose, ``running`` otherwise),
+pose age, standard deviations, gyro bias, loop timing and every rejection counter
+(``est.<reason>``). A parameter change rebuilds the estimator (it re-converges from
+the next pose).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections import deque
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import zenoh
+
+from onboard import messages as msgs
+from onboard.estimator import StateEstimator
+from onboard.params import EstimatorParams
+from onboard.topics import TOPICS
+from services.realtime import DeadlineLoop
+from services.runtime import Service
+from sim_twin.model import robot_params
+
+INPUTS = ("imu", "joints", "pose")
+
+
+class EstimatorService(Service):
+    name: ClassVar[str] = "estimator"
+    params_sections: ClassVar[tuple[str, ...]] = ("estimator",)
+
+    async def setup(self) -> None:
+        p: EstimatorParams = self.params["estimator"]
+        if not p.rate_hz > 0:
+            raise ValueError(f"estimator rate must be positive, got {p.rate_hz}")
+        self._lock = threading.Lock()  # the loop vs. a parameter change or a status query
+        self._build(p)
+        self._queue: deque[tuple[str, Any]] = deque()
+        self._queue_max = max(1, p.input_queue)
+        for topic in INPUTS:
+            self._subscribe_queued(topic)
+        self._state_pub = self.publisher("state")
+        self._ticks = self.rate("loop")
+        self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop")
+
+    def _build(self, p: EstimatorParams) -> None:
+        self.est = StateEstimator(p, robot_params(p.robot))
+        self._dispatch: dict[str, Callable[[Any], bool]] = {
+            "imu": self.est.update_imu, "joints": self.est.update_joints, "pose": self.est.update_pose,
+        }
+
+    def _subscribe_queued(self, topic_name: str) -> None:
+        topic = TOPICS[topic_name]
+        decode = self._decoder(topic)
+        rate = self.rate(f"rx.{topic_name}")
+        queue = self._queue
+
+        def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread: decode, append, return
+            try:
+                msg = decode(sample)
+            except msgs.MessageError as exc:
+                self._reject(topic, exc)
+                return
+            rate.tick()
+            if len(queue) >= self._queue_max:
+                queue.popleft()
+                self.count("dropped.queue_full")
+            queue.append((topic_name, msg))
+
+        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+
+    def _tick(self, _deadline_s: float) -> None:
+        queue = self._queue
+        with self._lock:
+            dispatch = self._dispatch
+            while queue:
+                topic, msg = queue.popleft()
+                dispatch[topic](msg)
+            state = self.est.estimate(self.clock.now_ns())
+        self._state_pub.put(state)
+        self._ticks.tick()
+
+    async def main(self) -> None:
+        self._loop.start()
+        try:
+            while not self.stopping.is_set():
+                try:
+                    await asyncio.wait_for(self.stopping.wait(), 0.5)
+                except asyncio.TimeoutError:
+                    pass
+                if self._loop.error is not None:
+                    self.state = "error"
+                    self.fail(f"estimator loop crashed: {self._loop.error!r}")
+                    return
+                if self.state != "error":
+                    self.state = "running" if self.est.status()["mode"] != "init" else "degraded"
+        finally:
+            await asyncio.to_thread(self._loop.stop, 2.0)
+
+    def on_params_changed(self, section: str) -> None:
+        with self._lock:
+            self._build(self.params["estimator"])
+        self.log.info("estimator rebuilt with new parameters")
+
+    def status_extra(self) -> dict[str, float]:
+        with self._lock:
+            st = self.est.status()
+            counters = self.est.counters
+        out = {k: float(v) for k, v in st.items() if k != "mode"}
+        if out["pose_age_s"] == float("inf"):  # JSON has no infinity: no pose yet reads -1
+            out["pose_age_s"] = -1.0
+        out["pose_outage"] = float(st["mode"] == "pose_outage")
+        out.update({f"est.{k}": float(v) for k, v in counters.items()})
+        loop = self._loop.recorder.stats()
+        out["loop_tick_us_p99"] = loop.tick_us_p99
+        out["loop_period_jitter_us_p99"] = loop.period_jitter_us_p99
+        out["loop_overruns"] = float(loop.overruns)
+        return out
