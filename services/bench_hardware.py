@@ -185,6 +185,7 @@ def measure(args: argparse.Namespace) -> dict:
         "joints_messages": joints,
         "bus_load_measured": x1.get("hw.bus_load"),
         "faults": int(x1.get("hw.faults", 0)),
+        "last_fault": after.get("last_error", ""),
         "loop_jitter_us_p99": x1.get("loop.period_jitter_us_p99"),
         "loop_tick_us_p99": x1.get("loop.tick_us_p99"),
         "loop_overruns": int(delta("loop.overruns")),

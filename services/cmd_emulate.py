@@ -10,6 +10,13 @@ SIGINT/SIGTERM. Only loopback TCP or pseudo-terminals, nothing else.
   loads).
 - ``teensy``: a Teensy on a pseudo-terminal; ``port`` is the path to open (a stable
   symlink to the pty), speaking ``docs/teensy_protocol.md``.
+
+``--twin SCENARIO`` puts the MuJoCo twin behind the emulated devices (:class:`TwinPlant`):
+the torques the emulated motors apply drive the twin's actuators, and the twin's
+joints and IMU become what the devices report. The ``hardware`` service and the
+drivers then run unchanged against a simulated robot. The drives step the physics one
+tick per SYNC (simulated time follows the host's cycle); the Teensy steps it every
+millisecond of its own clock.
 """
 
 from __future__ import annotations
@@ -33,12 +40,92 @@ from services.config import ConfigError, load_params
 DOCS = "docs/teensy_protocol.md"
 
 
+class TwinMotor:
+    """A :class:`~drivers.elmo.emulator.MotorModel` whose motion the twin computes."""
+
+    def __init__(self, gear: float) -> None:
+        self.gear = gear  # motor turns per joint turn
+        self.position = 0.0  # [rad] motor side
+        self.velocity = 0.0  # [rad/s] motor side
+        self.torque = 0.0  # [N m] motor side, the last the drive applied
+
+    def step(self, torque: float, dt_s: float) -> None:
+        self.torque = torque  # the physics advances in TwinPlant.step
+
+
+class TwinPlant:
+    """The MuJoCo twin (scenario, physics, sensors) behind an emulated device.
+
+    ``step(now_s, joint_torques)`` applies the torques as the twin applies a torque
+    command (limits, motor curve), advances one control period, and copies what the
+    twin's sensors deliver into ``motors`` (joint order: three wheels, foot motor) and
+    ``body`` (IMU, foot spring, contact).
+    """
+
+    def __init__(self, scenario: str, seed: int, motor_gears: tuple[float, ...]) -> None:
+        import mujoco
+
+        from onboard.params import SafetyLimits, TwinParams, with_overrides
+        from sim_twin import model as tm
+        from sim_twin.actuation import Actuation
+        from sim_twin.sensors import SensorSuite
+        from sim_twin.twin_service import make_scenario
+        from drivers.teensy.emulator import BodyState
+
+        # the devices carry no camera: the smallest depth image keeps the step cheap
+        tp = with_overrides(TwinParams(), {"scenario": scenario, "seed": seed, "depth_width": 2, "depth_height": 2})
+        self._mujoco = mujoco
+        self.scenario = make_scenario(tp)
+        robot = tm.robot_params(tp.variant)
+        spec = tm.load_spec(tp.variant)
+        self.scenario.build(spec)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.scenario.initialize(self.model, self.data, robot)
+        self.substeps = max(1, round((1.0 / tp.control_rate_hz) / self.model.opt.timestep))
+        self.sensors = SensorSuite(self.model, tp, seed)
+        self.actuation = Actuation(self.model, robot, SafetyLimits())
+        self.motors = [TwinMotor(g) for g in motor_gears]
+        self.body = BodyState()
+        self.sim_s = 0.0
+        self._dt = self.substeps * self.model.opt.timestep
+        self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
+        self._lock = threading.Lock()
+
+    def step(self, now_s: float, joint_torques: list[float]) -> None:
+        from onboard.messages import TorqueCommand
+
+        with self._lock:
+            now_ns = int(now_s * 1e9)
+            cmd = TorqueCommand(wheel_torque=joint_torques[:3], foot_torque=joint_torques[3], armed=True)
+            self.actuation.apply(cmd, now_ns, self.data, received_ns=now_ns)
+            self.scenario.before_step(self.sim_s, self.model, self.data)
+            for _ in range(self.substeps):
+                self._mujoco.mj_step(self.model, self.data)
+            self.sim_s += self._dt
+            for topic, msg in self.sensors.tick(self.data, now_ns):
+                if topic == "imu":
+                    self.body.quat, self.body.gyro, self.body.accel = tuple(msg.quat), tuple(msg.gyro), tuple(msg.accel)
+                elif topic == "joints":
+                    joint_pos = (*msg.wheel_pos, msg.foot_motor_pos)
+                    joint_vel = (*msg.wheel_vel, float(self.data.qvel[self._spool_dof]))  # JointSensors has no spool speed
+                    for m, pos, vel in zip(self.motors, joint_pos, joint_vel):
+                        m.position, m.velocity = pos * m.gear, vel * m.gear
+                    self.body.foot_pos, self.body.foot_vel, self.body.contact = msg.foot_pos, msg.foot_vel, msg.foot_contact
+
+    def on_sync(self, now_s: float) -> None:
+        """The drive emulator's hook: one physics tick per SYNC with the drives' last torques."""
+        self.step(now_s, [m.torque * m.gear for m in self.motors])
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("device", choices=("drives", "teensy"))
     parser.add_argument("--node-ids", help="comma-separated CANopen node ids (default: hardware.node_ids)")
     parser.add_argument("--port", type=int, default=0, help="drives: TCP port on 127.0.0.1 (default: a free one)")
     parser.add_argument("--channel", default=None, help="drives: socketcand channel name (default: hardware.can_channel)")
     parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety)")
+    parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
+    parser.add_argument("--seed", type=int, default=0, help="--twin: scenario and sensor-noise seed")
 
 
 def _node_ids(text: str) -> tuple[int, ...]:
@@ -70,7 +157,7 @@ def _gear_ratios() -> tuple[float, ...]:
     return gear_ratios()
 
 
-def run_drives(params: HardwareParams, port: int, channel: str) -> int:
+def run_drives(params: HardwareParams, port: int, channel: str, plant: TwinPlant | None = None) -> int:
     n = len(params.node_ids)
     per_joint = {name: getattr(params, name) for name in ("torque_constant", "current_max")}
     for name, values in per_joint.items():
@@ -78,7 +165,9 @@ def run_drives(params: HardwareParams, port: int, channel: str) -> int:
             per_joint[name] = tuple(values) + (values[-1],) * (n - len(values))
     params = dataclasses.replace(params, **per_joint)
     done = _stop_on_signal()
-    emulator = make_emulator(params)
+    emulator = make_emulator(params, plant.motors if plant is not None else None)
+    if plant is not None:
+        emulator.on_sync = plant.on_sync
     eds_dir = tempfile.mkdtemp(prefix="archer-drives-")
     eds_path = os.path.join(eds_dir, "archer_elmo.eds")
     first = params.node_ids[0]
@@ -112,9 +201,13 @@ def run_drives(params: HardwareParams, port: int, channel: str) -> int:
     return 0 if runner.error is None else 1
 
 
-def run_teensy(params: HardwareParams) -> int:
+def run_teensy(params: HardwareParams, plant: TwinPlant | None = None) -> int:
     done = _stop_on_signal()
-    emulator = TeensyEmulator(params, _gear_ratios()).start()
+    emulator = TeensyEmulator(params, _gear_ratios(), motors=plant.motors if plant is not None else None,
+                              body=plant.body if plant is not None else None)
+    if plant is not None:
+        emulator.on_step = plant.step
+    emulator.start()
     print(
         json.dumps(
             {
@@ -145,6 +238,16 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"archer emulate: {exc}", file=sys.stderr)
         return 2
+    plant = None
+    if args.twin:
+        gears = _gear_ratios()
+        if args.device == "drives":
+            if len(params.node_ids) != len(gears):
+                print("archer emulate: --twin needs one drive per joint (4 node ids)", file=sys.stderr)
+                return 2
+            plant = TwinPlant(args.twin, args.seed, gears)  # drives report motor-side values
+        else:
+            plant = TwinPlant(args.twin, args.seed, (1.0,) * len(gears))  # the Teensy reports joint values
     if args.device == "drives":
-        return run_drives(params, args.port, args.channel or params.can_channel)
-    return run_teensy(params)
+        return run_drives(params, args.port, args.channel or params.can_channel, plant)
+    return run_teensy(params, plant)

@@ -120,3 +120,53 @@ def test_the_line_is_json_with_a_pid(device: str) -> None:
         assert info["pid"] == proc.pid and info["device"] == device
     finally:
         stop(proc)
+
+
+def test_teensy_with_the_twin_behind_it_reports_the_twins_physics() -> None:
+    from drivers.teensy import protocol as p
+    from drivers.teensy.device import Teensy
+    from drivers.teensy.transport import SerialLink
+
+    proc, info = start("teensy", "--twin", "hop-in-place")
+    teensy = Teensy(SerialLink(info["port"], 0.05, 1.0), "torque", 0.1)
+    try:
+        end = time.monotonic() + 0.6
+        while time.monotonic() < end:
+            teensy.exchange(time.monotonic(), torque=p.TorqueCmd((0.3, 0.0, 0.0), 0.0, True))
+            time.sleep(0.001)
+        s = teensy.sensors
+        assert s is not None and not teensy.faults
+        assert s.wheel_vel[0] > 10.0 and abs(s.wheel_vel[1]) < 1.0  # the twin's wheel spins up
+        assert s.gyro[0] < -0.1  # and the body turns the other way (reaction)
+        assert s.quat != (1.0, 0.0, 0.0, 0.0)  # the static emulator would report identity
+    finally:
+        teensy.link.close()
+        stop(proc)
+
+
+def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
+    from drivers.elmo.device import DriveGroup, ElmoDrive, joint_drives
+    from drivers.elmo.transport import CanTransport
+    from drivers.socketcand import SocketcandBus
+    from onboard.params import HardwareParams
+    from services.hardware import gear_ratios
+
+    proc, info = start("drives", "--twin", "hop-in-place")
+    bus = info["bus"]
+    transport = CanTransport(SocketcandBus(bus["channel"], bus["host"], bus["port"]))
+    params = HardwareParams()
+    group = DriveGroup(transport, [ElmoDrive(j) for j in joint_drives(params, gear_ratios())], params, 0.1)
+    try:
+        group.start()
+        group.enable(timeout_s=5.0)
+        for _ in range(400):
+            group.exchange((0.0, 0.0, 0.3, 0.0), armed=True)
+            time.sleep(0.001)
+        fb = [d.feedback for d in group.drives]
+        assert fb[2].velocity > 10.0 and abs(fb[0].velocity) < 1.0
+        assert fb[2].torque == pytest.approx(0.3, abs=0.005)
+    finally:
+        group.stop()
+        transport.shutdown()
+        final = stop(proc)
+    assert final["syncs"] >= 400
