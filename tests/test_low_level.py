@@ -223,3 +223,34 @@ def test_unknown_policy_and_missing_weights_are_refused():
         build_controller("indoor", dataclasses.replace(ControlParams(), policy="magic"))
     with pytest.raises(FileNotFoundError):
         build_controller("indoor", dataclasses.replace(ControlParams(), policy="mlp", mlp_weights="/nonexistent.npz"))
+
+
+# --- the neural policy --------------------------------------------------------------------------
+
+
+def test_training_script_runs_and_its_network_drives_the_controller(tmp_path):
+    from services import train_zdp
+
+    out = tmp_path / "tiny.npz"
+    assert train_zdp.main(["--samples", "20", "--steps", "30", "--out", str(out)]) == 0
+    c = build_controller("indoor", dataclasses.replace(ControlParams(), policy="mlp", mlp_weights=str(out)))
+    c.request_arm()
+    cmd = c.step(0, estimate(0, vz=0.5, xy=(0.2, 0.0)), None, joints(0))
+    assert cmd.armed and all(math.isfinite(v) for v in cmd.wheel_torque)
+    assert math.hypot(*c.eta) <= math.sin(ControlParams().tilt_cmd_max) + 1e-12
+
+
+def test_committed_network_reproduces_the_optimal_impact_attitude():
+    from services.control import load_policy_weights
+
+    w = load_policy_weights(ControlParams().mlp_weights)
+    assert float(w["meta_validation_rms"]) < 0.005  # [rad-ish] against held-out targets
+    net = Mlp(w)
+    lim = math.sin(ControlParams().tilt_cmd_max)
+    # the foot goes towards the error: +x position or velocity error -> lean back (a_x < 0)
+    for err in ((0.2, 0.0, 0.0, 0.0), (0.0, 0.0, 0.4, 0.0)):
+        ax, ay = net(err)
+        assert ax < -0.2 * lim and abs(ay) < 0.3 * abs(ax)
+    # symmetric hopper: a point reflection of the error reflects the command
+    z = np.array([0.1, -0.05, 0.2, 0.1])
+    assert np.allclose(net(tuple(z)), -np.array(net(tuple(-z))), atol=0.15 * lim)
