@@ -199,6 +199,10 @@ def test_our_driver_drives_canopens_local_node(channel: str, eds: str) -> None:
     host_bus = can.Bus(interface="virtual", channel=channel)
     try:
         local = canopen.LocalNode(NODE, eds)
+        label = canopen.objectdictionary.ODVariable("Host label", 0x2000, 0)
+        label.data_type = canopen.objectdictionary.VISIBLE_STRING
+        label.access_type = "rw"
+        local.object_dictionary.add_object(label)
         network.add_node(local)
         drive_logic = Cia402OnLocalNode(network, local)
         params = HardwareParams(node_ids=(NODE,), torque_constant=(0.083,), current_max=(12.0,), joint_sign=(1,))
@@ -208,6 +212,9 @@ def test_our_driver_drives_canopens_local_node(channel: str, eds: str) -> None:
         assert sdo.read_string(c.DEVICE_NAME) == CFG.device_name
         sdo.download(c.TPDO_COMM + 3, 1, struct.pack("<I", c.PDO_COB_INVALID | 0x485))
         assert sdo.read_u32(c.TPDO_COMM + 3, 1) == c.PDO_COB_INVALID | 0x485
+        sdo.download(0x2000, 0, b"archer hardware service, node 5")  # segmented: 31 bytes in 5 segments
+        assert local.sdo[0x2000].raw == "archer hardware service, node 5"
+        assert sdo.read_string(0x2000) == "archer hardware service, node 5"
         local.nmt.state = "PRE-OPERATIONAL"  # what a slave is after its boot-up
         group = DriveGroup(transport, [ElmoDrive(JointDrive(NODE, 0.083, 12.0, 1.0, 1))], params, 0.1)
         # canopen's LocalNode announces no boot-up on an NMT reset from the bus: configure

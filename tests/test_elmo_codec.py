@@ -193,6 +193,9 @@ def _drive_transition(state: c.DriveState, cw: int) -> c.DriveState:
         (D.OPERATION_ENABLED, 0x06): D.READY_TO_SWITCH_ON,
         (D.OPERATION_ENABLED, 0x00): D.SWITCH_ON_DISABLED,
         (D.QUICK_STOP_ACTIVE, 0x00): D.SWITCH_ON_DISABLED,
+        (D.OPERATION_ENABLED, 0x02): D.QUICK_STOP_ACTIVE,
+        (D.SWITCHED_ON, 0x02): D.SWITCH_ON_DISABLED,
+        (D.READY_TO_SWITCH_ON, 0x02): D.SWITCH_ON_DISABLED,
         (D.FAULT, 0x80): D.SWITCH_ON_DISABLED,
     }
     return table[(state, cw)]
@@ -201,7 +204,8 @@ def _drive_transition(state: c.DriveState, cw: int) -> c.DriveState:
 @pytest.mark.parametrize("start", [s for s in c.DriveState if s not in (c.DriveState.NOT_READY_TO_SWITCH_ON, c.DriveState.FAULT_REACTION_ACTIVE)])
 @pytest.mark.parametrize(
     "target",
-    [c.DriveState.OPERATION_ENABLED, c.DriveState.SWITCH_ON_DISABLED, c.DriveState.READY_TO_SWITCH_ON, c.DriveState.SWITCHED_ON],
+    [c.DriveState.OPERATION_ENABLED, c.DriveState.SWITCH_ON_DISABLED, c.DriveState.READY_TO_SWITCH_ON, c.DriveState.SWITCHED_ON,
+     c.DriveState.QUICK_STOP_ACTIVE],
 )
 def test_next_command_reaches_every_target(start: c.DriveState, target: c.DriveState) -> None:
     state = start
@@ -210,7 +214,10 @@ def test_next_command_reaches_every_target(start: c.DriveState, target: c.DriveS
         if cw is None:
             break
         state = _drive_transition(state, int(cw))
-    assert state == target
+    if target == c.DriveState.QUICK_STOP_ACTIVE and start not in (c.DriveState.OPERATION_ENABLED, c.DriveState.QUICK_STOP_ACTIVE):
+        assert state == c.DriveState.SWITCH_ON_DISABLED  # a quick stop outside OPERATION ENABLED disables
+    else:
+        assert state == target
 
 
 def test_pdo_payloads() -> None:

@@ -299,3 +299,18 @@ def test_rpdo_of_wrong_length_gets_an_emcy(rig: Rig) -> None:
     run(rig.group, 10)
     assert rig.emulator.drive(1).counters.get("rpdo_length_errors") == 1
     assert any("0x8210" in f for f in rig.group.faults)
+
+
+def test_quick_stop_zeroes_torque_and_the_drive_enables_again(rig: Rig) -> None:
+    started(rig)
+    for _ in range(50):
+        rig.group.exchange((0.5, -0.5, 0.25, 2.0), armed=True, quick_stop=True)
+        time.sleep(TICK_S)
+        if all(d.state == c.DriveState.QUICK_STOP_ACTIVE for d in rig.emulator.drives):
+            break
+    assert all(d.state == c.DriveState.QUICK_STOP_ACTIVE for d in rig.emulator.drives)  # 0x605A = 6: stay
+    assert applied(rig.emulator) == [0.0] * 4
+    run(rig.group, 3, (0.5, -0.5, 0.25, 2.0))
+    assert not rig.group.faulted
+    run(rig.group, 20, (0.5, -0.5, 0.25, 2.0))
+    assert all(t != 0.0 for t in applied(rig.emulator))

@@ -493,7 +493,9 @@ def state_of(statusword: int) -> DriveState | None:
 def next_command(state: DriveState, target: DriveState) -> Controlword | None:
     """The controlword that moves ``state`` one step towards ``target``.
 
-    ``target`` is OPERATION_ENABLED (enable), SWITCH_ON_DISABLED (disable),
+    ``target`` is OPERATION_ENABLED (enable), QUICK_STOP_ACTIVE (quick stop: from
+    OPERATION ENABLED the drive stops in QUICK STOP ACTIVE, from the other states a
+    quick stop command leads to SWITCH ON DISABLED), SWITCH_ON_DISABLED (disable),
     READY_TO_SWITCH_ON or SWITCHED_ON. None when already there or when the drive must
     move by itself (NOT READY, FAULT REACTION ACTIVE).
     """
@@ -503,6 +505,8 @@ def next_command(state: DriveState, target: DriveState) -> Controlword | None:
         return Controlword.FAULT_RESET
     if state in (DriveState.NOT_READY_TO_SWITCH_ON, DriveState.FAULT_REACTION_ACTIVE):
         return None
+    if target == DriveState.QUICK_STOP_ACTIVE:
+        return Controlword.QUICK_STOP if state != DriveState.SWITCH_ON_DISABLED else None
     if target == DriveState.SWITCH_ON_DISABLED:
         return Controlword.DISABLE_VOLTAGE
     if state == DriveState.QUICK_STOP_ACTIVE:

@@ -191,6 +191,8 @@ class ElmoDrive:
                 controlword = c.Controlword.ENABLE_OPERATION
             elif target == c.DriveState.READY_TO_SWITCH_ON:
                 controlword = c.Controlword.SHUTDOWN
+            elif target == c.DriveState.QUICK_STOP_ACTIVE:
+                controlword = c.Controlword.QUICK_STOP
             else:
                 controlword = c.Controlword.DISABLE_VOLTAGE
         enabled = state == c.DriveState.OPERATION_ENABLED and target == c.DriveState.OPERATION_ENABLED
@@ -419,11 +421,12 @@ class DriveGroup:
 
     # --- the cyclic exchange ----------------------------------------------------------------------
 
-    def exchange(self, torques: Sequence[float], armed: bool) -> None:
+    def exchange(self, torques: Sequence[float], armed: bool, quick_stop: bool = False) -> None:
         """One tick: read what arrived, then send every drive's command and one SYNC.
 
         ``torques`` are joint torques [N m] in drive order; they are applied only while
         ``armed``, no fault is latched and the drive shows OPERATION ENABLED.
+        ``quick_stop`` sends the CiA 402 quick stop (zero torque, QUICK STOP ACTIVE).
         """
         now = self.clock()
         for frame in self.transport.poll():
@@ -443,6 +446,8 @@ class DriveGroup:
         self._check_liveness(now)
         if self.faulted:
             target = c.DriveState.SWITCH_ON_DISABLED
+        elif quick_stop:
+            target = c.DriveState.QUICK_STOP_ACTIVE
         elif armed:
             target = c.DriveState.OPERATION_ENABLED
         else:
