@@ -44,7 +44,6 @@ from typing import Protocol
 import numpy as np
 
 from onboard import attitude_control as ac
-from onboard import bezier
 from onboard import quaternion as qt
 from onboard import zdp
 from onboard.foot_control import FootPhysics, HopRegulator
@@ -93,6 +92,19 @@ def design_policy(params: ControlParams, hopper: zdp.HopperModel) -> PolicyDesig
     return PolicyDesign(d, 0.5 * hopper.spring_k * d * d, lin)
 
 
+def _bernstein_point(pts: list[list[float]], s: float) -> tuple[float, float]:
+    """de Casteljau in scalar floats: ``onboard.bezier`` works on numpy batches, which
+    costs tens of microseconds for one point; this runs every tick."""
+    xs = [p[0] for p in pts]
+    ys = [p[1] for p in pts]
+    u = 1.0 - s
+    for k in range(len(xs) - 1, 0, -1):
+        for i in range(k):
+            xs[i] = u * xs[i] + s * xs[i + 1]
+            ys[i] = u * ys[i] + s * ys[i + 1]
+    return xs[0], ys[0]
+
+
 def sample_reference(ref: ComReference, t_s: float) -> tuple[float, float, float, float]:
     """Reference CoM ``(x, y, vx, vy)`` at ``t_s`` [s] after ``ref.t_ref_ns``.
 
@@ -107,19 +119,22 @@ def sample_reference(ref: ComReference, t_s: float) -> tuple[float, float, float
         p = last.control_points[-1]
         return p[0], p[1], 0.0, 0.0
     seg = first
-    for s in segs:
-        if s.t0 <= t_s < s.t0 + s.duration:
-            seg = s
+    for sg in segs:
+        if sg.t0 <= t_s < sg.t0 + sg.duration:
+            seg = sg
             break
-    pts = np.asarray(seg.control_points, dtype=float)[:, :2]
+    pts = seg.control_points
     tau = seg.duration
-    t = min(max(t_s - seg.t0, 0.0), tau)
-    pos = bezier.evaluate(pts, tau, t)
-    if pts.shape[0] > 1:
-        vel = bezier.evaluate(bezier.hodograph(pts, tau), tau, t)
-    else:
-        vel = np.zeros(2)
-    return float(pos[0]), float(pos[1]), float(vel[0]), float(vel[1])
+    s = min(max((t_s - seg.t0) / tau, 0.0), 1.0)
+    x, y = _bernstein_point(pts, s)
+    n = len(pts) - 1
+    if n == 0:
+        return x, y, 0.0, 0.0
+    # the hodograph: n / tau * (P_{j+1} - P_j), a curve of degree n - 1
+    k = n / tau
+    hod = [[k * (b[0] - a[0]), k * (b[1] - a[1])] for a, b in zip(pts[:-1], pts[1:])]
+    vx, vy = _bernstein_point(hod, s)
+    return x, y, vx, vy
 
 
 class LowLevelController:

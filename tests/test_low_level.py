@@ -153,6 +153,20 @@ def test_reference_sample_gives_bezier_position_and_velocity():
     assert sample_reference(ref, 9.0) == (2.0, 0.0, 0.0, 0.0)
 
 
+@pytest.mark.parametrize("degree", range(6))
+def test_scalar_reference_sampling_agrees_with_onboard_bezier(degree):
+    from onboard import bezier
+
+    rng = np.random.default_rng(degree)
+    pts = rng.standard_normal((degree + 1, 2))
+    ref = ComReference(t_ref_ns=0, segments=[BezierSegment(t0=1.0, duration=2.5, control_points=pts.tolist())])
+    for t in (1.0, 1.3, 2.0, 3.4):
+        x, y, vx, vy = sample_reference(ref, t)
+        assert (x, y) == pytest.approx(tuple(bezier.evaluate(pts, 2.5, t - 1.0)))
+        v = bezier.evaluate(bezier.hodograph(pts, 2.5), 2.5, t - 1.0) if degree else np.zeros(2)
+        assert (vx, vy) == pytest.approx(tuple(v))
+
+
 # --- the composed controller on synthetic estimates ---------------------------------------------
 
 
