@@ -391,6 +391,7 @@ class BezierMpc:
         planes: tuple[np.ndarray, np.ndarray] | None = None,
         warm_start: np.ndarray | None = None,
         shift: int = 0,
+        target: np.ndarray | None = None,
     ) -> MpcSolution:
         """Solve for measured ``x_init`` ``(n,)`` and reference waypoints ``(N + 1, n)``.
 
@@ -399,7 +400,10 @@ class BezierMpc:
         example the graph path). ``shift``: knots the window advanced since the last
         solve; OSQP then starts from the last solution shifted by as many knots, the new
         knots on the reference (otherwise from the last solution as it is).
-        ``warm_start`` replaces the primal waypoints.
+        ``warm_start`` replaces the primal waypoints. ``target`` ``(N + 1, n)``: what the
+        cost tracks when it differs from the reference that centres the trust region and
+        the references of nonlinear models (eq. 6.12: cost to the origin, trust region
+        to a feasible reference).
         """
         R, N = self.reach, self.horizon
         n = R.n
@@ -409,8 +413,11 @@ class BezierMpc:
             raise ValueError(f"x_init must be ({n},) and reference ({N + 1}, {n})")
         if not (np.all(np.isfinite(x_init)) and np.all(np.isfinite(ref))):
             raise ValueError("x_init and reference must be finite")
+        goal = ref if target is None else np.asarray(target, float)
+        if goal.shape != ref.shape or not np.all(np.isfinite(goal)):
+            raise ValueError(f"target must be finite and ({N + 1}, {n})")
         q = np.zeros(self.nvar)
-        q[: self.nx] = -2.0 * self.q_diag * ref.reshape(-1)
+        q[: self.nx] = -2.0 * self.q_diag * goal.reshape(-1)
         l, u = self.l_static.copy(), self.u_static.copy()  # the true bounds
         lo = ref - self.trust
         hi = ref + self.trust
