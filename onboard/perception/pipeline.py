@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,11 +27,12 @@ NS = 1_000_000_000
 
 @dataclass
 class ViewStats:
+    """What one fused view held: valid returns and how they were labelled."""
+
     points: int = 0
     traversable: int = 0
     occupied: int = 0
     ground_inliers: int = 0
-    extras: dict[str, float] = field(default_factory=dict)
 
 
 class Perception:
