@@ -33,6 +33,7 @@ from onboard import messages as msgs
 from onboard.binary_messages import ENCODING as BINARY_ENCODING
 from onboard.params import SECTIONS, as_dict, with_overrides
 from onboard.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
+from services import sd_notify
 from services.clock import Clock, WallClock
 from services.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_session
 
@@ -247,6 +248,15 @@ class Service:
     def status_extra(self) -> dict[str, float]:
         return {}
 
+    def progress(self) -> bool:
+        """Whether the service made progress since the last call (gates WATCHDOG=1).
+
+        The check runs on the event loop, so a blocked loop already stops the
+        pings. Override when the work happens elsewhere: a DeadlineLoop thread
+        returns whether its tick count advanced and it has no error.
+        """
+        return True
+
     def on_params_changed(self, section: str) -> None:
         """Called (on a Zenoh thread) after a validated parameter change."""
 
@@ -420,6 +430,7 @@ class Service:
             self._declared.append(self.session.declare_queryable(params_key(self.ns, self.name), self._on_params_query))
             await self.setup()
             self.state = "running"
+            self._tasks.append(asyncio.create_task(sd_notify.keep_alive(self), name=f"{self.name}.sd_notify"))
             self.log.info("started", extra={"fields": {"ns": self.ns, "endpoint": self.endpoint}})
             main = asyncio.create_task(self.main(), name=f"{self.name}.main")
             stop = asyncio.create_task(self.stopping.wait())
