@@ -280,7 +280,7 @@ def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None
         proc.communicate(timeout=10)
     expected = delta["feedback_ok"] + delta["feedback_missed"]
     assert delta["ticks"] > 1000  # at least half the nominal rate on a loaded machine
-    assert expected == 4 * delta["ticks"]
+    assert abs(expected - 4 * delta["ticks"]) <= 8  # snapshots taken while the loop runs
     assert delta["feedback_missed"] / expected < 0.05  # the 60 s bench reports the real figure
     assert delta["faults_latched"] == 0
     load = service.backend.summary()["bus_load"]
