@@ -160,12 +160,19 @@ class AttitudeFilter:
     def _past_attitude(self, stamp_ns: int) -> quat.Quat | None:
         """The estimate at ``stamp_ns`` with every correction made since, or None if too old."""
         hist = self._hist
-        if stamp_ns < hist[0][0]:
+        first, last = hist[0][0], hist[-1][0]
+        if stamp_ns < first:
             return None
-        for entry in reversed(hist):
-            if entry[0] <= stamp_ns:
-                break
-        _, q_s, c_s = entry
+        # the newest entry at or before the stamp: guess from the mean spacing, then step
+        n = len(hist)
+        i = n - 1
+        if stamp_ns < last and n > 1:
+            i = n - 1 - int((last - stamp_ns) * (n - 1) / (last - first) + 0.5)
+            while hist[i][0] > stamp_ns:
+                i -= 1
+            while i + 1 < n and hist[i + 1][0] <= stamp_ns:
+                i += 1
+        _, q_s, c_s = hist[i]
         if c_s is self._c:  # no correction since
             return q_s
         return quat.mul(quat.mul(self._c, quat.conj(c_s)), q_s)
@@ -179,7 +186,18 @@ class AttitudeFilter:
         q_s = self._past_attitude(stamp_ns)
         if q_s is None:
             return None
-        rx, ry, rz = quat.log(quat.mul(q_meas, quat.conj(q_s)))
+        # r = log(q_meas q_s^-1), the world-frame rotation from the estimate to the measurement
+        aw, ax, ay, az = q_meas
+        bw, bx, by, bz = q_s
+        ew = aw * bw + ax * bx + ay * by + az * bz
+        ex = -aw * bx + ax * bw - ay * bz + az * by
+        ey = -aw * by + ax * bz + ay * bw - az * bx
+        ez = -aw * bz - ax * by + ay * bx + az * bw
+        if ew < 0.0:  # the shorter way round
+            ew, ex, ey, ez = -ew, -ex, -ey, -ez
+        sn = math.sqrt(ex * ex + ey * ey + ez * ez)
+        k = 2.0 * math.atan2(sn, ew) / sn if sn > 1e-12 else 2.0
+        rx, ry, rz = k * ex, k * ey, k * ez
         lag = max(0.0, (self.t_ns - stamp_ns) / NS)
         ah, ch, dh = self._ph
         av, cv, dv = self._pv
@@ -218,10 +236,37 @@ class AttitudeFilter:
         return True
 
     def _apply(self, tx: float, ty: float, tz: float, bx: float, by: float, bz: float) -> None:
-        """Inject an error estimate: world rotation ``t`` and world bias error ``b``."""
-        dq = quat.exp((tx, ty, tz))
-        self.q = quat.normalize(quat.mul(dq, self.q))
-        self._c = quat.normalize(quat.mul(dq, self._c))
-        dbx, dby, dbz = quat.rotate_inv(self.q, (bx, by, bz))
+        """Inject an error estimate: world rotation ``t`` [rad] and world bias error ``b`` [rad/s]."""
+        angle = math.sqrt(tx * tx + ty * ty + tz * tz)
+        if angle < 1e-9:
+            dw, sc = 1.0, 0.5
+        else:
+            dw, sc = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+        dx, dy, dz = sc * tx, sc * ty, sc * tz
+        # q <- exp(t) q and C <- exp(t) C, renormalized
+        w, x, y, z = self.q
+        w, x, y, z = (
+            dw * w - dx * x - dy * y - dz * z,
+            dw * x + dx * w + dy * z - dz * y,
+            dw * y - dx * z + dy * w + dz * x,
+            dw * z + dx * y - dy * x + dz * w,
+        )
+        n = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w * n, x * n, y * n, z * n
+        self.q = (w, x, y, z)
+        cw, cx, cy, cz = self._c
+        cw, cx, cy, cz = (
+            dw * cw - dx * cx - dy * cy - dz * cz,
+            dw * cx + dx * cw + dy * cz - dz * cy,
+            dw * cy - dx * cz + dy * cw + dz * cx,
+            dw * cz + dx * cy - dy * cx + dz * cw,
+        )
+        n = 1.0 / math.sqrt(cw * cw + cx * cx + cy * cy + cz * cz)
+        self._c = (cw * n, cx * n, cy * n, cz * n)
+        # the bias error into the body frame: R^T b
         ox, oy, oz = self.bias
-        self.bias = (ox + dbx, oy + dby, oz + dbz)
+        self.bias = (
+            ox + (1.0 - 2.0 * (y * y + z * z)) * bx + 2.0 * (x * y + w * z) * by + 2.0 * (x * z - w * y) * bz,
+            oy + 2.0 * (x * y - w * z) * bx + (1.0 - 2.0 * (x * x + z * z)) * by + 2.0 * (y * z + w * x) * bz,
+            oz + 2.0 * (x * z + w * y) * bx + 2.0 * (y * z - w * x) * by + (1.0 - 2.0 * (x * x + y * y)) * bz,
+        )

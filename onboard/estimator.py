@@ -358,12 +358,12 @@ class StateEstimator:
     def update_pose(self, msg: PoseMeasurement) -> bool:
         """Fuse a pose captured at ``msg.stamp_ns`` (torso origin [m, world], attitude)."""
         t = msg.stamp_ns
-        px, py, pz = (float(v) for v in msg.position)
-        qm = tuple(float(v) for v in msg.quat)
-        isf = math.isfinite
-        if not (isf(px) and isf(py) and isf(pz) and quat.is_finite(qm)):
+        pos, q = msg.position, msg.quat
+        px, py, pz = float(pos[0]), float(pos[1]), float(pos[2])
+        qw, qx, qy, qz = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if not (math.isfinite(px + py + pz) and math.isfinite(n)):  # a NaN or inf spreads to the sum
             return self._reject("pose_nonfinite")
-        n = quat.norm(qm)
         if abs(n - 1.0) > QUAT_NORM_TOL:
             return self._reject("pose_bad_quat")
         if self._t_imu < 0:
@@ -372,7 +372,7 @@ class StateEstimator:
             return self._reject("pose_out_of_order")
         if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
             return self._reject("pose_future")
-        qm = (qm[0] / n, qm[1] / n, qm[2] / n, qm[3] / n)
+        qm = (qw / n, qx / n, qy / n, qz / n)
         if self._pending is not None:
             self._step_com()
         if self.params.compensate_latency:
