@@ -112,7 +112,7 @@ def sample_reference(ref: ComReference, t_s: float) -> tuple[float, float, float
     """
     segs = ref.segments
     first, last = segs[0], segs[-1]
-    if t_s <= first.t0:
+    if t_s < first.t0:
         p = first.control_points[0]
         return p[0], p[1], 0.0, 0.0
     if t_s >= last.t0 + last.duration:
