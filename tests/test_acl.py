@@ -1,0 +1,171 @@
+"""Access control: generated from the topic table, and enforced by a real router on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+
+import msgspec
+import pytest
+import zenoh
+
+from deploy import zenoh_configs as zc
+from onboard import messages as m
+from onboard.topics import TOPICS, liveliness_key, params_key
+from services.cmd_introspect import live_services, query_status
+from services.runtime import Service
+from services.zenoh_session import free_endpoint
+
+NS = "archer/acltest"
+DELIVERY_S = 0.5  # generous time for a put to cross the router on loopback
+ZENOH_DIR = Path(__file__).resolve().parent.parent / "deploy" / "zenoh"
+
+
+def test_checked_in_configs_are_the_generated_ones_and_parse():
+    for name, text in zc.checked_in_files().items():
+        path = ZENOH_DIR / name
+        assert path.read_text() == text, f"{name} drifted from onboard/topics.py; run `archer deploy acl --write`"
+        zenoh.Config.from_file(str(path))  # Zenoh itself accepts it
+
+
+def test_rules_follow_the_publishers_column():
+    acl = zc.access_control()
+    policies = {p["id"]: p for p in acl["policies"]}
+    for topic in TOPICS.values():
+        assert policies[f"{topic.name}-publishers"]["subjects"] == sorted(topic.publishers)
+    # the two promises the deployment makes, spelled out
+    for command in ("torque_cmd", "attitude_cmd"):
+        assert policies[f"{command}-publishers"]["subjects"] == ["control"]
+    for sensor in ("imu", "joints", "pose", "depth"):
+        assert policies[f"{sensor}-publishers"]["subjects"] == ["hardware", "twin"]
+    rules = {r["id"]: r for r in acl["rules"]}
+    put_rules = [r for r in rules.values() if "put" in r["messages"] and "ingress" in r["flows"]]
+    assert all(r["id"].startswith("publish-") for r in put_rules)  # nothing else lets anyone publish
+    assert acl["default_permission"] == "deny"
+
+
+class Robot:
+    """A router with the generated ACL on a free loopback port, and authenticated clients."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.endpoint = free_endpoint()
+        self.passwords = zc.new_passwords()
+        users = tmp / "users.txt"
+        users.write_text(zc.users_file_text(self.passwords))
+        self.tmp = tmp
+        config = zc.router_config(listen=[self.endpoint], users_file=str(users))
+        self.router = zenoh.open(self._load("router", config))
+        self.sessions: list[zenoh.Session] = []
+
+    def _load(self, name: str, config: dict) -> zenoh.Config:
+        path = self.tmp / f"{name}.json5"
+        path.write_text(json.dumps(config))
+        return zenoh.Config.from_file(str(path))
+
+    def client_file(self, user: str, password: str | None = None) -> str:
+        path = self.tmp / f"{user}.json5"
+        path.write_text(json.dumps(zc.client_config(user, password or self.passwords[user], [self.endpoint])))
+        return str(path)
+
+    def client(self, user: str, password: str | None = None) -> zenoh.Session:
+        session = zenoh.open(zenoh.Config.from_file(self.client_file(user, password)))
+        self.sessions.append(session)
+        return session
+
+    def close(self) -> None:
+        for s in self.sessions:
+            s.close()
+        self.router.close()
+
+
+@pytest.fixture
+def robot(tmp_path):
+    r = Robot(tmp_path)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def _torque(tag: float) -> bytes:
+    return m.encode(m.TorqueCommand(wheel_torque=[tag, 0.0, 0.0], foot_torque=0.0, armed=False))
+
+
+def _imu(tag: float) -> bytes:
+    return m.encode(m.ImuSample(quat=[1.0, 0, 0, 0], gyro=[tag, 0, 0], accel=[0, 0, 9.81]))
+
+
+def test_only_allowed_publishers_get_through(robot):
+    observer = robot.client("recorder")
+    received: list[tuple[str, float]] = []
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr).removeprefix(NS + "/")
+        data = json.loads(sample.payload.to_bytes())
+        received.append((key, (data.get("wheel_torque") or data.get("gyro") or data.get("position"))[0]))
+
+    sub = observer.declare_subscriber(f"{NS}/**", on_sample)
+    sessions = {name: robot.client(name) for name in ("control", "planner", "hardware", "twin", "estimator", "operator")}
+    time.sleep(DELIVERY_S)
+    torque, imu, goal = (TOPICS[n].key(NS) for n in ("torque_cmd", "imu", "goal"))
+    sessions["control"].put(torque, _torque(1.0))
+    sessions["planner"].put(torque, _torque(2.0))  # denied
+    sessions["operator"].put(torque, _torque(3.0))  # denied
+    sessions["hardware"].put(imu, _imu(4.0))
+    sessions["twin"].put(imu, _imu(5.0))
+    sessions["estimator"].put(imu, _imu(6.0))  # denied
+    sessions["control"].put(imu, _imu(7.0))  # denied
+    sessions["operator"].put(goal, m.encode(m.Goal(position=[8.0, 0.0])))
+    sessions["planner"].put(goal, m.encode(m.Goal(position=[9.0, 0.0])))  # denied
+    time.sleep(DELIVERY_S)
+    sub.undeclare()
+    assert sorted(received) == [("control/torque", 1.0), ("plan/goal", 8.0), ("sensors/imu", 4.0), ("sensors/imu", 5.0)]
+
+
+def test_a_wrong_password_cannot_connect(robot):
+    with pytest.raises(zenoh.ZError):
+        robot.client("control", password="not-the-password")
+
+
+class Probe(Service):
+    name = "estimator"
+    params_sections = ("safety",)
+
+
+def test_the_stack_works_under_access_control(robot):
+    """Liveliness, status and parameters pass for the right subjects, and only for them."""
+
+    async def scenario() -> None:
+        service = Probe(ns=NS, config_file=robot.client_file("estimator"))
+        task = asyncio.create_task(service.run())
+        operator = robot.client("operator")
+        planner = robot.client("planner")
+        try:
+            deadline = time.monotonic() + 10
+            while "estimator" not in await asyncio.to_thread(live_services, operator, NS):
+                assert time.monotonic() < deadline, "liveliness token not seen through the router"
+                await asyncio.sleep(0.1)
+            status = await asyncio.to_thread(query_status, operator, NS, "estimator")
+            assert status is not None and status.state == "running"
+
+            # a token posing as another service is dropped by the router
+            fake = planner.liveliness().declare_token(liveliness_key(NS, "control"))
+            await asyncio.sleep(DELIVERY_S)
+            assert "control" not in await asyncio.to_thread(live_services, operator, NS)
+            fake.undeclare()
+
+            def set_limit(session: zenoh.Session, value: float) -> list:
+                body = msgspec.json.encode(m.ParamRequest(set={"safety.wheel_torque_max": value}))
+                return [r.ok for r in session.get(params_key(NS, "estimator"), payload=body, timeout=2.0) if r.ok]
+
+            assert await asyncio.to_thread(set_limit, planner, 0.5) == []  # denied: no reply
+            assert service.params["safety"].wheel_torque_max == 1.5
+            assert len(await asyncio.to_thread(set_limit, operator, 1.0)) == 1
+            assert service.params["safety"].wheel_torque_max == 1.0
+        finally:
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
