@@ -41,7 +41,6 @@ from services.runtime import LatestSlot, Service
 
 NS = 1_000_000_000
 STATUS_POLL_S = 0.2  # how often main() looks at the loop and the drivers
-N_JOINTS = 4
 ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
 
@@ -53,11 +52,9 @@ def gear_ratios() -> tuple[float, float, float, float]:
 
 
 def bus_kwargs(params: HardwareParams) -> dict[str, Any]:
-    """python-can ``can.Bus`` arguments for the configured interface."""
+    """python-can ``can.Bus`` arguments for an interface other than socketcand (socketcan, pcan, ...)."""
     kwargs: dict[str, Any] = {"interface": params.can_interface, "channel": params.can_channel}
-    if params.can_interface == "socketcand":
-        kwargs.update(host=params.can_host, port=params.can_port, tcp_tune=True)  # tcp_tune: no Nagle delay
-    elif params.can_interface not in ("virtual",):
+    if params.can_interface != "virtual":
         kwargs["bitrate"] = params.can_bitrate
     return kwargs
 

@@ -26,7 +26,7 @@ from drivers.teensy.emulator import TeensyEmulator
 from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
-from services.hardware import CanBackend, CommandGate, HardwareService, TeensyBackend, gear_ratios
+from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
 from services.zenoh_session import open_session
 
 NS = "archer/hwtest"
