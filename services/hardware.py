@@ -98,11 +98,16 @@ class CanBackend:
 
     def open(self) -> None:
         if self._bus is None:
-            if self.params.can_interface == "socketcand":
-                # same protocol as python-can's client, with one write per tick's batch
-                self._bus = SocketcandBus(self.params.can_channel, self.params.can_host, self.params.can_port)
-            else:
-                self._bus = can.Bus(**bus_kwargs(self.params))
+            p = self.params
+            try:
+                if p.can_interface == "socketcand":
+                    # same protocol as python-can's client, with one write per tick's batch
+                    self._bus = SocketcandBus(p.can_channel, p.can_host, p.can_port)
+                else:
+                    self._bus = can.Bus(**bus_kwargs(p))
+            except (OSError, can.CanError) as exc:
+                where = f"socketcand {p.can_host}:{p.can_port}" if p.can_interface == "socketcand" else f"{p.can_interface} {p.can_channel}"
+                raise ConnectionError(f"cannot open the CAN bus ({where}): {exc}") from None
         transport = CanTransport(self._bus, self.meter)
         self.group = DriveGroup(transport, self._drives, self.params, self.safety.heartbeat_timeout_s)
         self.group.start()
