@@ -38,6 +38,7 @@ import numpy as np
 import osqp
 import piqp
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from onboard import bezier as bz
 from onboard.messages import BezierSegment, ComReference
@@ -46,6 +47,8 @@ from onboard.reachability import BezierReachability
 Backend = Literal["osqp", "piqp"]
 
 _PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
+_POLISH_REGULARIZATION = 1e-9  # keeps the active-set KKT system factorizable
+_POLISH_REFINEMENTS = 3
 
 
 @dataclass(frozen=True)
@@ -127,7 +130,7 @@ class BezierMpc:
     eps: float = 1e-4  # OSQP tolerance (PIQP: eps / 100)
     margin: float = 1e-3  # [units of each row: m, m/s, m/s^2] tightening seen by the solver
     max_iter: int = 500  # bounds the solve time; an unconverged answer is used only if certified
-    polish: bool = True  # OSQP active-set polishing: exact answers from loose ADMM iterates
+    polish: bool = True  # active-set polishing (ours; OSQP's prints to stdout): exact answers from loose iterates
     unit_rows: bool = True  # see above
     _ready: bool = field(default=False, init=False)
 
@@ -221,6 +224,9 @@ class BezierMpc:
         P.eliminate_zeros()
         self.P = sp.csc_matrix(sp.triu(P, format="csc"))
         self.P.sort_indices()
+        self._P_full = sp.csr_matrix(P)
+        coo = P.tocoo()
+        self._P_full_coo = (coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data)
         self.q_diag = diag
 
     def _build_constraints(self) -> None:
@@ -310,6 +316,7 @@ class BezierMpc:
 
     def _setup_solver(self) -> None:
         A = self._A = self._A_matrix()
+        self._A_csr = None
         q = np.zeros(self.nvar)
         l, u = self.l_static.copy(), self.u_static.copy()
         l[self.r_box], u[self.r_box] = -1e3, 1e3  # placeholders, replaced at the first solve
@@ -317,7 +324,7 @@ class BezierMpc:
             self._solver = osqp.OSQP()
             self._solver.setup(
                 self.P, q, A, l, u,
-                verbose=False, warm_starting=True, polishing=self.polish,
+                verbose=False, warm_starting=True, polishing=False,
                 eps_abs=self.eps, eps_rel=self.eps if self.unit_rows else 0.0, max_iter=self.max_iter,
                 eps_prim_inf=1e-6, eps_dual_inf=1e-6,
             )  # fmt: skip
@@ -438,6 +445,7 @@ class BezierMpc:
         if a_changed:  # new values in the same pattern; the solver refactors only then
             self._coo_vals[plane_slot] = vals
             self._A = self._A_matrix()
+            self._A_csr = None
         A = self._A
         if np.any(l > u) or np.any(np.isnan(u)):
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
@@ -457,6 +465,15 @@ class BezierMpc:
             y, status, iters, obj = res.x, str(res.info.status), int(res.info.iter), float(res.info.obj_val)
             if np.all(np.isfinite(res.x)):
                 self._last = res.x.copy()
+                first = self._certify(y, A, l, u, status, iters, obj)
+                if first.ok or not self.polish:
+                    return first
+                polished = self._polish(res.x, res.y, A, ls, us, q)
+                if polished is not None:
+                    sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj)
+                    if sol.ok:
+                        return sol
+                return first
         else:
             x_l, x_u, b, g_l, g_u = self._piqp_split(ls, us)
             kw = {"c": q, "b": b, "h_l": g_l, "h_u": g_u, "x_l": x_l, "x_u": x_u}
@@ -487,6 +504,43 @@ class BezierMpc:
         if warm_start is not None:
             x[: self.nx] = np.asarray(warm_start, float).reshape(-1)
         self._solver.warm_start(x=x)
+
+    def _polish(self, x, dual, A, ls, us, q) -> np.ndarray | None:
+        """Solve the KKT system of the active set the ADMM iterate suggests (as OSQP's
+        polish does, without its console output). None when the system is singular."""
+        tol = 1e-7 * max(1.0, float(np.abs(dual).max(initial=0.0)))
+        eq = ls == us
+        rows = np.flatnonzero(eq | (np.abs(dual) > tol))
+        rhs_rows = np.where(eq[rows] | (dual[rows] < 0), ls[rows], us[rows])
+        if not np.all(np.isfinite(rhs_rows)):
+            return None
+        if self._A_csr is None:
+            self._A_csr = A.tocsr()
+        Aa = self._A_csr[rows]
+        nv, na = self.nvar, len(rows)
+        Pr, Pc, Pv = self._P_full_coo
+        ar, ac = np.repeat(np.arange(na), np.diff(Aa.indptr)), Aa.indices
+        reg = _POLISH_REGULARIZATION
+        diag = np.arange(nv + na)
+        K = sp.csc_matrix(
+            (
+                np.concatenate([Pv, Aa.data, Aa.data, np.r_[np.full(nv, reg), np.full(na, -reg)]]),
+                (np.concatenate([Pr, nv + ar, ac, diag]), np.concatenate([Pc, ac, nv + ar, diag])),
+            ),
+            shape=(nv + na, nv + na),
+        )
+        rhs = np.concatenate([-q, rhs_rows])
+        try:
+            lu = spla.splu(K)
+            sol = lu.solve(rhs)
+            for _ in range(_POLISH_REFINEMENTS):  # iterative refinement undoes the regularization
+                xs, nu = sol[:nv], sol[nv:]
+                res = rhs - np.concatenate([self._P_full @ xs + Aa.T @ nu, Aa @ xs])
+                sol = sol + lu.solve(res)
+        except (RuntimeError, ValueError):
+            return None
+        xp = sol[:nv]
+        return xp if np.all(np.isfinite(xp)) else None
 
     def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
         """Check the answer against the true (untightened) bounds."""

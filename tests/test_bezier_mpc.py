@@ -253,3 +253,14 @@ def test_default_fast_settings_certify_most_ticks_and_only_feasible_ones(seed):
             assert np.all(reach.violation(sol.control_points, SAMPLES) <= 0.0)
             assert dense_plane_violation(sol, a[tick : tick + N], b[tick : tick + N]) <= 0.0
     assert np.mean(oks) >= 0.7
+
+
+def test_solving_prints_nothing(capfd):
+    """A service's stdout (and `archer plan --json`) must not get solver chatter."""
+    reach = di_reach()
+    ref = sine_reference(2, 10, 0.1)
+    for backend in ("osqp", "piqp"):
+        mpc = bm.BezierMpc(reach, 10, WEIGHTS, terminal="free", init_radius=[0.02, 0.02, 0.05, 0.05], backend=backend)
+        assert mpc.solve(ref[0], ref).ok
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
