@@ -67,10 +67,32 @@ class RobotGeometry(Protocol):
     foot_travel: float  # maximum compression [m]
 
 
+def _check(p: EstimatorParams) -> None:
+    """Refuse parameters the filter cannot work with (a clear error, not a silent NaN)."""
+    positive = ("rate_hz", "pose_pos_std_m", "pose_att_std_rad", "leg_vel_std_m_s", "gyro_noise_density",
+                "tilt_std_rad", "init_pos_std_m", "init_vel_std_m_s", "init_att_std_rad", "init_bias_std_rad_s",
+                "accel_psd_flight", "accel_psd_stance", "imu_timeout_s", "valid_pos_std_m", "valid_att_std_rad")
+    non_negative = ("pose_delay_s", "accel_delay_s", "leg_settle_s", "impact_vel_std_m_s", "liftoff_vel_std_m_s",
+                    "gyro_bias_walk", "max_extrapolation_s", "static_hold_s", "pose_future_tolerance_s")
+    for name in positive:
+        if not getattr(p, name) > 0.0:
+            raise ValueError(f"estimator.{name} must be positive, got {getattr(p, name)}")
+    for name in non_negative:
+        if not getattr(p, name) >= 0.0:
+            raise ValueError(f"estimator.{name} must be >= 0, got {getattr(p, name)}")
+    if not 0.0 < p.gate_probability < 1.0:
+        raise ValueError(f"estimator.gate_probability must be in (0, 1), got {p.gate_probability}")
+    if p.pose_delay_s > ATTITUDE_HISTORY_S:
+        raise ValueError(f"estimator.pose_delay_s beyond the {ATTITUDE_HISTORY_S} s attitude history")
+    if p.contact_on_samples < 1 or p.contact_off_samples < 1 or p.gate_reset_after < 1:
+        raise ValueError("estimator contact debounce and gate reset counts must be at least 1")
+
+
 class StateEstimator:
     """The estimator; see the module docstring for the interface and the model."""
 
     def __init__(self, params: EstimatorParams, robot: RobotGeometry) -> None:
+        _check(params)
         self.params = params
         p = params
         self._g = robot.gravity
@@ -109,6 +131,7 @@ class StateEstimator:
         self._pose_att_var = p.pose_att_std_rad ** 2
         self._leg_var = p.leg_vel_std_m_s ** 2
         self._impact_var = p.impact_vel_std_m_s ** 2
+        self._liftoff_var = p.liftoff_vel_std_m_s ** 2
         self._tilt_var = p.tilt_std_rad ** 2
         self._static_hold_ns = int(p.static_hold_s * NS)
         self._accel_delay = p.accel_delay_s
@@ -292,6 +315,10 @@ class StateEstimator:
         closed = reading and not self._switch
         if not reading:
             self._free_foot = (self.foot_pos, self.foot_vel)
+            if self._switch and self.att.initialized:
+                # lift-off: the stance velocity carries the leg kinematics' slow errors
+                # (the ground gives as the load goes) into the flight
+                self.com.add_impulse(0.0, 0.0, 0.0, self._liftoff_var, t)
         elif closed:
             self._switch_on_ns = t
         self._switch = reading

@@ -105,6 +105,7 @@ class EstimatorParams:
     # stamp (the twin's MuJoCo accelerometer reads the state one 0.5 ms physics step back;
     # on hardware: the IMU's filter group delay), at most half a sample
     impact_vel_std_m_s: float = 0.1  # [m/s] CoM velocity uncertainty added at touchdown
+    liftoff_vel_std_m_s: float = 0.02  # [m/s] ... and at lift-off (stance model errors carried into flight)
     # Attitude: gyro propagation with bias, pose and gravity corrections.
     gyro_noise_density: float = 0.003  # [rad/s/sqrt(Hz)]
     gyro_bias_walk: float = 1e-4  # [rad/s^2/sqrt(Hz)] bias random walk
@@ -333,6 +334,19 @@ class PerceptionParams:
     obstacles_max: int = 400
 
 
+@dataclass(frozen=True)
+class RecorderParams:
+    """The flight recorder (``recorder`` service): every topic to rotating MCAP files."""
+
+    directory: str = ""  # "" = $STATE_DIRECTORY/recordings under systemd, else ./recordings
+    chunk_s: float = 10.0  # finalize the file and start the next after this long [s]
+    chunk_bytes: int = 64 * 1024 * 1024  # ... or once this many message bytes are written
+    flush_s: float = 1.0  # close an MCAP chunk this often, so a crash loses at most this [s]
+    compression: str = "zstd"  # "zstd", "lz4" or "none"
+    keep_bytes: int = 8 * 1024 * 1024 * 1024  # delete the oldest finished files beyond this
+    status_period_s: float = 1.0  # record every live service's status this often [s]
+
+
 SECTIONS: dict[str, type] = {
     "perception": PerceptionParams,
     "planner": PlannerParams,
@@ -342,6 +356,7 @@ SECTIONS: dict[str, type] = {
     "hardware": HardwareParams,
     "estimator": EstimatorParams,
     "twin": TwinParams,
+    "recorder": RecorderParams,
 }
 
 

@@ -405,3 +405,21 @@ def test_gravity_levels_a_tilted_start() -> None:
         est.update_imu(ImuSample(stamp_ns=NS + k * DT_NS, quat=[1.0, 0.0, 0.0, 0.0], gyro=[0.0] * 3, accel=list(g_body)))
     roll, pitch, _ = quat.to_euler(est.att.q)
     assert abs(roll - 0.05) < 0.002 and abs(pitch + 0.04) < 0.002
+
+
+def test_poses_later_than_the_horizon_are_still_used(track: Track) -> None:
+    """40 ms latency on a 25 ms horizon: fused at the horizon, extrapolated back, counted."""
+    run = run_synthetic(track, PARAMS, SensorConfig(latency_s=0.040))
+    c = run.est.counters
+    assert c["pose_late"] > 200 and c["pose_fused"] == c["pose_late"]
+    pos, vel, att = errors(run, track)
+    assert pos < 0.006 and vel < 0.06 and att < 0.3
+
+
+@pytest.mark.parametrize("change", [
+    {"pose_pos_std_m": 0.0}, {"gate_probability": 1.0}, {"pose_delay_s": -0.01},
+    {"contact_on_samples": 0}, {"kf_backend": "numpy"}, {"pose_delay_s": 1.0},
+])
+def test_unusable_parameters_are_refused(change: dict) -> None:
+    with pytest.raises(ValueError):
+        StateEstimator(replace(PARAMS, **change), ROBOT)
