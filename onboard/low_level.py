@@ -204,6 +204,8 @@ class LowLevelController:
         self.reference_at_impact: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.last_impact_error = math.nan  # [m]
         self.holding = True
+        self.armed_ticks = 0  # ticks that commanded torque
+        self.saturated_ticks = 0  # of those, ticks whose wheel command hit the torque limit
 
     # --- accessors -------------------------------------------------------------------
 
@@ -220,6 +222,11 @@ class LowLevelController:
     @property
     def armed(self) -> bool:
         return self.supervisor.armed
+
+    @property
+    def saturation_fraction(self) -> float:
+        """Fraction of armed ticks whose wheel command was cut to the torque limit."""
+        return self.saturated_ticks / self.armed_ticks if self.armed_ticks else 0.0
 
     def request_arm(self) -> None:
         self.supervisor.request_arm()
@@ -316,7 +323,11 @@ class LowLevelController:
         else:
             foot = 0.0
         wm = self._wheel_max
-        wheel = (max(-wm, min(wm, wheel[0])), max(-wm, min(wm, wheel[1])), max(-wm, min(wm, wheel[2])))
+        w0, w1, w2 = wheel
+        if w0 > wm or w0 < -wm or w1 > wm or w1 < -wm or w2 > wm or w2 < -wm:
+            self.saturated_ticks += 1
+            wheel = (max(-wm, min(wm, w0)), max(-wm, min(wm, w1)), max(-wm, min(wm, w2)))
+        self.armed_ticks += 1
         wheel, foot = sup.limit_command(now_ns, wheel, foot, state.wheel_vel)
         return TorqueCommand(stamp_ns=now_ns, wheel_torque=[wheel[0], wheel[1], wheel[2]], foot_torque=foot, armed=True)
 

@@ -24,8 +24,11 @@ def test_hundreds_of_hops_in_place_without_a_fall():
 
 
 def test_setpoint_two_metres_with_the_kalman_estimator():
-    res = run(RunConfig(scenario="setpoint", estimator="kalman", seed=3))
+    runner = LockstepRunner(RunConfig(scenario="setpoint", estimator="kalman", seed=3))
+    res = runner.run()
     m = res.metrics
+    ctrl = runner.controller.ctrl
+    assert 0.0 < ctrl.saturation_fraction < 0.3  # the PD saturates at times, not always
     assert m["falls"] == 0
     assert m["goal_reached"] and m["final_goal_error_m"] <= 0.10
     assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
