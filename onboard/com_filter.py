@@ -304,6 +304,11 @@ class ComFilter:
         """``(p, v)`` at the horizon."""
         return tuple(self._x)
 
+    @property
+    def pending_poses(self) -> int:
+        """Poses received but not yet reached by the fusion horizon."""
+        return len(self._pending)
+
     # --- output -----------------------------------------------------------------------
 
     @property

@@ -195,6 +195,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     figures.update({
         "outliers_rejected": counters.get("pose_outliers", 0),
         "outliers_injected": measured.outliers_injected,
+        "poses_pending_at_end": measured.inner.est.com.pending_poses,  # not yet fused or gated
         "scenario": args.scenario,
         "sim_time_s": metrics["sim_time_s"],
         "hops": metrics["hops"],

@@ -68,7 +68,9 @@ def test_one_metre_outliers_are_rejected_without_divergence() -> None:
     m, metrics = run(faults=Faults(outlier_every=5, outlier_m=1.0))
     c = m.counters()
     assert m.outliers_injected >= 40
-    assert c["pose_outliers"] == m.outliers_injected
+    # every outlier delivered is refused (the last poses may still wait for the fusion horizon)
+    pending = m.inner.est.com.pending_poses
+    assert m.outliers_injected - pending <= c["pose_outliers"] <= m.outliers_injected
     assert c.get("pose_resets", 0) == 0 and c.get("att_outliers", 0) == 0
     assert metrics["falls"] == 0
     assert_goals(m)
