@@ -18,6 +18,7 @@ SERVICE_CLASSES: dict[str, str] = {
     "control": "services.control:ControlService",
     "planner": "services.planner:PlannerService",
     "estimator": "services.estimator:EstimatorService",
+    "recorder": "services.recorder:RecorderService",
 }
 
 
