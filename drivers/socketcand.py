@@ -268,6 +268,8 @@ class SocketcandBus(can.BusABC):
     plain python-can bus.
     """
 
+    open_buses = 0  # instances not shut down yet (tests fail on a leak)
+
     def __init__(self, channel: str, host: str = LOOPBACK, port: int = 29536, timeout_s: float = 5.0, **kwargs: object) -> None:
         self._sock = socket.create_connection((host, port), timeout=timeout_s)
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -285,6 +287,8 @@ class SocketcandBus(can.BusABC):
             raise
         self._sock.settimeout(None)  # blocking; reads only after select() says ready
         super().__init__(channel=channel, **kwargs)
+        self._open = True
+        SocketcandBus.open_buses += 1
 
     def _expect(self, text: str, timeout_s: float) -> None:
         """Read one ``< ... >`` reply; frames glued after it stay in the buffer."""
@@ -365,3 +369,6 @@ class SocketcandBus(can.BusABC):
     def shutdown(self) -> None:
         super().shutdown()
         self._sock.close()
+        if self._open:
+            self._open = False
+            SocketcandBus.open_buses -= 1

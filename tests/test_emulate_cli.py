@@ -19,7 +19,16 @@ import canopen
 import pytest
 import serial
 
+from drivers.socketcand import SocketcandBus
+
 ARCHER = [sys.executable, "-m", "services.cli", "emulate"]
+LIVENESS_S = 0.5  # twin tests check physics, not timing: heartbeat/link bounds a loaded machine keeps
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_bus():
+    yield
+    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"
 
 
 def start(*args: str) -> tuple[subprocess.Popen, dict]:
@@ -128,7 +137,7 @@ def test_teensy_with_the_twin_behind_it_reports_the_twins_physics() -> None:
     from drivers.teensy.transport import SerialLink
 
     proc, info = start("teensy", "--twin", "hop-in-place")
-    teensy = Teensy(SerialLink(info["port"], 0.05, 1.0), "torque", 0.1)
+    teensy = Teensy(SerialLink(info["port"], 0.05, 1.0), "torque", LIVENESS_S)
     try:
         end = time.monotonic() + 0.6
         while time.monotonic() < end:
@@ -155,7 +164,7 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
     bus = info["bus"]
     transport = CanTransport(SocketcandBus(bus["channel"], bus["host"], bus["port"]))
     params = HardwareParams()
-    group = DriveGroup(transport, [ElmoDrive(j) for j in joint_drives(params, gear_ratios())], params, 0.1)
+    group = DriveGroup(transport, [ElmoDrive(j) for j in joint_drives(params, gear_ratios())], params, LIVENESS_S)
     try:
         group.start()
         group.enable(timeout_s=5.0)

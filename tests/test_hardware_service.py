@@ -26,6 +26,7 @@ from drivers.teensy.emulator import TeensyEmulator
 from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
+from drivers.socketcand import SocketcandBus
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
 from services.zenoh_session import open_session
 
@@ -41,6 +42,7 @@ def no_leaked_bus():
     yield
     leaked = {name: len(queues) for name, queues in virtual.channels.items() if name.startswith("hw-")}
     assert not leaked, f"test leaked python-can buses: {leaked}"
+    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"
 
 
 # --- the command gate (pure) ----------------------------------------------------------------
