@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 
 from onboard.params import PerceptionParams
-from onboard.perception.geometry import ConvexPolygon, polygon_from_points
+from onboard.perception.geometry import ConvexPolygon
 
-_SQUARE = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+_SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.int32)
 _KMEANS_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
 
 
@@ -39,43 +39,58 @@ def obstacles_from_mask(
     lab = labels[rr, cc]
     order = np.argsort(lab, kind="stable")
     groups = np.split(order, np.cumsum(np.bincount(lab, minlength=n))[:-1])[1:]
-    centres = np.column_stack([cc + 0.5, rr + 0.5])  # cell units
+    cells = np.column_stack([cc, rr]).astype(np.int32)  # lower-left corners, cell units
     cv2.setRNGSeed(params.seed)
     pieces: list[np.ndarray] = []
     budget = params.obstacles_max - len(groups)
     for g in groups:
-        budget = _split(centres[g], params, params.obstacle_split_depth, budget, pieces)
+        budget = _split(cells[g], params, params.obstacle_split_depth, budget, pieces)
     o = np.asarray(origin, dtype=float)
     out = []
-    for pts in pieces:
-        poly = _cover(pts, params.obstacle_method)
+    for corners in pieces:
+        poly = _cover(corners, params.obstacle_method)
         out.append(ConvexPolygon(poly.A, res * poly.b + poly.A @ o, poly.vertices * res + o))
     return out
 
 
-def _split(pts: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray]) -> int:
-    """Append ``pts`` (cell centres) or its K-means halves to ``out``; returns the budget left."""
-    if depth > 0 and budget > 0 and len(pts) >= params.obstacle_split_min_cells:
-        hull = _cover(pts, "hull")
-        if len(pts) < params.obstacle_solidity_min * hull.area:
-            _, lab, _ = cv2.kmeans(pts.astype(np.float32), 2, None, _KMEANS_CRITERIA, 1, cv2.KMEANS_PP_CENTERS)
+def _squares_hull_area(cells: np.ndarray) -> float:
+    """Area [cells^2] of the convex hull of unit squares with lower-left corners ``cells``:
+    the hull of the corners is the corners' hull grown by the square, whose area is the
+    hull's area plus its x and y widths plus one (Minkowski sum with a unit square)."""
+    hull = cv2.convexHull(cells)
+    lo, hi = cells.min(axis=0), cells.max(axis=0)
+    return float(cv2.contourArea(hull)) + float(hi[0] - lo[0]) + float(hi[1] - lo[1]) + 1.0
+
+
+def _split(cells: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray]) -> int:
+    """Append ``cells`` (int lower-left corners) or its K-means halves to ``out``; returns the budget left."""
+    if depth > 0 and budget > 0 and len(cells) >= params.obstacle_split_min_cells:
+        if len(cells) < params.obstacle_solidity_min * _squares_hull_area(cells):
+            _, lab, _ = cv2.kmeans(cells.astype(np.float32), 2, None, _KMEANS_CRITERIA, 1, cv2.KMEANS_PP_CENTERS)
             lab = lab.ravel()
             if 0 < int(lab.sum()) < len(lab):
                 budget -= 1
-                budget = _split(pts[lab == 0], params, depth - 1, budget, out)
-                return _split(pts[lab == 1], params, depth - 1, budget, out)
-    out.append(pts)
+                budget = _split(cells[lab == 0], params, depth - 1, budget, out)
+                return _split(cells[lab == 1], params, depth - 1, budget, out)
+    out.append(cells)
     return budget
 
 
-def _cover(centres: np.ndarray, method: str) -> ConvexPolygon:
-    """Convex polygon [cells] containing the unit squares centred at ``centres``."""
-    hull_idx = cv2.convexHull(centres.astype(np.float32), returnPoints=False).ravel()
-    # Hull of the squares = hull of the centres' hull vertices, each grown to a square
-    # (exact in float64; the centres are half-integers, so float32 lost nothing above).
-    corners = (centres[hull_idx][:, None, :] + _SQUARE[None]).reshape(-1, 2)
-    poly = polygon_from_points(corners)
-    assert poly is not None  # four corners of a unit square at least
+def _cover(cells: np.ndarray, method: str) -> ConvexPolygon:
+    """Convex polygon [cells] containing the unit squares with lower-left corners ``cells``.
+
+    Integer corners, so OpenCV's hull is exact; collinear vertices are dropped.
+    """
+    hull = cv2.convexHull(cells).reshape(-1, 2)
+    corners = (hull[:, None, :] + _SQUARE[None]).reshape(-1, 2).astype(np.int32)
+    v = cv2.convexHull(corners, clockwise=False).reshape(-1, 2).astype(float)
+    e_in = v - np.roll(v, 1, axis=0)
+    e_out = np.roll(v, -1, axis=0) - v
+    v = v[e_in[:, 0] * e_out[:, 1] - e_in[:, 1] * e_out[:, 0] != 0]
+    edge = np.roll(v, -1, axis=0) - v
+    length = np.hypot(edge[:, 0], edge[:, 1])
+    A = np.column_stack([edge[:, 1], -edge[:, 0]]) / length[:, None]
+    poly = ConvexPolygon(A, np.einsum("ij,ij->i", A, v), v)
     if method == "hull":
         return poly
     return _min_area_rect(poly.vertices)
