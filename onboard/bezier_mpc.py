@@ -49,6 +49,8 @@ Backend = Literal["osqp", "piqp"]
 _PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
 _POLISH_REGULARIZATION = 1e-9  # keeps the active-set KKT system factorizable
 _POLISH_REFINEMENTS = 3
+_ATTEMPTS = 2  # a second, tighter ADMM pass when neither the iterate nor its polish certifies
+_RETRY_EPS_FACTOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -136,7 +138,7 @@ class BezierMpc:
 
     def __post_init__(self) -> None:
         R, N = self.reach, self.horizon
-        n, m, p = R.n, R.model.m, R.p
+        n = R.n
         if N < 1:
             raise ValueError("horizon must be >= 1")
         if len(self.weights.state) != n or len(self.weights.terminal) != n:
@@ -176,7 +178,7 @@ class BezierMpc:
         onlyT = ~np.any(F[:, :n], axis=1) & ~np.any(F[:, 2 * n :], axis=1)
         node = np.vstack([F[only0, :n], F[onlyT, n : 2 * n]])
         rhs = np.concatenate([R.G_const[only0], R.G_const[onlyT]])
-        uniq, idx = np.unique(np.round(np.column_stack([node, rhs]), 12), axis=0, return_index=True)
+        _, idx = np.unique(np.round(np.column_stack([node, rhs]), 12), axis=0, return_index=True)
         node, rhs = node[np.sort(idx)], rhs[np.sort(idx)]
         self.seg_rows = np.flatnonzero(~(only0 | onlyT))
         # axis-aligned node rows fold into the waypoint bounds
@@ -198,7 +200,7 @@ class BezierMpc:
 
     def _build_cost(self) -> None:
         R, N, W = self.reach, self.horizon, self.weights
-        n, m, p = R.n, R.model.m, R.p
+        m, p = R.model.m, R.p
         tau = float(R.tau)
         Hg = np.linalg.matrix_power(bz.derivative_matrix(p, tau), R.model.gamma)
         effort = Hg @ bz.gram_matrix(p, tau) @ Hg.T  # C' E C = integral ||q^(gamma)||^2
@@ -314,6 +316,10 @@ class BezierMpc:
     def _A_matrix(self) -> sp.csc_matrix:
         return sp.csc_matrix((self._coo_vals[self._perm], self._A_indices, self._A_indptr), shape=(self.n_rows, self.nvar))
 
+    @property
+    def _eps_rel(self) -> float:
+        return self.eps if self.unit_rows else 0.0
+
     def _setup_solver(self) -> None:
         A = self._A = self._A_matrix()
         self._A_csr = None
@@ -325,7 +331,7 @@ class BezierMpc:
             self._solver.setup(
                 self.P, q, A, l, u,
                 verbose=False, warm_starting=True, polishing=False,
-                eps_abs=self.eps, eps_rel=self.eps if self.unit_rows else 0.0, max_iter=self.max_iter,
+                eps_abs=self.eps, eps_rel=self._eps_rel, max_iter=self.max_iter,
                 eps_prim_inf=1e-6, eps_dual_inf=1e-6,
             )  # fmt: skip
         elif self.backend == "piqp":
@@ -336,7 +342,6 @@ class BezierMpc:
 
     def _piqp_split(self, l: np.ndarray, u: np.ndarray):
         """PIQP form: waypoint rows become variable bounds or equalities, the rest G."""
-        n = self.reach.n
         box_l, box_u = l[self.r_box], u[self.r_box]
         x_l = np.full(self.nvar, -np.inf)
         x_u = np.full(self.nvar, np.inf)
@@ -461,11 +466,19 @@ class BezierMpc:
                 upd["Ax"] = A.data
             self._solver.update(**upd)
             self._osqp_warm_start(warm_start, shift, ref)
-            res = self._solver.solve(raise_error=False)  # the status is checked below
-            y, status, iters, obj = res.x, str(res.info.status), int(res.info.iter), float(res.info.obj_val)
-            if np.all(np.isfinite(res.x)):
+            first = None
+            for attempt in range(_ATTEMPTS):
+                if attempt:  # refine the same iterate: tighter tolerance, then polish again
+                    self._solver.update_settings(eps_abs=self.eps * _RETRY_EPS_FACTOR, eps_rel=self._eps_rel * _RETRY_EPS_FACTOR)
+                res = self._solver.solve(raise_error=False)  # the status is checked below
+                if attempt:
+                    self._solver.update_settings(eps_abs=self.eps, eps_rel=self._eps_rel)
+                status, obj = str(res.info.status), float(res.info.obj_val)
+                iters = int(res.info.iter) + (first.iterations if first is not None else 0)
+                if not np.all(np.isfinite(res.x)):
+                    return self._certify(None, A, l, u, status, iters, obj)
                 self._last = res.x.copy()
-                first = self._certify(y, A, l, u, status, iters, obj)
+                first = self._certify(res.x, A, l, u, status, iters, obj)
                 if first.ok or not self.polish:
                     return first
                 polished = self._polish(res.x, res.y, A, ls, us, q)
@@ -473,7 +486,7 @@ class BezierMpc:
                     sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj)
                     if sol.ok:
                         return sol
-                return first
+            return first
         else:
             x_l, x_u, b, g_l, g_u = self._piqp_split(ls, us)
             kw = {"c": q, "b": b, "h_l": g_l, "h_u": g_u, "x_l": x_l, "x_u": x_u}

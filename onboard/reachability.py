@@ -557,7 +557,7 @@ def _prune_convex(rows: np.ndarray) -> list[np.ndarray]:
         target = kept[idx]
         scale = max(1.0, float(np.abs(target).max()))
         A = np.vstack([others.T, np.ones(len(others))])
-        lam, res = scipy.optimize.nnls(A, np.concatenate([target, [1.0]]))
+        _, res = scipy.optimize.nnls(A, np.concatenate([target, [1.0]]))
         if res <= _TOL * scale:
             kept.pop(idx)
         else:

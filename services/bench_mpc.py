@@ -63,7 +63,6 @@ def _obstacles(rng: np.random.Generator, v: float, duration: float) -> np.ndarra
 
 def _halfspaces(ctrl: np.ndarray, centres: np.ndarray, count: int, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Per segment, ``count`` halfspaces facing its nearest obstacles (unused: b = inf)."""
-    N = ctrl.shape[0]
     mid = ctrl.mean(axis=1)  # (N, 2)
     d = centres[None, :, :] - mid[:, None, :]  # (N, O, 2)
     dist = np.linalg.norm(d, axis=-1)
@@ -169,6 +168,7 @@ def measure(args: argparse.Namespace) -> dict[str, object]:
         "solve_ms_max": round(float(o["times"].max()), 3),
         "rate_hz": round(1000.0 / mean_ms, 1),
         "iterations_p50": int(np.percentile(o["iters"], 50)),
+        "iterations_p99": int(np.percentile(o["iters"], 99)),
         "certified_fraction": round(float(o["ok"].mean()), 4),
         "piqp_solve_ms_p50": round(float(np.percentile(q["times"], 50)), 3),
         "piqp_solve_ms_p99": round(float(np.percentile(q["times"], 99)), 3),

@@ -123,7 +123,6 @@ def section61_reach(u_max: float) -> rc.BezierReachability:
 @given(seed=st.integers(0, 2**32 - 1), backend=st.sampled_from(["osqp", "piqp"]))
 def test_nonlinear_model_solutions_are_feasible_for_the_true_dynamics(seed, backend):
     reach = section61_reach(u_max=4.0)
-    md = reach.model
     N = 10
     # reference: the system itself under a small smooth input, sampled every tau
     rng = np.random.default_rng(seed)
