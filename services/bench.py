@@ -20,7 +20,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "hardware": ("services.bench_hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
     "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
     "planner": ("services.bench_planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
-    "estimator": ("services.bench_estimator", "state estimator on the twin (20 ms pose latency, 10 % dropouts): update time, CoM and attitude errors"),
+    "estimator": ("services.bench_estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
     "twin": ("sim_twin.bench", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
 }
 
