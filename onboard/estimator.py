@@ -21,10 +21,15 @@ Model (thesis line 2751 and :mod:`onboard.com_filter`, :mod:`onboard.attitude_fi
 
 - attitude and gyro bias: multiplicative EKF on the unit quaternion, corrected by the
   pose sensor's attitude (latency compensated) and by gravity when quasi-static;
-- CoM: projectile dynamics in flight; in stance the foot is pinned, the accelerometer
-  drives the CoM and leg kinematics (rolling foot sphere) measure its velocity; the
-  touchdown impact stops the foot; the pose sensor's position is fused at its capture
-  time on a delayed horizon; Mahalanobis gating rejects outliers;
+- CoM (the whole robot's): projectile dynamics in flight; in stance the foot is pinned,
+  the accelerometer drives the CoM (the sprung mass's share) and leg kinematics
+  (rolling foot sphere, after the foot has settled) measure its velocity; the
+  touchdown impact stops the foot (applied at the switch's closure, taken back if the
+  debounce refuses it); the pose sensor's position is fused at its capture time on a
+  delayed horizon; Mahalanobis gating rejects outliers; the covariance is published;
+- each IMU interval is integrated once the same tick's joint frame (or the next
+  sample, or ``estimate``) arrives, so the contact reading at the interval's end picks
+  the dynamics: call ``update_joints`` after ``update_imu`` of the same tick;
 - contact: the foot switch with hysteresis in time (consecutive samples to switch);
   without a foot sensor (``JointSensors.foot_sensed`` False) the specific force with
   hysteresis in level, and no leg kinematics;
