@@ -1,0 +1,212 @@
+"""``archer deploy``: install the stack as systemd services; check and regenerate configs.
+
+``archer deploy install [--prefix DIR] [--dry-run]`` writes, under ``DIR`` (default
+``/``, used like ``DESTDIR``: paths inside the files are the target's):
+
+- ``etc/systemd/system/``: the units of ``deploy/systemd/`` with ``@ARCHER@`` (the
+  ``archer`` executable) and ``@CONFIG_DIR@`` (``/etc/archer``) filled in;
+- ``usr/lib/sysusers.d/archer.conf`` (the ``archer`` user) and
+  ``etc/systemd/network/80-archer-can.network`` (the CAN bus);
+- ``etc/archer/archer.toml`` and ``etc/archer/environment`` from ``deploy/config/``,
+  only when absent (an operator's edits are kept);
+- ``etc/archer/zenoh/``: the router's config with access control, its password file
+  (``users.txt``) and one client config per service and for the operator;
+  secrets are mode 0640, group ``archer``. Passwords are generated once and kept on later installs.
+
+``archer deploy verify`` runs ``systemd-analyze verify`` on the rendered units;
+``archer deploy render DIR`` writes them to ``DIR``; ``archer deploy acl [--write]``
+prints (or rewrites) the generated Zenoh configs checked in under ``deploy/zenoh/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import grp
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from deploy import zenoh_configs as zc
+
+DEPLOY_DIR = Path(__file__).resolve().parent.parent / "deploy"
+UNIT_DIR = DEPLOY_DIR / "systemd"
+EXAMPLE_CONFIG_DIR = DEPLOY_DIR / "config"
+ZENOH_DIR = DEPLOY_DIR / "zenoh"
+TARGET_CONFIG_DIR = "/etc/archer"
+SYSTEMD_UNIT_DIR = "etc/systemd/system"
+SYSUSERS_PATH = "usr/lib/sysusers.d/archer.conf"
+NETWORK_PATH = "etc/systemd/network/80-archer-can.network"
+SERVICE_GROUP = "archer"
+UNIT_SUFFIXES = (".service", ".target")
+KEPT_CONFIGS = ("archer.toml", "environment")  # never overwritten once installed
+_PLACEHOLDER = re.compile(r"@[A-Z_]+@")
+
+
+@dataclass
+class Action:
+    path: Path  # where it goes, under the prefix
+    text: str
+    mode: int = 0o644
+    keep_existing: bool = False  # leave an existing file alone (operator's edits)
+    group_readable: bool = False  # chgrp to the service group when it exists
+
+
+def archer_executable() -> str:
+    """The ``archer`` entry point next to this interpreter, else the one on PATH."""
+    beside = Path(sys.executable).parent / "archer"
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return str(beside)
+    found = shutil.which("archer")
+    if found is None:
+        raise FileNotFoundError("no `archer` executable: install the package (pip install -e .) first")
+    return str(Path(found).resolve())
+
+
+def unit_templates() -> dict[str, str]:
+    return {p.name: p.read_text() for p in sorted(UNIT_DIR.iterdir()) if p.suffix in UNIT_SUFFIXES}
+
+
+def render_units(archer: str, config_dir: str = TARGET_CONFIG_DIR) -> dict[str, str]:
+    """Unit name -> text with the placeholders filled in."""
+    out = {}
+    for name, text in unit_templates().items():
+        rendered = text.replace("@ARCHER@", archer).replace("@CONFIG_DIR@", config_dir)
+        leftover = _PLACEHOLDER.findall(rendered)
+        if leftover:
+            raise ValueError(f"{name}: unknown placeholders {leftover}")
+        out[name] = rendered
+    return out
+
+
+def read_users_file(path: Path) -> dict[str, str]:
+    if not path.is_file():
+        return {}
+    pairs = (line.split(":", 1) for line in path.read_text().splitlines() if ":" in line)
+    return {user: password for user, password in pairs}
+
+
+def plan_install(prefix: Path, archer: str, config_dir: str = TARGET_CONFIG_DIR) -> list[Action]:
+    """Every file ``install`` writes, with its text and mode."""
+    zenoh_dir = f"{config_dir}/zenoh"
+    local = prefix / config_dir.lstrip("/")
+    actions = [Action(prefix / SYSTEMD_UNIT_DIR / name, text) for name, text in render_units(archer, config_dir).items()]
+    actions.append(Action(prefix / SYSUSERS_PATH, (UNIT_DIR / "archer.sysusers.conf").read_text()))
+    actions.append(Action(prefix / NETWORK_PATH, (UNIT_DIR / "80-archer-can.network").read_text()))
+    for name in KEPT_CONFIGS:
+        actions.append(Action(local / name, (EXAMPLE_CONFIG_DIR / name).read_text(), keep_existing=True))
+    # Zenoh: passwords generated once, kept afterwards (services already hold theirs).
+    users_path = local / "zenoh" / "users.txt"
+    passwords = read_users_file(users_path)
+    passwords.update({u: p for u, p in zc.new_passwords().items() if u not in passwords})
+    users_file = f"{zenoh_dir}/users.txt"
+    actions.append(Action(users_path, zc.users_file_text(passwords), mode=0o640, group_readable=True))
+    router = zc.router_config(users_file=users_file)
+    actions.append(Action(local / "zenoh" / "router.json5", zc.render(router, "The robot's router (archer-router.service). Generated by `archer deploy install`."), mode=0o644))
+    for user in zc.users():
+        text = zc.render(zc.client_config(user, passwords[user]), f"Zenoh session of `{user}`: a client of the robot's router, authenticated.")
+        actions.append(Action(local / "zenoh" / f"{user}.json5", text, mode=0o640, group_readable=True))
+    return actions
+
+
+def apply(actions: list[Action], dry_run: bool) -> list[str]:
+    """Write the files (or say what would be written); returns one line per file."""
+    try:
+        gid = grp.getgrnam(SERVICE_GROUP).gr_gid
+    except KeyError:
+        gid = None  # no `archer` group yet (systemd-sysusers creates it)
+    lines = []
+    for act in actions:
+        verb = "would write" if dry_run else "wrote"
+        if act.keep_existing and act.path.exists():
+            lines.append(f"kept        {act.path} (exists; edit it by hand)")
+            continue
+        if not dry_run:
+            act.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = act.path.with_name(act.path.name + ".tmp")
+            tmp.write_text(act.text)
+            os.chmod(tmp, act.mode)
+            if act.group_readable and gid is not None and os.geteuid() == 0:
+                os.chown(tmp, 0, gid)
+            os.replace(tmp, act.path)
+        lines.append(f"{verb:<11} {act.path} ({act.mode:04o}, {len(act.text)} bytes)")
+    return lines
+
+
+NEXT_STEPS = """next, on the robot:
+  systemd-sysusers && systemctl daemon-reload && systemctl restart systemd-networkd
+  systemctl enable --now archer.target        # or: systemctl start archer-sil.target
+  journalctl -u 'archer-*' -f                 # JSON log lines per service
+  ARCHER_ZENOH_CONFIG={config_dir}/zenoh/operator.json5 archer status   # as a member of group archer"""
+
+
+def systemd_verify(units: dict[str, str], directory: Path) -> subprocess.CompletedProcess:
+    """``systemd-analyze verify`` on the units written to ``directory`` (together, so
+    that their references to each other resolve)."""
+    paths = []
+    for name, text in units.items():
+        path = directory / name
+        path.write_text(text)
+        paths.append(str(path))
+    return subprocess.run(["systemd-analyze", "verify", *paths], capture_output=True, text=True, check=False)
+
+
+# --- command line ------------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    p = sub.add_parser("install", help="render and install units, configs and Zenoh credentials")
+    p.add_argument("--prefix", default="/", help="install root, as DESTDIR (default /)")
+    p.add_argument("--dry-run", action="store_true", help="print what would be written, write nothing")
+    p.add_argument("--archer", default=None, help="path of the archer executable the units run (default: this one)")
+    p = sub.add_parser("render", help="write the rendered units to a directory")
+    p.add_argument("directory")
+    p.add_argument("--archer", default=None)
+    sub.add_parser("verify", help="systemd-analyze verify the rendered units")
+    p = sub.add_parser("acl", help="print the generated Zenoh router configs (access control from the topic table)")
+    p.add_argument("--write", action="store_true", help=f"rewrite them under {ZENOH_DIR}")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if args.action == "install":
+            archer = args.archer or archer_executable()
+            lines = apply(plan_install(Path(args.prefix), archer), args.dry_run)
+            print("\n".join(lines))
+            print(NEXT_STEPS.format(config_dir=TARGET_CONFIG_DIR))
+            return 0
+        if args.action == "render":
+            out = Path(args.directory)
+            out.mkdir(parents=True, exist_ok=True)
+            for name, text in render_units(args.archer or archer_executable()).items():
+                (out / name).write_text(text)
+                print(out / name)
+            return 0
+        if args.action == "verify":
+            if shutil.which("systemd-analyze") is None:
+                print("archer deploy verify: systemd-analyze is not installed", file=sys.stderr)
+                return 2
+            with tempfile.TemporaryDirectory() as tmp:
+                result = systemd_verify(render_units(archer_executable()), Path(tmp))
+            sys.stdout.write(result.stdout)
+            sys.stderr.write(result.stderr)
+            clean = result.returncode == 0 and not result.stderr.strip()
+            print(f"{len(unit_templates())} units: {'ok' if clean else 'problems above'}")
+            return 0 if clean else 1
+        if args.action == "acl":
+            if args.write:
+                for path in zc.write_checked_in(ZENOH_DIR):
+                    print(path)
+            else:
+                print(json.dumps(zc.access_control(), indent=2))
+            return 0
+    except (OSError, ValueError) as exc:
+        print(f"archer deploy {args.action}: {exc}", file=sys.stderr)
+        return 2
+    return 2

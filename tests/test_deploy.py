@@ -1,0 +1,130 @@
+"""systemd units, example configs and `archer deploy install`."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from deploy import zenoh_configs as zc
+from services.cmd_deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
+from services.cmd_run import SERVICE_CLASSES
+from services.config import load_params
+from services.supervisor import parse_unit
+
+ROBOT = ("router", "hardware", "estimator", "control", "planner", "perception", "recorder")
+HARDENING = {
+    "NoNewPrivileges": "yes",
+    "ProtectSystem": "strict",
+    "PrivateTmp": "yes",
+    "ProtectKernelTunables": "yes",
+    "RestrictNamespaces": "yes",
+    "LockPersonality": "yes",
+}
+FAKE_ARCHER = "/opt/archer/bin/archer"
+
+
+def units() -> dict[str, dict]:
+    return {name: parse_unit(text) for name, text in unit_templates().items()}
+
+
+def one(unit: dict, section: str, key: str) -> str:
+    return unit[section][key][-1]
+
+
+def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
+    parsed = units()
+    for service in ROBOT + ("twin",):
+        unit = parsed[f"archer-{service}.service"]
+        assert one(unit, "Service", "Type") == "notify"
+        assert one(unit, "Service", "Restart") == "on-failure"
+        assert float(one(unit, "Service", "WatchdogSec").removesuffix("s")) > 0
+        for key, value in HARDENING.items():
+            assert one(unit, "Service", key) == value, (service, key)
+        families = one(unit, "Service", "RestrictAddressFamilies").split()
+        assert {"AF_UNIX", "AF_INET"} <= set(families)
+        assert ("AF_CAN" in families) == (service == "hardware")  # only the drives' bus
+        exec_start = one(unit, "Service", "ExecStart").split()
+        assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICE_CLASSES
+        assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
+        realtime = service == "control"
+        assert (one(unit, "Service", "RestrictRealtime") == "no") == realtime
+        assert ("LimitRTPRIO" in unit["Service"]) == realtime
+    control = parsed["archer-control.service"]["Service"]
+    assert control["NotifyAccess"] == ["all"] and control["AmbientCapabilities"] == ["CAP_SYS_NICE"]
+    robot = one(parsed["archer.target"], "Unit", "Wants").split()
+    sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
+    assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)
+    assert sorted(sil) == sorted(f"archer-{s}.service" for s in ROBOT if s != "hardware") + ["archer-twin.service"]
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
+def test_rendered_units_pass_systemd_analyze_verify(tmp_path):
+    archer = str(Path(sys.executable).parent / "archer")  # ExecStart must exist for verify
+    result = systemd_verify(render_units(archer), tmp_path)
+    assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
+
+
+def test_systemd_analyze_verify_would_catch_a_broken_unit(tmp_path):
+    if shutil.which("systemd-analyze") is None:
+        pytest.skip("systemd-analyze is not installed")
+    broken = render_units(str(Path(sys.executable).parent / "archer"))
+    broken["archer-router.service"] = broken["archer-router.service"].replace("Restart=on-failure", "Restart=sometimes")
+    assert "restart specifier" in systemd_verify(broken, tmp_path).stderr
+
+
+def test_example_configs_load():
+    for path in sorted(EXAMPLE_CONFIG_DIR.glob("*.toml")):
+        params = load_params(path)
+        assert params["recorder"].chunk_s > 0
+    assert load_params(EXAMPLE_CONFIG_DIR / "archer.toml")["control"].rt_priority > 0
+    env = dict(line.split("=", 1) for line in (EXAMPLE_CONFIG_DIR / "environment").read_text().splitlines() if line and not line.startswith("#"))
+    assert env["ARCHER_NAMESPACE"].startswith("archer/")
+
+
+def test_install_writes_everything_and_keeps_edits_and_passwords(tmp_path):
+    assert apply(plan_install(tmp_path, FAKE_ARCHER), dry_run=True)
+    assert list(tmp_path.iterdir()) == []  # a dry run writes nothing
+
+    lines = apply(plan_install(tmp_path, FAKE_ARCHER), dry_run=False)
+    unit_dir = tmp_path / "etc/systemd/system"
+    assert sorted(p.name for p in unit_dir.iterdir()) == sorted(unit_templates())
+    control = (unit_dir / "archer-control.service").read_text()
+    assert f"ExecStart={FAKE_ARCHER} run control --config /etc/archer/archer.toml --zenoh-config /etc/archer/zenoh/control.json5" in control
+    assert "@" not in control
+    conf = tmp_path / "etc/archer"
+    users = conf / "zenoh/users.txt"
+    assert stat.S_IMODE(users.stat().st_mode) == 0o640
+    passwords = dict(line.split(":", 1) for line in users.read_text().splitlines())
+    assert sorted(passwords) == zc.users()
+    client = json.loads((conf / "zenoh/planner.json5").read_text().split("\n", 1)[1])
+    assert client["transport"]["auth"]["usrpwd"] == {"user": "planner", "password": passwords["planner"]}
+    for name in ("router.json5", "planner.json5", "operator.json5"):
+        zenoh.Config.from_file(str(conf / "zenoh" / name))
+    router = json.loads((conf / "zenoh/router.json5").read_text().split("\n", 1)[1])
+    assert router["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/etc/archer/zenoh/users.txt"
+    load_params(conf / "archer.toml")
+    assert (tmp_path / "usr/lib/sysusers.d/archer.conf").read_text().startswith("#")
+    assert any("archer-control.service" in line for line in lines)
+
+    # a second install keeps an operator's config edits and the passwords services hold
+    (conf / "archer.toml").write_text("[control]\ncpu = 1\n")
+    lines = apply(plan_install(tmp_path, FAKE_ARCHER), dry_run=False)
+    assert (conf / "archer.toml").read_text() == "[control]\ncpu = 1\n"
+    assert any(line.startswith("kept") and "archer.toml" in line for line in lines)
+    assert dict(line.split(":", 1) for line in users.read_text().splitlines()) == passwords
+
+
+def test_cli_dry_run(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "services.cli", "deploy", "install", "--prefix", str(tmp_path), "--dry-run", "--archer", FAKE_ARCHER],
+        capture_output=True, text=True, check=True,
+    ).stdout
+    assert "would write" in out and "archer-control.service" in out and "systemctl enable --now archer.target" in out
+    assert list(tmp_path.iterdir()) == []
