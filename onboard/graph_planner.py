@@ -20,7 +20,9 @@ Pipeline (Algorithm 3):
    ``robot_radius + tube`` of a convex obstacle are removed (exact separating-axis
    test), or, with free cells, edges not inside one cell. Edges leaving the planning
    region are removed too.
-3. **Search** (:func:`search`): A* (admissible straight-line heuristic) from the
+3. **Search** (:func:`search`): A* (admissible straight-line heuristic) over the
+   path-length bound plus ``time_weight`` times each segment's duration (0 is the
+   thesis's cost; a little of it stops the search from preferring slow, short paths) from the
    current state to the goal at rest. The start is the state itself, joined to the
    graph by the same reachability test and cut, together with every node that
    contains the state in its tube (Problem 7.1); the goal is joined the same way,
@@ -70,6 +72,8 @@ GAMMA = 2  # relative degree of the double integrator
 DIM = 2  # horizontal plane
 PRUNE_SLACK = 1e-9  # relative slack on the k-d tree radius (pairs exactly at the reach)
 SAMPLING = ("uniform", "grid")
+MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
+MAX_LATTICE = 200_000  # rest-lattice nodes at most (memory)
 # MPC cost (eq. 7.2): stay near the graph path, but prefer a shorter, smoother curve
 # (thesis: "path length cost was scaled significantly higher than tracking cost").
 MPC_WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
@@ -95,6 +99,7 @@ class GraphSpec:
     sampling: str = "uniform"
     seed: int = 0
     grid_velocities: int = 3
+    rest_grid: float = 0.0  # [m] spacing of extra nodes at rest on a lattice (0: none)
 
     def __post_init__(self) -> None:
         xmin, ymin, xmax, ymax = self.bounds
@@ -109,6 +114,21 @@ class GraphSpec:
             raise PlanningError(f"sampling must be one of {SAMPLING}, got {self.sampling!r}")
         if self.grid_velocities < 1:
             raise PlanningError("grid_velocities must be >= 1")
+        if not (math.isfinite(self.rest_grid) and self.rest_grid >= 0):
+            raise PlanningError("rest_grid must be finite and >= 0")
+        if self.rest_grid and self.lattice_size() > MAX_LATTICE:
+            raise PlanningError(f"rest_grid {self.rest_grid} m gives more than {MAX_LATTICE} lattice nodes")
+
+    def lattice_size(self) -> int:
+        """Nodes of the rest lattice (0 without one)."""
+        if not self.rest_grid:
+            return 0
+        xmin, ymin, xmax, ymax = self.bounds
+        return (int((xmax - xmin) // self.rest_grid) + 1) * (int((ymax - ymin) // self.rest_grid) + 1)
+
+    @property
+    def total_nodes(self) -> int:
+        return self.nodes + self.lattice_size()
 
     def key(self) -> str:
         """Cache key: a hash of every field and the format version."""
@@ -132,7 +152,8 @@ def spec_from_params(params: PlannerParams, bounds: tuple[float, float, float, f
                      nodes: int | None = None, seed: int | None = None) -> GraphSpec:
     return GraphSpec(bounds=tuple(float(b) for b in bounds), nodes=int(params.nodes if nodes is None else nodes),
                      v_max=params.v_max, a_max=params.a_max, tau=params.segment_s, sampling=params.sampling,
-                     seed=int(params.seed if seed is None else seed), grid_velocities=params.grid_velocities)
+                     seed=int(params.seed if seed is None else seed), grid_velocities=params.grid_velocities,
+                     rest_grid=params.rest_grid)
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,8 +198,8 @@ class BezierGraph:
         if key != spec.key():
             raise PlanningError("graph arrays belong to another spec")
         E = len(src)
-        if (nodes.shape != (spec.nodes, 4) or dst.shape != (E,) or cost.shape != (E,) or ctrl.ndim != 3
-                or ctrl.shape[0] != E or ctrl.shape[2] != DIM or (E and (src.min() < 0 or dst.max() >= spec.nodes))
+        if (nodes.shape != (spec.total_nodes, 4) or dst.shape != (E,) or cost.shape != (E,) or ctrl.ndim != 3
+                or ctrl.shape[0] != E or ctrl.shape[2] != DIM or (E and (src.min() < 0 or dst.max() >= spec.total_nodes))
                 or np.any(np.diff(src) < 0)):
             raise PlanningError("graph arrays are inconsistent")
         return _assemble(spec, nodes, src, dst, ctrl, cost, spec.reachability())
@@ -193,7 +214,27 @@ def _assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarr
 
 
 def sample_nodes(spec: GraphSpec) -> np.ndarray:
-    """Graph nodes ``(N, 4)``: positions in the region, velocities in the box ``|v| <= v_max``."""
+    """Graph nodes ``(spec.total_nodes, 4)``: ``spec.nodes`` with positions in the region and
+    velocities in the box ``|v| <= v_max``, then the rest lattice (if any).
+
+    The lattice of resting nodes makes narrow passages passable: between two resting
+    nodes the curve is the straight segment joining them (its hull is that segment), so
+    a row of the lattice through a gap crosses it stop-and-go even where no random
+    node pair lines up.
+    """
+    nodes = _sample(spec)
+    if not spec.rest_grid:
+        return nodes
+    xmin, ymin, xmax, ymax = spec.bounds
+    g = spec.rest_grid
+    xs = xmin + g * np.arange(int((xmax - xmin) // g) + 1)
+    ys = ymin + g * np.arange(int((ymax - ymin) // g) + 1)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    lattice = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size), np.zeros(X.size)])
+    return np.vstack([nodes, lattice])
+
+
+def _sample(spec: GraphSpec) -> np.ndarray:
     xmin, ymin, xmax, ymax = spec.bounds
     v = spec.v_max
     if spec.sampling == "uniform":
@@ -214,7 +255,7 @@ def sample_nodes(spec: GraphSpec) -> np.ndarray:
     grid = np.column_stack([X.ravel(), Y.ravel(), VX.ravel(), VY.ravel()])
     if len(grid) < spec.nodes:  # fill the remainder uniformly so the node count is exact
         rest = GraphSpec(spec.bounds, spec.nodes - len(grid), spec.v_max, spec.a_max, spec.tau, "uniform", spec.seed)
-        grid = np.vstack([grid, sample_nodes(rest)])
+        grid = np.vstack([grid, _sample(rest)])
     return grid[: spec.nodes]
 
 
@@ -254,9 +295,10 @@ def build_graph(spec: GraphSpec) -> BezierGraph:
 
 
 @nb.njit(cache=True)
-def _astar(indptr, dst, cost, free, pos, start_nodes, start_costs, goal_costs, goal_x, goal_y, h_slack):  # pragma: no cover
+def _astar(indptr, dst, cost, extra, free, pos, start_nodes, start_costs, goal_costs, goal_x, goal_y, h_slack):  # pragma: no cover
     """A* over graph nodes 0..N-1 plus a virtual start (its edges: start_nodes/start_costs)
-    and a virtual goal (edge from node n of cost goal_costs[n]; inf: none).
+    and a virtual goal (edge from node n of cost goal_costs[n]; inf: none). Every graph
+    edge costs ``cost[e] + extra``.
 
     Returns (pred_node, pred_edge, goal_pred, total): pred_edge -1 marks a virtual start
     edge; goal_pred is the node before the goal (-1: none found).
@@ -291,7 +333,7 @@ def _astar(indptr, dst, cost, free, pos, start_nodes, start_costs, goal_costs, g
             if not free[e]:
                 continue
             m = dst[e]
-            d = dist[n] + cost[e]
+            d = dist[n] + cost[e] + extra
             if d < dist[m]:
                 dist[m] = d
                 pred[m] = n
@@ -318,14 +360,16 @@ class SearchResult:
 
 def search(graph: BezierGraph, free: np.ndarray, start_state: np.ndarray, start_nodes: np.ndarray,
            start_costs: np.ndarray, goal_state: np.ndarray, goal_costs: np.ndarray, goal_slack: float,
-           start_edge_ctrl: dict[int, np.ndarray], goal_edge_ctrl: dict[int, np.ndarray]) -> SearchResult | None:
+           start_edge_ctrl: dict[int, np.ndarray], goal_edge_ctrl: dict[int, np.ndarray],
+           edge_extra: float = 0.0) -> SearchResult | None:
     """A* over ``graph`` with edge mask ``free`` between a virtual start and goal.
 
     ``start_nodes``/``start_costs``: nodes reachable from the start and at what cost
     (``start_edge_ctrl[n]`` the segment, absent for nodes that contain the start: no
     segment). ``goal_costs[n]``: cost of ending at the goal from node ``n`` (``inf``:
     not allowed; ``goal_edge_ctrl[n]`` the segment, absent when ``n`` is itself at the
-    goal). ``goal_slack`` [m] keeps the heuristic admissible for such nodes.
+    goal). ``goal_slack`` [m] keeps the heuristic admissible for such nodes. Graph edges
+    cost their path-length bound plus ``edge_extra`` (the virtual edges' costs include it).
     The virtual start-to-goal segment is node index ``N`` in both tables.
     """
     N = graph.n_nodes
@@ -333,7 +377,7 @@ def search(graph: BezierGraph, free: np.ndarray, start_state: np.ndarray, start_
     direct = start_edge_ctrl.get(N)
     sn = np.ascontiguousarray(start_nodes[start_nodes < N], dtype=np.int64)
     sc = np.ascontiguousarray(start_costs[start_nodes < N], dtype=float)
-    pred, pred_edge, goal_pred, total = _astar(graph.indptr, graph.dst, graph.cost, free, pos, sn, sc,
+    pred, pred_edge, goal_pred, total = _astar(graph.indptr, graph.dst, graph.cost, float(edge_extra), free, pos, sn, sc,
                                                np.ascontiguousarray(goal_costs[:N]), float(goal_state[0]),
                                                float(goal_state[1]), float(goal_slack))
     direct_cost = float(start_costs[start_nodes == N][0]) if direct is not None else math.inf
@@ -460,7 +504,8 @@ class GraphPlanner:
         self._mpc = None
         self._mpc_tube = -1.0
         self._last_solution = None
-        self._last_knot_ns = 0
+        self.contract_violations = 0
+        self._reports: list[msgs.ContractReport] = []
 
     # --- inputs ----------------------------------------------------------------------
 
@@ -520,7 +565,9 @@ class GraphPlanner:
     # --- graph -------------------------------------------------------------------------
 
     def region_for(self, position: np.ndarray) -> tuple[float, float, float, float]:
-        """Planning region: the fixed bounds, or start, goal and obstacles padded and snapped."""
+        """Planning region: the fixed bounds, or start, goal and obstacles (or cells) padded by
+        ``bounds_padding`` plus twice the margin (room to pass an obstacle at the edge), snapped
+        outward to ``bounds_quantum``."""
         if self.fixed_bounds is not None:
             return self.fixed_bounds
         pts = [np.asarray(position, float)[:2]]
@@ -531,16 +578,26 @@ class GraphPlanner:
             pts.extend([polys.aabb[:, :2].min(axis=0), polys.aabb[:, 2:].max(axis=0)])
         pts_arr = np.array(pts)
         q = self.params.bounds_quantum
-        lo = np.floor((pts_arr.min(axis=0) - self.params.bounds_padding) / q) * q
-        hi = np.ceil((pts_arr.max(axis=0) + self.params.bounds_padding) / q) * q
+        pad = self.params.bounds_padding + 2 * self.margin
+        lo = np.floor((pts_arr.min(axis=0) - pad) / q) * q
+        hi = np.ceil((pts_arr.max(axis=0) + pad) / q) * q
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
     def graph_spec_for(self, position: np.ndarray) -> GraphSpec:
-        """The spec of the graph :meth:`plan` needs for a start at ``position``."""
+        """The spec of the graph :meth:`plan` needs for a start at ``position``.
+
+        An automatic region keeps the current graph while it covers the region needed
+        (no rebuild when obstacles move inside it); its node count is ``node_density``
+        times its area, at most ``nodes``.
+        """
         bounds = self.region_for(position)
-        if self.graph is not None and self.fixed_bounds is None and _contains(self.graph.spec.bounds, position, self.goal):
-            return self.graph.spec  # the current region still holds start and goal: keep it
-        return spec_from_params(self.params, bounds, nodes=self.fixed_nodes)
+        if self.fixed_bounds is not None:
+            return spec_from_params(self.params, bounds, nodes=self.fixed_nodes)
+        if self.graph is not None and _covers(self.graph.spec.bounds, bounds):
+            return self.graph.spec
+        area = (bounds[2] - bounds[0]) * (bounds[3] - bounds[1])
+        nodes = int(min(self.params.nodes, max(MIN_AUTO_NODES, round(self.params.node_density * area))))
+        return spec_from_params(self.params, bounds, nodes=nodes)
 
     def set_graph(self, graph: BezierGraph) -> None:
         self.graph = graph
@@ -625,7 +682,10 @@ class GraphPlanner:
         N = graph.n_nodes
         goal_state = np.array([self.goal[0], self.goal[1], 0.0, 0.0])
         # Start: the state itself joined by free segments, plus nodes containing it in the tube.
+        # Search cost: path-length bound (Property 2.49) plus time_weight per segment (its duration).
+        extra = self.params.time_weight * graph.spec.tau
         s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True)
+        s_costs = s_costs + extra
         contains = np.flatnonzero(
             (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
             & np.all(np.abs(graph.nodes[:, 2:] - x0[2:]) <= self.params.start_speed_tol, axis=1))
@@ -640,11 +700,11 @@ class GraphPlanner:
             if not self._blocked(col.hull_set(direct[None]))[0][0]:
                 start_edge_ctrl[N] = direct
                 start_nodes.append(np.array([N]))
-                start_costs.append(np.array([bz.path_length_bound(direct)]))
+                start_costs.append(np.array([bz.path_length_bound(direct) + extra]))
         # Goal: nodes joined to the goal at rest, and nodes at rest within the tolerance.
         g_nodes, g_costs, g_ctrl = self._connect(goal_state, outgoing=False)
         goal_costs = np.full(N, np.inf)
-        goal_costs[g_nodes] = g_costs
+        goal_costs[g_nodes] = g_costs + extra
         goal_edge_ctrl = {int(n): c for n, c in zip(g_nodes, g_ctrl)}
         at_goal = np.flatnonzero(
             (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
@@ -654,7 +714,7 @@ class GraphPlanner:
             goal_edge_ctrl.pop(int(n), None)
         result = search(graph, free, x0, np.concatenate(start_nodes).astype(np.int64),
                         np.concatenate(start_costs), goal_state, goal_costs,
-                        self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl)
+                        self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
         self.path = result
         self.path_t0_ns = int(stamp_ns)
         self.path_world_version = self._world_version
@@ -755,6 +815,39 @@ class GraphPlanner:
         self._last_solution = None
         return self.path_reference(stamp_ns)
 
+    # --- contract with the low level ------------------------------------------------------
+
+    def check_tube(self, tube: msgs.TrackingTube, stamp_ns: int = 0) -> msgs.ContractReport | None:
+        """Compare the tube the low level achieves (p95 CoM error at impact) with the tube planned with.
+
+        Judged once the window holds ``contract_min_hops`` impacts. A broken promise
+        returns a :class:`~onboard.messages.ContractReport` (also kept for
+        :meth:`drain_contract_reports`) and makes the planner plan with the achieved tube
+        times ``tube_growth`` (at most ``tube_max``) from now on, which recuts. None when
+        the promise holds.
+        """
+        prm = self.params
+        promised = self.tube
+        achieved = float(tube.impact_err_p95)
+        if tube.hops < prm.contract_min_hops or not math.isfinite(achieved) or achieved <= promised:
+            return None
+        self.contract_violations += 1
+        new_tube = min(achieved * prm.tube_growth, prm.tube_max)
+        report = msgs.ContractReport(
+            stamp_ns=stamp_ns, layer="planner", promised=promised, achieved=achieved, violated=True,
+            violations=self.contract_violations,
+            detail=f"tube p95 {achieved:.3f} m over {tube.hops} impacts > {promised:.3f} m planned; "
+                   f"planning with {max(new_tube, promised):.3f} m")
+        self._reports.append(report)
+        if new_tube > promised:
+            self.set_tube(new_tube)
+        return report
+
+    def drain_contract_reports(self) -> list[msgs.ContractReport]:
+        """Reports of broken promises since the last call."""
+        out, self._reports = self._reports, []
+        return out
+
     # --- sets ------------------------------------------------------------------------------
 
     def segment_halfspaces(self, ctrl: np.ndarray, margin: float, count: int) -> np.ndarray:
@@ -817,7 +910,5 @@ def _same_polygons(a: col.PolygonSet, b: col.PolygonSet) -> bool:
     return a.offsets.shape == b.offsets.shape and np.array_equal(a.offsets, b.offsets) and np.array_equal(a.vertices, b.vertices)
 
 
-def _contains(bounds: tuple[float, float, float, float], position: np.ndarray, goal: np.ndarray | None) -> bool:
-    xmin, ymin, xmax, ymax = bounds
-    pts = [np.asarray(position, float)[:2]] + ([goal] if goal is not None else [])
-    return all(xmin <= p[0] <= xmax and ymin <= p[1] <= ymax for p in pts)
+def _covers(outer: tuple[float, float, float, float], inner: tuple[float, float, float, float]) -> bool:
+    return outer[0] <= inner[0] and outer[1] <= inner[1] and outer[2] >= inner[2] and outer[3] >= inner[3]

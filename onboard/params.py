@@ -249,17 +249,20 @@ class PlannerParams:
     ``[x, y, vx, vy]`` (world frame). Limits are per axis (infinity norm).
     """
 
-    v_max: float = 0.5  # [m/s] planned CoM speed bound per axis
-    a_max: float = 1.0  # [m/s^2] planned CoM acceleration (virtual input) bound per axis
-    segment_s: float = 1.5  # [s] duration of one graph edge (one Bezier segment)
-    nodes: int = 5000  # graph nodes over the planning region
+    v_max: float = 0.35  # [m/s] planned CoM speed bound per axis (the twin's hopper cruises at 0.25)
+    a_max: float = 0.5  # [m/s^2] planned CoM acceleration (virtual input) bound per axis
+    segment_s: float = 2.0  # [s] duration of one graph edge (a whole number of mpc_dt)
+    nodes: int = 5000  # graph nodes over a given planning region; at most this many in an automatic one
+    node_density: float = 110.0  # [1/m^2] nodes per square metre of an automatic planning region
     sampling: str = "uniform"  # "uniform" (random positions and velocities) or "grid"
     grid_velocities: int = 3  # "grid": velocity values per axis (odd keeps 0)
+    rest_grid: float = 0.25  # [m] extra graph nodes at rest on a lattice of this spacing (0: none): narrow gaps
+    time_weight: float = 0.15  # [m/s] search cost per second of path on top of its length (0: length only)
     seed: int = 0  # node sampling seed
-    tube: float = 0.05  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
+    tube: float = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
     tube_growth: float = 1.25  # on a broken promise, plan with the achieved tube times this
     robot_radius: float = 0.0  # [m] robot footprint radius; 0: read from the MJCF
-    bounds_padding: float = 1.5  # [m] planning region around start, goal and obstacles
+    bounds_padding: float = 0.5  # [m] planning region around start, goal and obstacles
     bounds_quantum: float = 1.0  # [m] region corners snap to this grid (graph cache hits)
     goal_speed_tol: float = 0.05  # [m/s] graph nodes this slow near the goal may end a path
     start_speed_tol: float = 0.1  # [m/s] velocity part of "the node contains the state"

@@ -15,7 +15,7 @@ Output (``--json``: one JSON object): ``found``, ``segments`` (``{"t0", "duratio
 from the start), ``clearance`` (robot radius plus tube: what the plan keeps from every
 obstacle), ``limits`` (``v_max``, ``a_max``, ``segment_s``), ``plan_ms`` (cut and
 search), ``graph_ms`` and ``graph_cached`` (build, or load from the graph cache),
-``nodes``, ``edges``, ``edges_free``, ``cost`` (path-length bound [m]), ``duration``
+``nodes`` (the scene's random nodes plus ``lattice_nodes``, the rest lattice), ``edges``, ``edges_free``, ``cost`` (path-length bound [m]), ``duration``
 [s]. Exit code 0 with a path, 1 without, 2 for a bad scene (non-convex or degenerate
 polygon, start or goal inside an obstacle or outside the bounds, NaN, unknown key),
 with the reason on stderr.
@@ -178,6 +178,7 @@ def plan_scene(scene: Scene, cache_dir: Path | None) -> dict[str, Any]:
         "graph_ms": round(graph_ms, 3),
         "graph_cached": cached,
         "nodes": graph.n_nodes,
+        "lattice_nodes": graph.spec.lattice_size(),
         "edges": graph.n_edges,
         "edges_free": planner.stats.edges_free,
         "cost": path.cost if path else None,

@@ -17,23 +17,19 @@ with the achieved tube times ``tube_growth``).
 Status: ``path`` (1/0), planning and refinement times, edges, tube, violations; the
 state is ``degraded`` with ``last_error`` saying so while there is no path.
 
-Also here: the on-disk graph cache (:func:`load_or_build_graph`) and the robot's
-footprint radius from the MJCF (:func:`robot_footprint_radius`).
+Also here: the on-disk graph cache (:func:`load_or_build_graph`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import functools
-import math
 import os
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-import mujoco
 import numpy as np
 
 from onboard import collision as col
@@ -82,46 +78,9 @@ def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.
     return graph, False
 
 
-# --- robot footprint from the MJCF ----------------------------------------------------------
-
-
-@functools.lru_cache(maxsize=None)
 def robot_footprint_radius(variant: str = twin_model.DEFAULT_VARIANT) -> float:
-    """Radius [m] of the vertical cylinder about the torso axis holding every robot geom, upright.
-
-    Read from the MJCF (the one source of physical parameters). Spheres, cylinders and
-    capsules by their axis and radius, boxes by their corners, anything else by its
-    bounding sphere.
-    """
-    model = twin_model.load_model(variant)
-    data = mujoco.MjData(model)
-    adr = int(model.joint(twin_model.ROOT_JOINT).qposadr[0])
-    data.qpos[adr:adr + 7] = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]
-    mujoco.mj_forward(model, data)
-    axis = data.xpos[model.body(twin_model.TORSO).id][:2]
-    radius = 0.0
-    for g in range(model.ngeom):
-        if model.geom_bodyid[g] == 0:
-            continue  # the world's geoms
-        centre = data.geom_xpos[g]
-        R = data.geom_xmat[g].reshape(3, 3)
-        size = model.geom_size[g]
-        kind = int(model.geom_type[g])
-        off = float(np.hypot(*(centre[:2] - axis)))
-        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
-            reach = off + size[0]
-        elif kind in (int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_CAPSULE)):
-            # Inside the spheres of radius r about both axis ends' horizontal hull.
-            ends = [centre[:2] + s * size[1] * R[:2, 2] - axis for s in (-1.0, 1.0)]
-            reach = max(float(np.hypot(*e)) for e in ends) + size[0]
-        elif kind == int(mujoco.mjtGeom.mjGEOM_BOX):
-            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * size
-            pts = centre + corners @ R.T
-            reach = float(np.max(np.hypot(*(pts[:, :2] - axis).T)))
-        else:
-            reach = off + model.geom_rbound[g]
-        radius = max(radius, float(reach))
-    return radius
+    """Radius [m] of the robot's collision shapes about its spine, from the MJCF (via ``RobotParams``)."""
+    return twin_model.robot_params(variant).footprint_radius
 
 
 # --- the service ------------------------------------------------------------------------------
@@ -156,7 +115,6 @@ class PlannerService(Service):
         self._last_plan_ns = -(10**18)
         self._plan_ms = 0.0
         self._refine_ms = 0.0
-        self._violations = 0
         self._has_path = False
 
     @property
@@ -195,7 +153,7 @@ class PlannerService(Service):
             "refine_failures": st.refine_failures,
             "tube_m": self.planner.tube,
             "margin_m": self.planner.margin,
-            "contract_violations": self._violations,
+            "contract_violations": self.planner.contract_violations,
         }
 
     async def main(self) -> None:
@@ -309,22 +267,14 @@ class PlannerService(Service):
             self._check_contract(got[0])
 
     def _check_contract(self, tube: msgs.TrackingTube) -> None:
-        promised = self.planner.tube
-        achieved = tube.impact_err_p95
-        if tube.hops < self.prm.contract_min_hops or not math.isfinite(achieved) or achieved <= promised:
-            if self._violations and self.contract_state == "violated" and achieved <= promised:
-                self.contract_state = "ok"
-            elif self.contract_state == "unknown" and tube.hops >= self.prm.contract_min_hops:
+        report = self.planner.check_tube(tube, self.clock.now_ns())
+        self.planner.drain_contract_reports()  # published here instead
+        if report is None:
+            if tube.hops >= self.prm.contract_min_hops and tube.impact_err_p95 <= self.planner.tube:
                 self.contract_state = "ok"
             return
-        self._violations += 1
         self.count("contract_violations")
         self.contract_state = "violated"
-        new_tube = min(achieved * self.prm.tube_growth, self.prm.tube_max)
-        self.pub_contract.put(msgs.ContractReport(
-            layer="planner", promised=promised, achieved=achieved, violated=True, violations=self._violations,
-            detail=f"tube p95 {achieved:.3f} m over {tube.hops} impacts > {promised:.3f} m planned; replanning with {new_tube:.3f} m"))
-        self.log.warning("contract violated", extra={"fields": {"promised": promised, "achieved": achieved, "new_tube": new_tube}})
-        if new_tube > promised:
-            self.planner.set_tube(new_tube)
-
+        self.pub_contract.put(report)
+        self.log.warning("contract violated", extra={"fields": {"promised": report.promised, "achieved": report.achieved,
+                                                               "tube": self.planner.tube}})

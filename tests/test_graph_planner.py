@@ -78,9 +78,9 @@ def test_graph_arrays_round_trip_and_key_covers_every_field(graph):
     assert np.array_equal(again.src, graph.src) and np.array_equal(again.control_points, graph.control_points)
     keys = {graph.spec.key()}
     for change in ({"nodes": 1499}, {"v_max": 0.6}, {"a_max": 1.1}, {"tau": 1.4}, {"seed": 1},
-                   {"sampling": "grid"}, {"grid_velocities": 5}, {"bounds": (0.0, 0.0, 6.0, 6.5)}):
+                   {"sampling": "grid"}, {"grid_velocities": 5}, {"bounds": (0.0, 0.0, 6.0, 6.5)}, {"rest_grid": 0.5}):
         keys.add(dataclasses.replace(graph.spec, **change).key())
-    assert len(keys) == 9
+    assert len(keys) == 10
     other = dataclasses.replace(graph.spec, seed=5)
     with pytest.raises(gp.PlanningError, match="another spec"):
         gp.BezierGraph.from_arrays(other, arrays)
@@ -90,11 +90,27 @@ def test_graph_arrays_round_trip_and_key_covers_every_field(graph):
 
 
 def test_grid_sampling_has_the_requested_node_count_and_resting_nodes():
-    spec = gp.spec_from_params(dataclasses.replace(PARAMS, sampling="grid"), (0.0, 0.0, 3.0, 2.0), nodes=700)
+    spec = gp.spec_from_params(dataclasses.replace(PARAMS, sampling="grid", rest_grid=0.0), (0.0, 0.0, 3.0, 2.0), nodes=700)
     nodes = gp.sample_nodes(spec)
     assert nodes.shape == (700, 4)
     assert np.any(np.all(nodes[:, 2:] == 0.0, axis=1))
     assert np.all(np.abs(nodes[:, 2:]) <= spec.v_max)
+
+
+def test_rest_lattice_joins_neighbours_by_straight_segments():
+    spec = gp.spec_from_params(dataclasses.replace(PARAMS, rest_grid=0.25), (0.0, 0.0, 2.0, 1.0), nodes=100)
+    g = gp.build_graph(spec)
+    assert g.n_nodes == 100 + 9 * 5 == spec.total_nodes
+    lattice = np.arange(100, g.n_nodes)
+    assert np.all(g.nodes[lattice, 2:] == 0.0)
+    # Each lattice node reaches its lattice neighbours 0.25 m away; those segments are straight.
+    sel = np.isin(g.src, lattice) & np.isin(g.dst, lattice)
+    steps = g.nodes[g.dst[sel], :2] - g.nodes[g.src[sel], :2]
+    assert np.any(np.all(np.isclose(steps, [0.25, 0.0]), axis=1)) and np.any(np.all(np.isclose(steps, [0.25, 0.25]), axis=1))
+    ctrl = g.control_points[sel]
+    d = ctrl[:, -1] - ctrl[:, 0]
+    cross = d[:, None, 0] * (ctrl[..., 1] - ctrl[:, :1, 1]) - d[:, None, 1] * (ctrl[..., 0] - ctrl[:, :1, 0])
+    assert np.allclose(cross, 0.0, atol=1e-12)
 
 
 def test_bad_specs_are_rejected():
@@ -146,7 +162,9 @@ def test_open_field_path_is_nearly_straight(graph):
     assert ref is not None and not ref.hold and ref.t_ref_ns == 123
     path = planner.path
     assert np.allclose(path.states[0], [1.0, 1.0, 0.0, 0.0]) and np.allclose(path.states[-1], [5.0, 5.0, 0.0, 0.0])
-    assert path.cost < 1.35 * math.dist((1, 1), (5, 5))
+    length = float(bz.path_length_bound(path.control_points).sum())
+    assert length < 1.35 * math.dist((1, 1), (5, 5))
+    assert path.cost == pytest.approx(length + PARAMS.time_weight * path.duration)
     assert [s.t0 for s in ref.segments] == pytest.approx([k * PARAMS.segment_s for k in range(len(ref.segments))])
 
 

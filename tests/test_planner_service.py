@@ -161,6 +161,5 @@ def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
 
 
 def test_footprint_radius_comes_from_the_mjcf():
-    r = robot_footprint_radius()
-    # The housing is a 0.13 m cylinder; the wheels stick out a little further.
-    assert 0.13 <= r <= 0.2
+    # The housing is a 0.13 m cylinder about the spine (sim_twin/models/archer.xml).
+    assert robot_footprint_radius() == pytest.approx(0.13)
