@@ -200,7 +200,7 @@ class LowLevelController:
         # telemetry (read by the runner and the service status)
         self.q_des: qt.Quat = qt.IDENTITY
         self.eta: tuple[float, float] = (0.0, 0.0)
-        self.predicted_impact: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # t [s] ahead, x, y, ...
+        self.predicted_impact: tuple[float, float, float] = (0.0, 0.0, 0.0)  # time to impact [s], CoM x, y [m]
         self.reference_at_impact: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self.last_impact_error = math.nan  # [m]
         self.holding = True
@@ -305,7 +305,7 @@ class LowLevelController:
             self.foot.in_flight(pz + vz * vz / (2.0 * g) - z_td)  # ballistic apex rise
             xi, yi = px + vx * t_imp, py + vy * t_imp
             rx, ry, rvx, rvy = self._target(now_ns, state, ref, t_imp)
-            self.predicted_impact = (t_imp, xi, yi, 0.0)
+            self.predicted_impact = (t_imp, xi, yi)
             self.reference_at_impact = (rx, ry, rvx, rvy)
             ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
             self.eta = (ax, ay)
