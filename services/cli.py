@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "emulate": ("services.cmd_emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
     "sim": ("sim_twin.cmd_sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "bench": ("services.bench", "measure speed and print figures"),
+    "plot": ("services.cmd_plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
     "deploy": ("services.cmd_deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),
     "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
     "plan": ("services.cmd_plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),

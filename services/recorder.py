@@ -153,7 +153,7 @@ class RotatingMcap:
         self.directory = directory
         self.directory.mkdir(parents=True, exist_ok=True)
         self.params = params
-        self.stem = stem or time.strftime("archer-%Y%m%d-%H%M%S")
+        self.stem = stem or f"{time.strftime('archer-%Y%m%d-%H%M%S')}-{os.getpid()}"  # a restart never reuses a name
         self.index = 0
         self.finished: list[Path] = []
         self._file: IO[bytes] | None = None
