@@ -30,6 +30,7 @@ import mujoco
 
 from onboard import messages as m
 from onboard.params import SafetyLimits, TwinParams, with_overrides
+from onboard.topics import TOPICS
 from sim_twin import model as tm
 from sim_twin import perception_plug
 from sim_twin import scenarios as sc
@@ -130,6 +131,9 @@ class LockstepRunner:
         t = 0.0
         k = 0
         planner_feed = getattr(planner, "feed", None)  # a perceiving planner eats the depth images
+        # The low level's tube reaches the planner at the topic's rate (the contract check).
+        tube_ns = int(NS / TOPICS["tube"].rate_hz) if planner_feed is not None and hasattr(controller, "tube") else 0
+        next_tube_ns = tube_ns
         wall0 = time.perf_counter()
         for k in range(1, n_ticks + 1):
             scenario.before_step(t, model, data)
@@ -151,6 +155,9 @@ class LockstepRunner:
             state = estimator.estimate(now_ns, data)
             reference = planner.update(now_ns, state)
             cmd = controller.step(now_ns, state, reference, joints)
+            if tube_ns and now_ns >= next_tube_ns:
+                next_tube_ns += tube_ns
+                planner_feed("tube", controller.tube(now_ns))
             phase = controller.drain_phase_events()
             trips = controller.drain_safety_events()
             phase_events += len(phase)

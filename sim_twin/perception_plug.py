@@ -35,6 +35,8 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
     def feed(self, topic: str, msg: object) -> None:
         if topic == "depth":
             self.loop.feed(msg, self._xy)  # type: ignore[arg-type]
+        else:
+            super().feed(topic, msg)
 
     def update(self, now_ns: int, state: m.StateEstimate) -> m.ComReference | None:
         self._xy = (state.position[0], state.position[1])

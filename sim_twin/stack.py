@@ -232,6 +232,11 @@ class GraphPlannerPlug:
             self.reference.stamp_ns = now_ns
         return self.reference
 
+    def feed(self, topic: str, msg: object) -> None:
+        """The low level's measured tube: a broken promise is reported and planned around."""
+        if topic == "tube":
+            self.planner.check_tube(msg, msg.stamp_ns)  # type: ignore[arg-type]
+
     def drain_contract_reports(self) -> list[m.ContractReport]:
         drain = getattr(self.planner, "drain_contract_reports", None)
         return list(drain()) if drain else []
