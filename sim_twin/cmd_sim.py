@@ -20,8 +20,6 @@ import argparse
 import asyncio
 import json
 import math
-import signal
-import subprocess
 import sys
 import time
 
@@ -34,7 +32,6 @@ from sim_twin.lockstep import RunConfig, run
 
 MODES = ("lockstep", "realtime")
 STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode when archer run knows them
-STOP_TIMEOUT_S = 5.0  # [s] a child service gets this long after SIGTERM before SIGKILL
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 BAR_WIDTH = 30
@@ -135,29 +132,9 @@ def run_lockstep(args: argparse.Namespace) -> dict:
     return result.metrics
 
 
-def _spawn(name: str, args: argparse.Namespace, endpoint: str, ns: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "services.cli", "run", name, "--endpoint", endpoint, "--namespace", ns, "--log-level", "WARNING"]
-    if args.config:
-        cmd += ["--config", args.config]
-    return subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
-
-
-def _stop(procs: dict[str, subprocess.Popen]) -> dict[str, int | None]:
-    for p in procs.values():
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + STOP_TIMEOUT_S
-    for p in procs.values():
-        try:
-            p.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-    return {name: p.returncode for name, p in procs.items()}
-
-
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.cmd_run import SERVICE_CLASSES
+    from services.supervisor import Supervisor, sim_specs
     from services.zenoh_session import default_endpoint
     from onboard.topics import namespace
     from sim_twin.twin_service import ScenarioReferenceService, TwinService
@@ -193,7 +170,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
         if planner == "scenario":
             local.append(ScenarioReferenceService(ns=ns, endpoint=endpoint, params={"twin": twin_params}))
         tasks = [asyncio.create_task(twin.run())]
-        procs: dict[str, subprocess.Popen] = {}
+        # each service its own process, under its systemd unit's policy (services/supervisor.py)
+        sup = Supervisor(sim_specs([n for n in wanted if n in SERVICE_CLASSES], endpoint, ns, args.config))
         wall0 = time.perf_counter()
         try:
             deadline = time.monotonic() + START_TIMEOUT_S
@@ -204,7 +182,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
                     raise RuntimeError("the twin did not start")
                 await asyncio.sleep(0.02)
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
-            procs = {name: _spawn(name, args, endpoint, ns) for name in wanted if name in SERVICE_CLASSES}
+            sup.start()
             wall0 = time.perf_counter()
             while time.perf_counter() - wall0 < duration:
                 await asyncio.sleep(0.1)
@@ -214,7 +192,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
                 if twin.metrics.fell and not args.keep_going:
                     break
         finally:
-            exit_codes = await asyncio.to_thread(_stop, procs)
+            exit_codes = await asyncio.to_thread(sup.stop)
             for s in local:
                 s.request_stop()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -222,9 +200,10 @@ def run_realtime(args: argparse.Namespace) -> dict:
         out = {"scenario": args.scenario, "seed": args.seed, "mode": "realtime", "variant": args.variant,
                "estimator": "kalman", "planner": planner, "controller": "lowlevel", "wall_time_s": round(wall, 3)}
         out.update(twin.summary())
-        out["services_started"] = sorted(procs) + (["scenario_reference"] if planner == "scenario" else [])
+        out["services_started"] = sorted(exit_codes) + (["scenario_reference"] if planner == "scenario" else [])
         out["services_missing"] = missing
         out["service_exit_codes"] = exit_codes
+        out["service_restarts"] = {n: u["restarts"] for n, u in sup.summary().items()}
         out["endpoint"] = endpoint
         return out
 
