@@ -33,12 +33,19 @@ The numba kernels are compiled on first use and cached next to this module by nu
 from __future__ import annotations
 
 import math
+import os
+import types
 from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 import osqp
 import scipy.sparse as sp
+
+# Idle OpenMP threads that spin steal the core the other thread needs on a small, shared
+# machine (a 2-thread cut took longer than a 1-thread one); passive waiting fixes that.
+# Must be set before numba starts its threads; an explicit setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 POLYGON_AREA_TOL = 1e-9  # [m^2] below this a polygon is degenerate
 VERTEX_MERGE_TOL = 1e-9  # [m] consecutive vertices closer than this are a repeated vertex
@@ -724,9 +731,20 @@ def _halfspaces_kernel(pts, axes, verts, offsets, norms, face_offs, ocenter, ora
 # Each kernel in two builds: threads pay off on large batches only (a parallel launch
 # costs milliseconds on a loaded machine, more than a small batch takes).
 PARALLEL_MIN = 4096  # curves below which the serial build runs
-_cut_obstacles_kernel = (nb.njit(cache=True)(_cut_obstacles_kernel_py), nb.njit(cache=True, parallel=True)(_cut_obstacles_kernel_py))
-_free_cell_kernel = (nb.njit(cache=True)(_free_cell_kernel_py), nb.njit(cache=True, parallel=True)(_free_cell_kernel_py))
-_samples_clearance_kernel = (nb.njit(cache=True)(_samples_clearance_kernel_py), nb.njit(cache=True, parallel=True)(_samples_clearance_kernel_py))
+
+
+def _two_builds(func: types.FunctionType) -> tuple:
+    """Serial and parallel compiled builds of ``func``. The parallel one compiles a copy
+    under its own name: numba's on-disk cache is keyed by the function's name, not by
+    its flags, and would otherwise hand the serial build to both."""
+    twin = types.FunctionType(func.__code__, func.__globals__, func.__name__ + "_parallel", func.__defaults__, func.__closure__)
+    twin.__qualname__ = func.__qualname__ + "_parallel"
+    return nb.njit(cache=True)(func), nb.njit(cache=True, parallel=True)(twin)
+
+
+_cut_obstacles_kernel = _two_builds(_cut_obstacles_kernel_py)
+_free_cell_kernel = _two_builds(_free_cell_kernel_py)
+_samples_clearance_kernel = _two_builds(_samples_clearance_kernel_py)
 
 
 def _pick(kernels: tuple, count: int):

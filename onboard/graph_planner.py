@@ -7,7 +7,9 @@ bounded per axis (``PlannerParams.v_max``, ``a_max``).
 Pipeline (Algorithm 3):
 
 1. **Build** (:func:`build_graph`): ``N`` nodes over position and velocity (uniform
-   random or grid); candidate pairs come from a k-d tree over positions and velocities
+   random or grid), plus a lattice of nodes at rest (``rest_grid``: between two resting
+   nodes the curve is a straight segment, so narrow gaps are passable stop-and-go);
+   candidate pairs come from a k-d tree over positions and velocities
    scaled by the largest change one segment can make (an LP over the reachability
    test, so the pruning drops no edge the test would accept); a pair is an edge iff
    the Bezier reachability test ``F [x_i; x_j] <= G`` of :mod:`onboard.reachability`
@@ -35,17 +37,22 @@ Pipeline (Algorithm 3):
 In-process use (the lockstep runner, the ``planner`` service and ``archer plan`` all
 use it this way)::
 
-    planner = GraphPlanner(PlannerParams(), robot_radius=0.15)
+    planner = GraphPlanner(PlannerParams(), robot_radius=0.13)
     planner.set_obstacles([poly, ...])          # convex polygons (k, 2) [m]; or set_free_cells
     planner.set_goal((x, y), tolerance=0.1)
-    ref = planner.plan(position, velocity, stamp_ns)   # ComReference, or None: no path
-    ref = planner.refine(position, velocity, stamp_ns) # refined ComReference (100-200 Hz)
-    hold = planner.hold_reference(position, stamp_ns)  # hop in place when there is no path
-    wps = planner.waypoints(stamp_ns)                  # graph path and its convex sets
+    if planner.needs_replan(position, now_ns, params.replan_deviation):  # world/goal/tube changed, or off the path
+        ref = planner.plan(position, velocity, now_ns)  # ComReference, or None: no path
+    ref = planner.refine(position, velocity, now_ns)    # refined ComReference (100-200 Hz)
+    hold = planner.hold_reference(position, now_ns)     # hop in place when there is no path
+    wps = planner.waypoints(now_ns)                     # graph path and its convex sets
+    report = planner.check_tube(tracking_tube, now_ns)  # ContractReport on a broken promise (tube grows)
+    planner.drain_contract_reports()                    # the reports since the last call
 
-``plan`` builds the graph itself when none fits the planning region; a caller with a
-cache supplies it first with :meth:`GraphPlanner.graph_spec_for` and
-:meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O.
+Positions and velocities are the CoM's ``[x, y]`` in the world frame [m, m/s]; times
+are nanoseconds on the caller's clock. Without fixed ``bounds`` the planning region
+follows start, goal and obstacles. ``plan`` builds the graph itself when none fits the
+region; a caller with a cache supplies it first with :meth:`GraphPlanner.graph_spec_for`
+and :meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O, no threads.
 """
 
 from __future__ import annotations
