@@ -51,6 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refines", type=int, default=50, help="timed MPC iterations")
     parser.add_argument("--samples", type=int, default=100, help="dense samples per edge for the soundness check")
     parser.add_argument("--robot-radius", type=float, default=0.13, help="[m]")
+    parser.add_argument("--tube", type=float, default=PlannerParams().tube, help="[m] low-level tube planned with")
     parser.add_argument("--rest-grid", type=float, default=0.0, help="[m] rest-lattice spacing (0: none, exactly --nodes nodes)")
     parser.add_argument("--seed", type=int, default=0)
 
@@ -79,7 +80,7 @@ def _free_point(rng: np.random.Generator, side: float, obstacles: col.PolygonSet
 
 def measure(args: argparse.Namespace) -> dict:
     side = args.world if args.world > 0 else math.sqrt(args.nodes / NODES_PER_M2)
-    params = PlannerParams(nodes=args.nodes, rest_grid=args.rest_grid)
+    params = PlannerParams(nodes=args.nodes, rest_grid=args.rest_grid, tube=args.tube)
     rng = np.random.default_rng(args.seed)
     # Warm the compiled kernels on a small problem so that timings exclude compilation.
     warm = gp.GraphPlanner(params, args.robot_radius, bounds=(0.0, 0.0, 2.0, 2.0), nodes=200)
