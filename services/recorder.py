@@ -52,6 +52,7 @@ METADATA_NAME = "archer.recorder"
 PART_SUFFIX = ".part"
 MCAP_CHUNK_BYTES = 256 * 1024  # small MCAP chunks: a crash loses little of the .part file
 WRITER_PERIOD_S = 0.02  # the writer thread drains the inbox this often
+REORDER_WINDOW = 64  # a seq further back than this is a restarted publisher, not a late message
 STATE_DIRECTORY_ENV = "STATE_DIRECTORY"  # set by systemd's StateDirectory=
 _BINARY_STAMP_SEQ = struct.Struct("<qQ")  # binary header: magic(4) version(2) kind(2) stamp(8) seq(8)
 _BINARY_STAMP_OFFSET = 8
@@ -107,8 +108,9 @@ class SeqStats:
         if last is not None:
             if seq > last + 1:
                 self.lost += seq - last - 1
-            elif seq == 1:
-                self.restarts += 1  # the publisher came back
+            elif seq == 1 or seq < last - REORDER_WINDOW:
+                self.restarts += 1  # the publisher came back ...
+                self.lost += seq - 1  # ... and these never arrived
             elif seq <= last:
                 self.reordered += 1
                 return

@@ -96,7 +96,10 @@ class Notifier:
 
 def status_line(service: Service) -> str:
     """``running; loop 1000 Hz, rx.state 999 Hz; errors 0; last error: ...``"""
-    st = service.status()
+    try:
+        st = service.status()
+    except Exception as exc:  # noqa: BLE001 - a broken status must not stop the watchdog pings
+        return f"{service.state}; status unavailable: {exc!r}"
     rates = ", ".join(f"{name} {hz:.0f} Hz" for name, hz in sorted(st.rates_hz.items()))
     parts = [st.state]
     if rates:

@@ -44,7 +44,7 @@ from typing import IO
 log = logging.getLogger("archer.supervisor")
 
 UNIT_DIR = Path(__file__).resolve().parent.parent / "deploy" / "systemd"
-POLL_S = 0.005  # supervision tick: notify socket, exits, timeouts
+POLL_S = 0.05  # supervision tick for exits and timeouts (notifications wake it at once)
 CLEAN_SIGNALS = frozenset({signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE})
 WATCHDOG_SIGNAL = signal.SIGABRT  # systemd's default WatchdogSignal=
 KILL_GRACE_S = 1.0  # after SIGKILL, a group still there holds only zombies

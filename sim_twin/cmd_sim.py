@@ -33,6 +33,7 @@ from sim_twin.lockstep import RunConfig, run
 MODES = ("lockstep", "realtime")
 STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode when archer run knows them
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
+SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 BAR_WIDTH = 30
 
@@ -135,7 +136,7 @@ def run_lockstep(args: argparse.Namespace) -> dict:
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.cmd_run import SERVICE_CLASSES
     from services.supervisor import Supervisor, sim_specs
-    from services.zenoh_session import default_endpoint
+    from services.zenoh_session import default_endpoint, endpoint_in_use
     from onboard.topics import namespace
     from sim_twin.twin_service import ScenarioReferenceService, TwinService
 
@@ -169,11 +170,19 @@ def run_realtime(args: argparse.Namespace) -> dict:
         local = [twin]
         if planner == "scenario":
             local.append(ScenarioReferenceService(ns=ns, endpoint=endpoint, params={"twin": twin_params}))
-        tasks = [asyncio.create_task(twin.run())]
-        # each service its own process, under its systemd unit's policy (services/supervisor.py)
-        sup = Supervisor(sim_specs([n for n in wanted if n in SERVICE_CLASSES], endpoint, ns, args.config))
+        tasks: list[asyncio.Task] = []
+        # Each service its own process under its systemd unit's policy (services/supervisor.py), a
+        # router first unless one serves the endpoint already; the twin's physics starts once all
+        # are up, as a robot is switched on under a running stack.
+        units = [n for n in wanted if n in SERVICE_CLASSES]
+        units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
+        sup = Supervisor(sim_specs(units, endpoint, ns, args.config))
         wall0 = time.perf_counter()
         try:
+            sup.start()
+            if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S):
+                raise RuntimeError(f"the services did not start: {sup.summary()}")
+            tasks.append(asyncio.create_task(twin.run()))
             deadline = time.monotonic() + START_TIMEOUT_S
             while twin.state != "running":  # the twin serves the endpoint when no router does
                 if tasks[0].done():
@@ -182,7 +191,6 @@ def run_realtime(args: argparse.Namespace) -> dict:
                     raise RuntimeError("the twin did not start")
                 await asyncio.sleep(0.02)
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
-            sup.start()
             wall0 = time.perf_counter()
             while time.perf_counter() - wall0 < duration:
                 await asyncio.sleep(0.1)

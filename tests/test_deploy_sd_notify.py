@@ -109,3 +109,16 @@ def test_runtime_pings_ready_then_watchdog_only_while_progressing(tmp_path, monk
         asyncio.run(asyncio.wait_for(scenario(), 30))
     finally:
         manager.close()
+
+
+class BrokenStatus(Service):
+    name = "broken"
+
+    def status_extra(self) -> dict[str, float]:
+        raise AttributeError("not set up yet")
+
+
+def test_a_broken_status_does_not_break_the_status_line():
+    from services.sd_notify import status_line
+
+    assert status_line(BrokenStatus(ns="archer/test")).startswith("starting; status unavailable: AttributeError")

@@ -31,6 +31,10 @@ def test_seq_stats_counts_gaps_restarts_and_interleaved_publishers():
     for seq in (1, 2, 3, 6, 7, 7, 1, 2):
         s.observe(seq)
     assert s.as_dict() == {"received": 8, "lost": 2, "restarts": 1, "reordered": 1}
+    late = SeqStats()
+    for seq in [*range(1, 501), 5, 6]:  # came back, its first four messages missed
+        late.observe(seq)
+    assert late.as_dict() == {"received": 502, "lost": 4, "restarts": 1, "reordered": 0}
     # two publishers on one topic (e.g. `phase`: estimator and control), no identity given
     both = SeqStats(max_sources=2)
     for seq in (1, 1, 2, 2, 3, 4, 3, 5):
