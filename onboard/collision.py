@@ -329,6 +329,19 @@ class HullSet:
         return len(self.points)
 
 
+def hull_axes(points: np.ndarray) -> np.ndarray:
+    """Unit normals ``(E, K (K-1) / 2, 2)`` to the directions between the control points of
+    ``(E, K, 2)`` sets (0 for coincident points): the hulls' candidate separating axes."""
+    pts = np.asarray(points, dtype=float)
+    i, j = np.triu_indices(pts.shape[1], k=1)
+    d = pts[:, j, :] - pts[:, i, :]
+    length = np.hypot(d[..., 0], d[..., 1])
+    safe = np.where(length > VERTEX_MERGE_TOL, length, 1.0)
+    axes = np.stack([-d[..., 1], d[..., 0]], axis=-1) / safe[..., None]
+    axes[length <= VERTEX_MERGE_TOL] = 0.0
+    return np.ascontiguousarray(axes)
+
+
 def hull_set(points: np.ndarray) -> HullSet:
     """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points."""
     pts = np.ascontiguousarray(points, dtype=float)
@@ -341,12 +354,7 @@ def hull_set(points: np.ndarray) -> HullSet:
     aabb = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
     center = np.ascontiguousarray((lo + hi) / 2)
     radius = np.sqrt(np.max(np.sum((pts - center[:, None, :]) ** 2, axis=2), axis=1)) if len(pts) else np.zeros(0)
-    i, j = np.triu_indices(pts.shape[1], k=1)
-    d = pts[:, j, :] - pts[:, i, :]
-    length = np.hypot(d[..., 0], d[..., 1])
-    safe = np.where(length > VERTEX_MERGE_TOL, length, 1.0)
-    axes = np.stack([-d[..., 1], d[..., 0]], axis=-1) / safe[..., None]
-    axes[length <= VERTEX_MERGE_TOL] = 0.0
+    axes = hull_axes(pts)
     half_max = (hi - lo).max(axis=0) / 2 if len(pts) else np.zeros(2)
     grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
     cx = np.clip(((center[:, 0] - grid.x0) // grid.h).astype(np.int64), 0, grid.nx - 1)
@@ -827,12 +835,12 @@ def separating_halfspaces(points: np.ndarray, obstacles: PolygonSet, margin: flo
     thesis's adjacentHyperplane). Obstacles whose bounding circle is farther than
     ``reach`` [m] from the hull's are skipped; unused rows are ``[0, 0, inf]``.
     """
-    hulls = hull_set(points)
+    pts = np.ascontiguousarray(points, dtype=float)
     if len(obstacles) == 0 or count <= 0:
-        out = np.zeros((len(hulls), max(count, 0), 3))
+        out = np.zeros((len(pts), max(count, 0), 3))
         out[:, :, 2] = np.inf
         return out
-    return _halfspaces_kernel(hulls.points, hulls.axes, obstacles.vertices, obstacles.offsets,
+    return _halfspaces_kernel(pts, hull_axes(pts), obstacles.vertices, obstacles.offsets,
                               obstacles.normals, obstacles.face_offsets, obstacles.center,
                               obstacles.radius, float(margin), int(count), float(reach))
 
