@@ -279,3 +279,21 @@ def test_waypoint_sets_contain_their_segments_and_keep_the_margin(graph):
         inside = cand[np.all(cand @ A.T <= b, axis=1)]
         clearance = col.samples_clearance(inside[:, None, :], col.pack_polygons(polys), reach=5.0)
         assert clearance.min() >= planner.margin - 1e-8
+
+
+def test_moving_obstacle_triggers_a_replan_around_it(graph):
+    planner = _planner(graph)
+    planner.set_obstacles([_box(3.0, 5.0, 0.3, 0.3)])
+    planner.set_goal((5.0, 3.0), 0.1)
+    assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
+    assert not planner.needs_replan((1.0, 3.0), 0, 0.3)
+    # The obstacle moves onto the straight line: the world changed, the old path now collides.
+    moved = [_box(3.0, 3.0, 0.3, 0.3)]
+    planner.set_obstacles(moved)
+    assert planner.needs_replan((1.0, 3.0), 0, 0.3)
+    old = planner.path.control_points
+    samples = np.stack([_dense(c, 100) for c in old])
+    assert col.samples_clearance(samples, col.pack_polygons(moved), reach=1.0).min() <= planner.margin
+    assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=100_000_000) is not None
+    _assert_clear(planner, moved, planner.path.control_points)
+    assert not planner.needs_replan((1.0, 3.0), 100_000_000, 0.3)
