@@ -52,7 +52,9 @@ METADATA_NAME = "archer.recorder"
 PART_SUFFIX = ".part"
 MCAP_CHUNK_BYTES = 256 * 1024  # small MCAP chunks: a crash loses little of the .part file
 WRITER_PERIOD_S = 0.02  # the writer thread drains the inbox this often
+MCAP_TIME_LIMIT = 1 << 63  # MCAP stores times as u64; Python ints are unbounded
 REORDER_WINDOW = 64  # a seq further back than this is a restarted publisher, not a late message
+BACKLOG_STALL = 100_000  # queued messages (~20 s of every topic) beyond which a growing backlog is a stall
 STATE_DIRECTORY_ENV = "STATE_DIRECTORY"  # set by systemd's StateDirectory=
 _BINARY_STAMP_SEQ = struct.Struct("<qQ")  # binary header: magic(4) version(2) kind(2) stamp(8) seq(8)
 _BINARY_STAMP_OFFSET = 8
@@ -249,6 +251,7 @@ class RecorderService(Service):
         self.seq_stats = {t.name: SeqStats(max(1, len(t.publishers))) for t in TOPICS.values()}
         self._inbox: collections.deque[tuple[str, Topic, int, bytes, Any]] = collections.deque()
         self._stop_writer = threading.Event()
+        self._last_backlog = 0
         self._status_schema = _json_schema(m.ServiceStatus)
         self._schemas = {t.name: schema_for(t) for t in TOPICS.values()}
         rate = self.rate("rx")
@@ -270,13 +273,18 @@ class RecorderService(Service):
         self.log.info("recording", extra={"fields": {"directory": str(self.files.directory)}})
 
     def _write_loop(self) -> None:
-        """Drain the inbox into the current file; rotate; finish on stop."""
-        while not self._stop_writer.is_set():
-            time.sleep(WRITER_PERIOD_S)
+        """Drain the inbox into the current file; rotate; finish on stop (or on a failure)."""
+        try:
+            while not self._stop_writer.is_set():
+                time.sleep(WRITER_PERIOD_S)
+                self._drain()
+                self.files.tick(self.metadata)
             self._drain()
-            self.files.tick(self.metadata)
-        self._drain()
-        self.files.finish(self.metadata())
+        except Exception as exc:  # noqa: BLE001 - logged, then main() fails the service
+            self.fail(f"writer: {exc!r}")
+            self.log.exception("recorder writer failed")
+        finally:
+            self.files.finish(self.metadata())
 
     def _drain(self) -> None:
         inbox = self._inbox
@@ -287,7 +295,10 @@ class RecorderService(Service):
                 self.files.write(key, self._status_schema, log_ns, stamp or log_ns, 0, payload)
                 continue
             self.seq_stats[topic.name].observe(seq, source)
-            self.files.write(key, self._schemas[topic.name], log_ns, stamp or log_ns, seq, payload)
+            if not 0 < stamp < MCAP_TIME_LIMIT:  # MCAP times are unsigned; keep the message anyway
+                self.count(f"bad_stamp.{topic.name}")
+                stamp = log_ns
+            self.files.write(key, self._schemas[topic.name], log_ns, stamp, seq, payload)
 
     def record_status(self, status: m.ServiceStatus) -> None:
         """Queue one service's status as a message on ``ns/svc/<name>/status``."""
@@ -334,6 +345,15 @@ class RecorderService(Service):
                 await asyncio.wait_for(self.stopping.wait(), period)
             except asyncio.TimeoutError:
                 await asyncio.to_thread(poll)
+            if not self._writer.is_alive():  # exit with an error: the supervisor restarts us
+                raise RuntimeError("the recorder's writer thread died")
+
+    def progress(self) -> bool:
+        """The writer thread lives and keeps up (what arrives gets written)."""
+        backlog = len(self._inbox)
+        alive_and_draining = self._writer.is_alive() and (backlog < BACKLOG_STALL or backlog < self._last_backlog)
+        self._last_backlog = backlog
+        return alive_and_draining
 
     async def teardown(self) -> None:
         self._stop_writer.set()

@@ -46,20 +46,20 @@ def test_seq_stats_counts_gaps_restarts_and_interleaved_publishers():
     assert ident.lost == 2  # b skipped 10 and 11; a's first seq is not a loss
 
 
-def _state(seq: int) -> bytes:
+def _state(seq: int, stamp_ns: int | None = None) -> bytes:
     msg = m.StateEstimate(
-        stamp_ns=time.monotonic_ns(), seq=seq, position=[0.0, 0.0, 0.4], velocity=[0.0, 0.0, 0.0],
+        stamp_ns=time.monotonic_ns() if stamp_ns is None else stamp_ns, seq=seq, position=[0.0, 0.0, 0.4], velocity=[0.0, 0.0, 0.0],
         quat=[1.0, 0.0, 0.0, 0.0], omega=[0.0, 0.0, 0.0], wheel_vel=[0.0, 0.0, 0.0], foot_pos=0.0,
         foot_vel=0.0, contact=False, phase="flight", pos_vel_cov=[0.0] * 36, att_cov=[0.0, 0.0, 0.0],
     )
     return m.encode(msg)
 
 
-def _publish(session: zenoh.Session, seqs: list[int], period_s: float) -> None:
+def _publish(session: zenoh.Session, seqs: list[int], period_s: float, bad_stamp_at: int = 0) -> None:
     pub = session.declare_publisher(TOPICS["state"].key(NS), reliability=zenoh.Reliability.RELIABLE, congestion_control=zenoh.CongestionControl.BLOCK)
     time.sleep(0.3)  # a fresh session learns of the recorder's subscription asynchronously
     for seq in seqs:
-        pub.put(_state(seq))
+        pub.put(_state(seq, -5 if seq == bad_stamp_at else None))
         time.sleep(period_s)
     pub.undeclare()
 
@@ -87,7 +87,7 @@ def test_recorder_rotates_into_finished_files_with_schemas(tmp_path, zenoh_route
             while rec.state != "running":
                 await asyncio.sleep(0.02)
             await asyncio.sleep(0.3)  # subscription reaches the router
-            await asyncio.to_thread(_publish, session, seqs, 0.005)
+            await asyncio.to_thread(_publish, session, seqs, 0.005, 200)  # one stamp MCAP cannot store
             await asyncio.sleep(0.3)
         finally:
             rec.stopping.set()
@@ -101,6 +101,7 @@ def test_recorder_rotates_into_finished_files_with_schemas(tmp_path, zenoh_route
     recorded = [s for f in files for s in _valid_messages(f) if s]  # statuses carry seq 0
     assert recorded == seqs
     assert rec.seq_stats["state"].as_dict() == {"received": len(seqs), "lost": 3, "restarts": 0, "reordered": 0}
+    assert rec.counters.get("bad_stamp.state") == 1 and rec.counters.get("errors") == 0
     assert file_metadata(files[-1])["state"]["lost"] == 3
     with open(files[0], "rb") as f:
         reader = make_reader(f)
