@@ -80,6 +80,7 @@ DIM = 2  # horizontal plane
 PRUNE_SLACK = 1e-9  # relative slack on the k-d tree radius (pairs exactly at the reach)
 SAMPLING = ("uniform", "grid")
 MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
+START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its clearance less this
 MAX_LATTICE = 200_000  # rest-lattice nodes at most (memory)
 # MPC cost (eq. 7.2): stay near the graph path, but prefer a shorter, smoother curve
 # (thesis: "path length cost was scaled significantly higher than tracking cost").
@@ -622,16 +623,17 @@ class GraphPlanner:
 
     # --- cut ---------------------------------------------------------------------------
 
-    def _blocked(self, hulls: col.HullSet) -> tuple[np.ndarray, np.ndarray]:
-        """Blocked mask and (free mode) containing cell of arbitrary curves."""
+    def _blocked(self, hulls: col.HullSet, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Blocked mask and (free mode) containing cell of arbitrary curves (``margin``: default the planner's)."""
         assert self.graph is not None
+        margin = self.margin if margin is None else margin
         xmin, ymin, xmax, ymax = self.graph.spec.bounds
         outside = ((hulls.aabb[:, 0] < xmin) | (hulls.aabb[:, 1] < ymin)
                    | (hulls.aabb[:, 2] > xmax) | (hulls.aabb[:, 3] > ymax))
         if self.mode == "free":
-            cell = col.free_cell_of(hulls, self.cells, self.margin, active=~outside)
+            cell = col.free_cell_of(hulls, self.cells, margin, active=~outside)
             return outside | (cell < 0), cell
-        return outside | col.cut_obstacles(hulls, self.obstacles, self.margin, active=~outside), np.full(len(hulls), -1)
+        return outside | col.cut_obstacles(hulls, self.obstacles, margin, active=~outside), np.full(len(hulls), -1)
 
     def cut(self) -> np.ndarray:
         """Recut the graph if the world, the tube or the graph changed; the free-edge mask."""
@@ -656,7 +658,7 @@ class GraphPlanner:
         # The planning model cannot start faster than its bound; the tube absorbs the rest.
         return np.concatenate([p, np.clip(v, -self.params.v_max, self.params.v_max)])
 
-    def _connect(self, x: np.ndarray, outgoing: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _connect(self, x: np.ndarray, outgoing: bool, margin: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nodes joined to the virtual state ``x`` by a free segment: (nodes, costs, control points)."""
         assert self.graph is not None and self._tree is not None
         near = np.array(self._tree.query_ball_point(x / self._scale, 1.0 + PRUNE_SLACK, p=np.inf), dtype=np.int64)
@@ -669,9 +671,21 @@ class GraphPlanner:
         near, others = near[ok], others[ok]
         ctrl = test.curve(xs[: len(near)], others) if outgoing else test.curve(others, xs[: len(near)])
         if len(near):
-            blocked, _ = self._blocked(col.hull_set(ctrl))
+            blocked, _ = self._blocked(col.hull_set(ctrl), margin)
             near, ctrl = near[~blocked], ctrl[~blocked]
         return near, bz.path_length_bound(ctrl), ctrl
+
+    def start_margin(self, position: np.ndarray) -> float:
+        """Clearance the segments leaving the start must keep: the margin, or, when the
+        robot already stands closer to an obstacle (its tube was exceeded), what it has
+        now -- so that it can leave (never below the robot radius: that is a collision)."""
+        if self.mode != "obstacles" or len(self.obstacles) == 0:
+            return self.margin
+        p = np.asarray(position, dtype=float)[:2]
+        have = float(col.samples_clearance(p[None, None, :], self.obstacles, reach=self.margin)[0])
+        if have >= self.margin:
+            return self.margin
+        return max(have - START_SLACK, self.robot_radius)
 
     def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0) -> msgs.ComReference | None:
         """Cut (if needed) and search from the state at ``stamp_ns``; None when there is no path.
@@ -691,7 +705,8 @@ class GraphPlanner:
         # Start: the state itself joined by free segments, plus nodes containing it in the tube.
         # Search cost: path-length bound (Property 2.49) plus time_weight per segment (its duration).
         extra = self.params.time_weight * graph.spec.tau
-        s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True)
+        start_margin = self.start_margin(x0)
+        s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True, margin=start_margin)
         s_costs = s_costs + extra
         contains = np.flatnonzero(
             (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
@@ -704,7 +719,7 @@ class GraphPlanner:
         direct_ok = graph.reachability.test(x0, goal_state)
         if direct_ok:
             direct = graph.reachability.curve(x0, goal_state)
-            if not self._blocked(col.hull_set(direct[None]))[0][0]:
+            if not self._blocked(col.hull_set(direct[None]), start_margin)[0][0]:
                 start_edge_ctrl[N] = direct
                 start_nodes.append(np.array([N]))
                 start_costs.append(np.array([bz.path_length_bound(direct) + extra]))

@@ -297,3 +297,19 @@ def test_moving_obstacle_triggers_a_replan_around_it(graph):
     assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=100_000_000) is not None
     _assert_clear(planner, moved, planner.path.control_points)
     assert not planner.needs_replan((1.0, 3.0), 100_000_000, 0.3)
+
+
+def test_a_start_inside_the_margin_may_leave_keeping_its_clearance(graph):
+    planner = _planner(graph)
+    wall = _box(2.0, 3.0, 0.1, 1.0)
+    planner.set_obstacles([wall])
+    planner.set_goal((5.0, 3.0), 0.1)
+    start = (2.1 + 0.18, 3.0)  # 0.18 m from the wall: inside the 0.23 m margin, outside the robot
+    assert planner.start_margin(start) == pytest.approx(0.18 - gp.START_SLACK)
+    assert planner.plan(start, (0.0, 0.0)) is not None
+    samples = np.stack([_dense(c, 200) for c in planner.path.control_points])
+    clearance = col.samples_clearance(samples, col.pack_polygons([wall]), reach=1.0)
+    assert clearance[0] >= 0.18 - gp.START_SLACK and np.all(clearance[1:] > planner.margin)
+    # Touching the wall already: no way out that keeps the robot clear.
+    assert planner.start_margin((2.1 + 0.05, 3.0)) == ROBOT_RADIUS
+    assert planner.plan((2.1 + 0.05, 3.0), (0.0, 0.0)) is None
