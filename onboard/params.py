@@ -158,7 +158,7 @@ class ControlParams:
     # ground: flywheel spin-down u = -gamma * wheel speed (thesis 2723-2731)
     spin_down_gamma: float = 0.03  # [N m s/rad]
     # foot: hop-height regulator (preload in flight, release at touchdown)
-    hop_height: float = 0.10  # CoM rise from touchdown to apex [m]
+    hop_height: float = 0.12  # CoM rise from touchdown to apex [m] (higher: fewer hops per metre, less wheel momentum)
     hop_gain: float = 0.5  # fraction of the hop-energy error corrected per hop
     loss_adapt: float = 0.2  # per-hop gain of the energy-loss estimate
     preload_max: float = 0.05  # [m] spring compression the cable may hold

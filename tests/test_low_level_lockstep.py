@@ -14,7 +14,7 @@ LIMITS = SafetyLimits()
 
 
 def test_hundreds_of_hops_in_place_without_a_fall():
-    res = run(RunConfig(scenario="hop-in-place", estimator="truth", duration_s=72.0))
+    res = run(RunConfig(scenario="hop-in-place", estimator="truth", duration_s=80.0))
     m = res.metrics
     assert m["falls"] == 0
     assert m["hops"] >= 200
