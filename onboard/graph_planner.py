@@ -687,15 +687,19 @@ class GraphPlanner:
             return self.margin
         return max(have - START_SLACK, self.robot_radius)
 
-    def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0) -> msgs.ComReference | None:
+    def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0,
+             build: bool = True) -> msgs.ComReference | None:
         """Cut (if needed) and search from the state at ``stamp_ns``; None when there is no path.
 
-        The result is also kept in :attr:`path` for :meth:`refine` and :meth:`waypoints`.
+        ``build=False`` plans on the current graph even when another would fit the region
+        better (a caller building that one meanwhile); it needs a graph. The result is also
+        kept in :attr:`path` for :meth:`refine` and :meth:`waypoints`.
         """
         if self.goal is None:
             raise PlanningError("no goal set")
         x0 = self._state(position, velocity)
-        self._ensure_graph(x0[:2])
+        if build or self.graph is None:
+            self._ensure_graph(x0[:2])
         graph = self.graph
         assert graph is not None
         free = self.cut()

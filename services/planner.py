@@ -191,7 +191,7 @@ class PlannerService(Service):
         due = now - self._last_plan_ns >= 1e9 / self.prm.replan_hz
         if due and self.planner.needs_replan(pos, now, self.prm.replan_deviation):
             t0 = time.perf_counter()
-            ref = self.planner.plan(pos, vel, now)
+            ref = self.planner.plan(pos, vel, now, build=False)
             self._plan_ms = (time.perf_counter() - t0) * 1e3
             self._last_plan_ns = now
             self.rate("plan").tick()
@@ -220,26 +220,27 @@ class PlannerService(Service):
         self.pub_reference.put(self.planner.hold_reference(self._hold_xy, now))
 
     def _graph_ready(self, pos: np.ndarray) -> bool:
+        """Whether there is a graph to plan on; starts building (or loading) the one the
+        region needs when it is not the current one. The current graph stays in use while
+        the new one builds if it still holds the robot and the goal."""
         spec = self.planner.graph_spec_for(pos)
         graph = self.planner.graph
         if graph is not None and graph.spec == spec:
             return True
-        if self._build is not None and self._build_spec == spec:
-            if not self._build.done():
-                return False
+        if self._build is None or self._build_spec != spec:
+            self._build_spec = spec
+            self._build = self._builder.submit(load_or_build_graph, spec, self._cache_dir)
+        if self._build.done():
+            build, self._build = self._build, None
             try:
-                g, cached = self._build.result()
+                g, cached = build.result()
             except Exception as exc:
                 self.fail(f"graph build: {exc!r}")
-                self._build = None
                 return False
             self.planner.set_graph(g)
             self.count("graph_cache_hits" if cached else "graph_builds")
-            self._build = None
             return True
-        self._build_spec = spec
-        self._build = self._builder.submit(load_or_build_graph, spec, self._cache_dir)
-        return False
+        return graph is not None and _holds(graph.spec.bounds, pos, self.planner.goal)
 
     def _ingest(self) -> None:
         got = self.goal_in.take()
@@ -278,3 +279,8 @@ class PlannerService(Service):
         self.pub_contract.put(report)
         self.log.warning("contract violated", extra={"fields": {"promised": report.promised, "achieved": report.achieved,
                                                                "tube": self.planner.tube}})
+
+
+def _holds(bounds: tuple[float, float, float, float], *points: np.ndarray | None) -> bool:
+    xmin, ymin, xmax, ymax = bounds
+    return all(p is None or (xmin <= p[0] <= xmax and ymin <= p[1] <= ymax) for p in points)
