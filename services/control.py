@@ -443,9 +443,7 @@ class ControlService(Service):
             self._applied_control = now
 
     def _restart_soon(self) -> None:
-        loop = self._loop
-        if loop is not None:
-            loop.call_soon_threadsafe(self._restart.set)
+        self.call_in_loop(self._restart.set)
 
     def request_arm(self) -> None:
         if self._loop_proc is not None:

@@ -25,12 +25,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-import zenoh
-
-from onboard import messages as msgs
 from onboard.estimator import StateEstimator
 from onboard.params import EstimatorParams
-from onboard.topics import TOPICS
 from services.realtime import DeadlineLoop
 from services.runtime import Service
 from sim_twin.model import robot_params
@@ -63,24 +59,15 @@ class EstimatorService(Service):
         }
 
     def _subscribe_queued(self, topic_name: str) -> None:
-        topic = TOPICS[topic_name]
-        decode = self._decoder(topic)
-        rate = self.rate(f"rx.{topic_name}")
         queue = self._queue
 
-        def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread: decode, append, return
-            try:
-                msg = decode(sample)
-            except msgs.MessageError as exc:
-                self._reject(topic, exc)
-                return
-            rate.tick()
+        def deliver(msg: Any) -> None:  # a Zenoh thread: append and return
             if len(queue) >= self._queue_max:
                 queue.popleft()
                 self.count("dropped.queue_full")
             queue.append((topic_name, msg))
 
-        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+        self.on_message(topic_name, deliver)
 
     def _tick(self, _deadline_s: float) -> None:
         queue = self._queue

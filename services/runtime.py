@@ -230,7 +230,7 @@ class Service:
         self._declared: list[Any] = []
         self._tasks: list[asyncio.Task] = []
         self._last_reject_log: dict[str, float] = {}
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._aio_loop: asyncio.AbstractEventLoop | None = None
         self._started_ns = 0
 
     # --- what subclasses override -------------------------------------------------
@@ -284,10 +284,13 @@ class Service:
             total = self.counters.get(f"rejected.{topic.name}")
             self.log.warning("rejected payload", extra={"fields": {"topic": topic.name, "error": str(exc), "rejected_total": total}})
 
-    def latest(self, topic_name: str) -> LatestSlot:
-        """A latest-value slot kept current by a Zenoh subscription."""
+    def on_message(self, topic_name: str, deliver: Callable[[Any], None]) -> None:
+        """Call ``deliver(msg)`` on a Zenoh thread for every message that decodes.
+
+        ``deliver`` must not block (append to a deque, fill a slot, hand over to a
+        loop). Rejected payloads are counted and logged here, never delivered.
+        """
         topic = TOPICS[topic_name]
-        slot: LatestSlot = LatestSlot()
         decode = self._decoder(topic)
         rate = self.rate(f"rx.{topic_name}")
 
@@ -298,18 +301,20 @@ class Service:
                 self._reject(topic, exc)
                 return
             rate.tick()
-            slot.put(msg, self.clock.now_ns())
+            deliver(msg)
 
         self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+
+    def latest(self, topic_name: str) -> LatestSlot:
+        """A latest-value slot kept current by a Zenoh subscription."""
+        slot: LatestSlot = LatestSlot()
+        self.on_message(topic_name, lambda msg: slot.put(msg, self.clock.now_ns()))
         return slot
 
     def subscribe(self, topic_name: str, callback: Callable[[Any], Awaitable[None]]) -> None:
         """Deliver each decoded message to ``callback`` on the asyncio loop."""
-        topic = TOPICS[topic_name]
-        decode = self._decoder(topic)
-        rate = self.rate(f"rx.{topic_name}")
         queue: asyncio.Queue = asyncio.Queue(ASYNC_QUEUE_DEPTH)
-        loop = self._loop
+        loop = self._aio_loop
         assert loop is not None, "subscribe() belongs in setup()"
 
         def offer(msg: Any) -> None:  # on the loop thread
@@ -317,15 +322,6 @@ class Service:
                 queue.get_nowait()
                 self.counters.add(f"dropped.{topic_name}")
             queue.put_nowait(msg)
-
-        def on_sample(sample: zenoh.Sample) -> None:  # on a Zenoh thread: never blocks
-            try:
-                msg = decode(sample)
-            except msgs.MessageError as exc:
-                self._reject(topic, exc)
-                return
-            rate.tick()
-            loop.call_soon_threadsafe(offer, msg)
 
         async def consume() -> None:
             while True:
@@ -337,7 +333,7 @@ class Service:
                     self.log.exception("handler failed", extra={"fields": {"topic": topic_name}})
 
         self._tasks.append(loop.create_task(consume(), name=f"{self.name}.{topic_name}"))
-        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+        self.on_message(topic_name, lambda msg: loop.call_soon_threadsafe(offer, msg))
 
     # --- health -----------------------------------------------------------------------
 
@@ -420,7 +416,7 @@ class Service:
         return open_session(self.endpoint, mode, self._zenoh_config_file)
 
     async def run(self) -> None:
-        self._loop = asyncio.get_running_loop()
+        self._aio_loop = asyncio.get_running_loop()
         self._started_ns = self.clock.now_ns()
         if self.session is None:
             self.session = await asyncio.to_thread(self._open_session)
@@ -469,10 +465,14 @@ class Service:
                 await asyncio.to_thread(self.session.close)
             self.log.info("stopped")
 
+    def call_in_loop(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn(*args)`` on the service's event loop; safe from any thread."""
+        if self._aio_loop is not None:
+            self._aio_loop.call_soon_threadsafe(fn, *args)
+
     def request_stop(self) -> None:
         """Thread-safe stop request."""
-        if self._loop is not None:
-            self._loop.call_soon_threadsafe(self.stopping.set)
+        self.call_in_loop(self.stopping.set)
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:
