@@ -15,6 +15,7 @@ import sys
 BENCHES: dict[str, tuple[str, str]] = {
     # subject: (module, one-line help)
     "perception": ("services.bench_perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
+    "zdp": ("services.bench_zdp", "clipped ZDP vs plain LQR, Raibert and the MLP on a 2 m setpoint in the twin (thesis Fig. 5.22)"),
     "control": ("services.bench_control", "the 1 kHz control loop in its own process with the other core busy: tick time, period jitter, overruns"),
     "messaging": ("services.bench_messaging", "Zenoh latency and loss between two processes at 1 kHz"),
     "hardware": ("services.bench_hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
