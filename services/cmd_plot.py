@@ -80,6 +80,9 @@ def load(paths: list[str]) -> tuple[dict[str, Series], dict[str, int]]:
         except m.MessageError:
             skipped[f"invalid {name}"] += 1
             continue
+        if msg.stamp_ns <= 0:  # no time of its own (e.g. an estimate before any sensor data)
+            skipped[f"unstamped {name}"] += 1
+            continue
         s = series[name]
         s.stamps.append(msg.stamp_ns)
         s.arrivals.append(rec.log_ns)

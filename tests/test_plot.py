@@ -34,17 +34,19 @@ def _state(t_ns: int, seq: int) -> m.StateEstimate:
 def write_recording(directory: Path) -> None:
     """Three seconds of a robot tracking a straight reference 5 cm off, at 100 Hz."""
     files = RotatingMcap(directory, RecorderParams(chunk_bytes=100_000))  # rotates by size
-    ref = m.ComReference(stamp_ns=0, t_ref_ns=0, segments=[m.BezierSegment(t0=0.0, duration=10.0, control_points=[[0.0, 0.0], [SPEED * 10, 0.0]])])
+    ref = m.ComReference(stamp_ns=1, t_ref_ns=0, segments=[m.BezierSegment(t0=0.0, duration=10.0, control_points=[[0.0, 0.0], [SPEED * 10, 0.0]])])
 
     def put(topic: str, msg: m.Message) -> None:
-        files.write(TOPICS[topic].key(NS), schema_for(TOPICS[topic]), msg.stamp_ns, msg.stamp_ns, msg.seq, m.encode(msg))
+        t = max(msg.stamp_ns, 0)  # MCAP times are unsigned (the recorder substitutes the arrival time)
+        files.write(TOPICS[topic].key(NS), schema_for(TOPICS[topic]), t, t, msg.seq, m.encode(msg))
 
     put("reference", ref)
+    put("state", _state(-1, 0))  # an estimate before any sensor data: no time of its own
     put("goal", m.Goal(stamp_ns=1, seq=1, position=[2.0, 0.0]))
     square = m.Polytope(A=[[1, 0], [-1, 0], [0, 1], [0, -1]], b=[1.2, -1.0, 0.5, -0.3], vertices=[[1.0, 0.3], [1.2, 0.3], [1.2, 0.5], [1.0, 0.5]])
     put("polytopes", m.PolytopeSet(stamp_ns=1, seq=1, mode="obstacles", polytopes=[square]))
     for i in range(300):
-        t = i * 10 * MS
+        t = (i + 1) * 10 * MS
         put("state", _state(t, i + 1))
         put("torque_cmd", m.TorqueCommand(stamp_ns=t, seq=i + 1, wheel_torque=[0.1, 0.0, -0.1], foot_torque=1.0, armed=i >= 10))
         if i % 50 == 0:
@@ -73,6 +75,7 @@ def test_archer_plot_writes_pngs_and_figures(tmp_path):
     for name in names:
         data = (out / name).read_bytes()
         assert data.startswith(PNG_MAGIC) and len(data) > 10_000
+    assert summary["skipped"] == {"unstamped state": 1}
     assert summary["messages"]["state"] == 300 and summary["messages"]["status:control"] == 6
     assert summary["tracking_error_m"]["p50"] == pytest.approx(OFFSET_M, abs=1e-9)
     assert summary["tracking_error_m"]["max"] == pytest.approx(OFFSET_M, abs=1e-9)
