@@ -30,6 +30,7 @@ import dataclasses
 import functools
 import logging
 import multiprocessing as mp
+import signal
 import threading
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -245,7 +246,13 @@ class ControlLoop:
 
 
 def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
-    """Entry point of the loop process: build, report ready, loop until told to stop."""
+    """Entry point of the loop process: build, report ready, loop until told to stop.
+
+    Ignores SIGINT and SIGTERM (a terminal or systemd signals the whole group): the
+    parent stops the loop over the pipe, and the loop stops by itself when the pipe
+    breaks (parent gone)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         applied = make_realtime(cfg.control.rt_priority or None, cfg.control.cpu if cfg.control.cpu >= 0 else None)
         loop = ControlLoop(cfg)
