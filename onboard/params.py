@@ -299,6 +299,7 @@ class PerceptionParams:
     ransac_inlier_m: float = 0.03  # plane distance of a RANSAC inlier
     ground_min_points: int = 30  # fewer inliers: fall back to the plane z = 0
     ground_tilt_max_deg: float = 25.0  # a ground-plane candidate tilted more is rejected
+    plane_keep_fraction: float = 0.9  # keep the last plane while it has this share of a new fit's inliers
     ground_tol_m: float = 0.04  # points this close to the ground plane are ground...
     ground_tol_per_m: float = 0.012  # ...plus this per metre of range (depth noise grows with range)
     slope_max_deg: float = 25.0  # ground points whose surface is steeper are obstacles
@@ -309,7 +310,8 @@ class PerceptionParams:
     # occupancy grid: world frame, square, follows the robot by whole cells
     grid_cells: int = 200  # the published pipeline: 200 x 200 cells of 5 cm
     resolution_m: float = 0.05
-    hit_evidence: float = 1.0  # added per view to a cell with obstacle points
+    min_points_per_cell: int = 2  # obstacle points a cell needs in one view to count as hit
+    hit_evidence: float = 1.0  # added per view to a hit cell
     miss_evidence: float = 0.5  # removed per view from a cell seen as ground
     evidence_max: float = 3.0  # saturation, both signs
     occupied_threshold: float = 0.9  # evidence at or above: occupied

@@ -145,8 +145,9 @@ def test_learned_segmenter_plugs_in():
 def test_occupancy_fuses_views_decays_and_follows():
     p = PARAMS
     occ_map = OccupancyMap(p)
-    pts = np.array([[1.0, 1.0, 0.3], [1.5, 0.0, 0.0]])
-    labels = np.array([OCCUPIED, TRAVERSABLE], dtype=np.int8)
+    # A column of two obstacle returns at (1, 1), a ground return, a lone obstacle return.
+    pts = np.array([[1.0, 1.0, 0.3], [1.01, 1.01, 0.5], [1.5, 0.0, 0.0], [2.0, -1.0, 0.2]])
+    labels = np.array([OCCUPIED, OCCUPIED, TRAVERSABLE, OCCUPIED], dtype=np.int8)
     occ_map.integrate(pts, labels, (0.0, 0.0), stamp_s=0.0)
     g = occ_map.grid()
     res, (ox, oy) = g.resolution, g.origin
@@ -155,6 +156,7 @@ def test_occupancy_fuses_views_decays_and_follows():
     assert g.cells[cell(1.5, 0.0)] == CELL_FREE
     assert g.cells[cell(0.75, 0.0)] == CELL_FREE  # carved along the ray to the ground return
     assert g.cells[cell(-1.0, 0.0)] == CELL_UNKNOWN
+    assert g.cells[cell(2.0, -1.0)] != CELL_OCCUPIED  # one return is noise, not an obstacle
     # Seen again, then an empty view later: unseen cells fade (one half-life halves the
     # evidence); after many half-lives they are unknown.
     occ_map.integrate(pts, labels, (0.0, 0.0), stamp_s=0.1)
@@ -165,7 +167,7 @@ def test_occupancy_fuses_views_decays_and_follows():
     assert occ_map.grid().cells[cell(1.0, 1.0)] == CELL_UNKNOWN
     # Repeated evidence saturates, and a single contrary view does not flip a confident cell.
     for k in range(5):
-        occ_map.integrate(pts[:1], labels[:1], (0.0, 0.0), stamp_s=100.0 + k)
+        occ_map.integrate(pts[:2], labels[:2], (0.0, 0.0), stamp_s=100.0 + k)
     occ_map.integrate(np.array([[1.0, 1.0, 0.0]]), np.array([TRAVERSABLE], dtype=np.int8), (0.0, 0.0), stamp_s=106.0)
     assert occ_map.grid().cells[cell(1.0, 1.0)] == CELL_OCCUPIED
     # Following the robot shifts by whole cells and keeps world positions.
@@ -229,3 +231,20 @@ def test_integrate_rejects_non_finite_robot_position():
         view.integrate(render((0, 0, 0.5)), robot_xy=(math.nan, 0.0))
     with pytest.raises(ValueError, match="mode"):
         Perception(dataclasses.replace(PARAMS, mode="everything"))
+
+
+def test_ground_plane_is_kept_while_it_explains_the_view_and_follows_a_new_slope():
+    seg = GeometricSegmenter(PARAMS)
+    flat = render((0, 0, 0.5), cylinders=TREES)
+    pts, valid = depth_to_points(flat, PARAMS.max_range_m)
+    seg.segment(Cloud(pts, valid, flat.cam_pos))
+    first = seg.plane
+    img = render((0, 0, 0.55), yaw=0.3, cylinders=TREES)
+    pts, valid = depth_to_points(img, PARAMS.max_range_m)
+    seg.segment(Cloud(pts, valid, img.cam_pos))
+    assert seg.kept == 1 and np.array_equal(seg.plane.normal, first.normal)
+    slope = math.tan(math.radians(12))
+    img = render((0, 0, 0.5), ground_slope=slope)  # the robot now faces a ramp
+    pts, valid = depth_to_points(img, PARAMS.max_range_m)
+    seg.segment(Cloud(pts, valid, img.cam_pos))
+    assert math.degrees(math.acos(seg.plane.normal[2])) == pytest.approx(12.0, abs=0.5)

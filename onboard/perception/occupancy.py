@@ -1,7 +1,7 @@
 """World-frame occupancy grid fused over views, with decay (thesis 3336: vertical binning).
 
 Labelled points are binned vertically into square cells. Each view adds evidence:
-``+hit`` to a cell holding obstacle points, ``-miss`` to a cell seen as ground (a
+``+hit`` to a cell holding at least ``min_points_per_cell`` obstacle points, ``-miss`` to a cell seen as ground (a
 ground return in it, or a ray passing over it on its way to a return within the
 carving range). Evidence saturates at ``+-evidence_max``; cells a view does not see
 fade to unknown with a half-life, so what moved away is forgotten. The grid follows
@@ -91,8 +91,11 @@ class OccupancyMap:
         inside = fin & (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
         c = np.where(inside, u, 0).astype(np.intp)
         r = np.where(inside, v, 0).astype(np.intp)
-        occ = np.zeros(self.shape, dtype=bool)
-        occ[r[inside & (labels == OCCUPIED)], c[inside & (labels == OCCUPIED)]] = True
+        # Vertical binning: a real obstacle puts a column of returns into its cell, a
+        # noisy ground return only one, so a cell needs a few obstacle points per view.
+        hit = inside & (labels == OCCUPIED)
+        counts = np.bincount(r[hit] * cols + c[hit], minlength=rows * cols).reshape(rows, cols)
+        occ = counts >= p.min_points_per_cell
         ground = np.zeros(self.shape, dtype=bool)
         ground[r[inside & (labels == TRAVERSABLE)], c[inside & (labels == TRAVERSABLE)]] = True
         # Rays over the ground to every return within the carving range.

@@ -127,21 +127,34 @@ def surface_normals(points: np.ndarray, valid: np.ndarray, jump: float, step: in
 
 class GeometricSegmenter:
     """Ground plane by RANSAC; ground = near the plane (a tolerance growing with range)
-    and not steep; obstacles = the
-    rest up to ``obstacle_height_max_m`` above the plane (and anything well below it,
-    a drop-off); higher points are ignored."""
+    and not steep; obstacles = the rest up to ``obstacle_height_max_m`` above the plane
+    (drop-offs below it included); higher points are ignored.
+
+    The ground changes slowly while one RANSAC draw can tilt a few degrees (which lifts
+    far ground by decimetres): the previous plane is kept while it explains the view
+    nearly as well (``plane_keep_fraction`` of the new plane's inliers).
+    """
 
     def __init__(self, params: PerceptionParams = PerceptionParams()) -> None:
         self.params = params
         self.rng = np.random.default_rng(params.seed)
-        self.plane: Plane = FLAT_GROUND  # the last plane found
+        self.plane: Plane = FLAT_GROUND  # the plane of the last view
+        self.found = False  # whether any view had a plane of its own
+        self.kept = 0  # views where the previous plane won over a new fit
 
     def segment(self, cloud: Cloud) -> np.ndarray:
         p = self.params
         labels = np.full(cloud.valid.shape, IGNORE, dtype=np.int8)
         pts = cloud.points[cloud.valid]
         plane = fit_ground_plane(pts, p, self.rng)
-        self.plane = plane if plane is not None else FLAT_GROUND
+        if plane is not None:
+            if self.found:
+                prev = int((np.abs(self.plane.height(pts)) <= p.ransac_inlier_m).sum())
+                if prev >= p.plane_keep_fraction * plane.inliers:
+                    plane = Plane(self.plane.normal, self.plane.offset, prev)
+                    self.kept += 1
+            self.plane = plane
+            self.found = True
         h = self.plane.height(cloud.points)
         nrm, has_nrm = surface_normals(cloud.points, cloud.valid, p.depth_jump_m, p.normal_step_px)
         steep = has_nrm & (nrm @ self.plane.normal < math.cos(math.radians(p.slope_max_deg)))
