@@ -9,8 +9,9 @@ own namespace, with the flight recorder. An operator thread sends a tour of goal
 picks the current one up). At the given times it ``kill -9``s a service's main
 process and measures:
 
-- for ``control``: how long after the kill the twin stops applying torque (its
-  ``safety`` event ``command_stale``, on the same monotonic clock as the kill);
+- for ``control``: how long after the kill torque commands stop arriving, and how
+  long until the twin stops applying torque (its ``safety`` event ``command_stale``,
+  on the same monotonic clock as the kill; only when control was armed then);
 - for ``planner``: how long until a reference flows again, and whether the robot
   kept hopping (no fall) meanwhile.
 
@@ -43,11 +44,13 @@ from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
 NS_DEFAULT = "archer/soak"
 GOAL_RESEND_S = 1.0
 STATUS_PERIOD_S = 5.0
+RESTART_GAP_NS = 500_000_000  # a pause in torque commands this long: the old control is gone
 SERVICES = "estimator,control,planner,recorder"
 
 
-def _pid_of(sim_pid: int, service: str) -> int | None:
-    """The main process of ``archer run SERVICE`` started by our sim (its direct child)."""
+def _children(pid: int) -> list[tuple[int, list[bytes]]]:
+    """``(pid, argv)`` of the processes whose parent is ``pid``."""
+    out = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -57,9 +60,20 @@ def _pid_of(sim_pid: int, service: str) -> int | None:
             cmd = (entry / "cmdline").read_bytes().split(b"\0")
         except (OSError, IndexError, ValueError):
             continue
-        if ppid == sim_pid and b"run" in cmd and service.encode() in cmd:
-            return int(entry.name)
-    return None
+        if ppid == pid:
+            out.append((int(entry.name), cmd))
+    return out
+
+
+def _pid_of(sim_pid: int, target: str) -> int | None:
+    """``SERVICE``: the main process of ``archer run SERVICE`` started by our sim;
+    ``SERVICE/child``: that process's child (the control loop process)."""
+    service, _, child = target.partition("/")
+    main_pid = next((pid for pid, cmd in _children(sim_pid) if b"run" in cmd and service.encode() in cmd), None)
+    if main_pid is None or not child:
+        return main_pid
+    # the multiprocessing child that runs the loop, not its resource tracker
+    return next((pid for pid, cmd in _children(main_pid) if any(b"spawn_main" in part for part in cmd)), None)
 
 
 class Operator:
@@ -69,10 +83,12 @@ class Operator:
         self.session, self.ns, self.goals, self.period_s = session, ns, goals, period_s
         self.safety: list[m.SafetyEvent] = []
         self.reference_rx_ns: list[int] = []
+        self.torque_rx_ns: list[int] = []
         self._stop = threading.Event()
         self._subs = [
             session.declare_subscriber(TOPICS["safety"].key(ns), lambda s: self.safety.append(m.decode(s.payload.to_bytes(), m.SafetyEvent))),
             session.declare_subscriber(TOPICS["reference"].key(ns), lambda s: self.reference_rx_ns.append(time.monotonic_ns())),
+            session.declare_subscriber(TOPICS["torque_cmd"].key(ns), lambda s: self.torque_rx_ns.append(time.monotonic_ns())),
         ]
         self._pub = session.declare_publisher(TOPICS["goal"].key(ns), reliability=zenoh.Reliability.RELIABLE)
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -107,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="hop-in-place", help="twin scenario (hop-in-place: no goal of its own)")
     ap.add_argument("--goals", default="1.5,0;1.5,1.5;0,1.5;0,0", help="tour of goals 'x,y;x,y;...' [m]")
     ap.add_argument("--goal-period", type=float, default=75.0, help="[s] per goal")
-    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE at T seconds")
+    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE (SERVICE/child: its child process) T seconds after the twin started")
     ap.add_argument("--services", default=SERVICES)
     ap.add_argument("--out", default="soak", help="output directory")
     ap.add_argument("--namespace", default=NS_DEFAULT)
@@ -132,6 +148,10 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"sim exited early: see {out / 'sim.stderr'}")
         time.sleep(0.1)
     session = open_session(endpoint, "client")
+    while "twin" not in live_services(session, args.namespace):  # the physics starts with the twin
+        if sim.poll() is not None:
+            raise SystemExit(f"sim exited early: see {out / 'sim.stderr'}")
+        time.sleep(0.2)
     operator = Operator(session, args.namespace, goals, args.goal_period)
     operator.start()
     t0 = time.monotonic()
@@ -171,9 +191,14 @@ def main(argv: list[str] | None = None) -> int:
     lines = (out / "sim.stdout").read_text().strip().splitlines()
     metrics = json.loads(lines[-1]) if lines else {}
     for inj in injected:
-        after = [e for e in operator.safety if e.stamp_ns >= inj["t_kill_ns"] - 20_000_000]
-        if inj["service"] == "control":
-            stale = [e for e in after if e.trip in ("command_stale", "command_refused")]
+        after = [e for e in operator.safety if e.stamp_ns >= inj["t_kill_ns"]]
+        if inj["service"].startswith("control"):
+            # the last command before the restarted control's first (a gap of a second at least)
+            rx = [t for t in operator.torque_rx_ns if t >= inj["t_kill_ns"]]
+            last = next((a for a, b in zip(rx, rx[1:]) if b - a > RESTART_GAP_NS), rx[-1] if rx else None)
+            if last is not None:
+                inj["commands_stopped_after_kill_ms"] = round((last - inj["t_kill_ns"]) / 1e6, 2)
+            stale = [e for e in after if e.trip == "command_stale"]
             if stale:
                 inj["zero_torque_after_kill_ms"] = round((stale[0].stamp_ns - inj["t_kill_ns"]) / 1e6, 2)
                 inj["last_command_age_ms"] = round(stale[0].value * 1e3, 2)
@@ -181,11 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         gaps = [b - a for a, b in zip([inj["t_kill_ns"]] + refs, refs)]
         if gaps:
             inj["longest_reference_gap_after_kill_s"] = round(max(gaps[:2000]) / 1e9, 3)
-    files = recording_files([rec_dir], include_partial=False)
+    files = recording_files([rec_dir], include_partial=False) if rec_dir.is_dir() else []
     lost = file_metadata(files[-1]) if files else {}
-    plot = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec_dir), "--out", str(out / "plots")], capture_output=True, text=True)
+    plot = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec_dir), "--out", str(out / "plots")], capture_output=True, text=True) if files else None
     summary = {"metrics": metrics, "injected": injected, "recorder": lost, "recording_files": len(files),
-               "plot": json.loads(plot.stdout.strip().splitlines()[-1]) if plot.returncode == 0 else plot.stderr[-2000:]}
+               "plot": (json.loads(plot.stdout.strip().splitlines()[-1]) if plot.returncode == 0 else plot.stderr[-2000:]) if plot else None}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary))
     return 0

@@ -217,6 +217,7 @@ class _Unit:
     group: int | None = None  # process group still being stopped
     kill_at: float = 0.0  # SIGKILL the group after this
     sigkilled: bool = False
+    pidfd: int | None = None  # readable when the main process exits (Linux >= 5.3)
 
 
 class Supervisor:
@@ -305,9 +306,12 @@ class Supervisor:
                 with self._lock:
                     if self._stopping:
                         break
-                ready, _, _ = select.select([self._sock], [], [], POLL_S)
+                # a main process's exit wakes us at once through its pidfd (its children must
+                # not keep publishing for a polling period: think of a control loop)
+                pidfds = [u.pidfd for u in self._units.values() if u.pidfd is not None]
+                ready, _, _ = select.select([self._sock, *pidfds], [], [], POLL_S)
                 now = time.monotonic()
-                if ready:
+                if self._sock in ready:
                     self._read_notifications(now)
                 self._reap(now)
                 self._check_timeouts(now)
@@ -337,6 +341,7 @@ class Supervisor:
         unit.proc = subprocess.Popen(
             list(spec.argv), env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out, start_new_session=True
         )
+        unit.pidfd = _pidfd(unit.proc.pid)
         unit.state = "activating" if spec.notify else "active"
         unit.started_at = unit.last_ping = now
         unit.starts.append(now)
@@ -443,6 +448,9 @@ class Supervisor:
         code = proc.returncode
         unit.exit_codes.append(code)
         unit.proc = None
+        if unit.pidfd is not None:
+            os.close(unit.pidfd)
+            unit.pidfd = None
         killed_by = -code if code < 0 else 0
         unit.failed = code > 0 or (killed_by and killed_by not in CLEAN_SIGNALS) or unit.state == "deactivating"
         self._event(unit.spec.name, "exit", f"code {code}" if code >= 0 else f"signal {signal.Signals(killed_by).name}")
@@ -479,6 +487,9 @@ class Supervisor:
                     proc.wait()
                 unit.exit_codes.append(proc.returncode)
                 unit.group, unit.proc = proc.pid, None
+                if unit.pidfd is not None:
+                    os.close(unit.pidfd)
+                    unit.pidfd = None
             if unit.group is not None:
                 _stop_group(unit.group, timeout)
                 unit.group = None
@@ -487,6 +498,13 @@ class Supervisor:
             if unit.log_file is not None:
                 unit.log_file.close()
                 unit.log_file = None
+
+
+def _pidfd(pid: int) -> int | None:
+    try:
+        return os.pidfd_open(pid)
+    except (OSError, AttributeError):
+        return None  # an old kernel: exits are found by polling every POLL_S
 
 
 def _signal_group(pgid: int, sig: int) -> None:
