@@ -11,7 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 import zenoh
 from mcap.reader import make_reader
 
