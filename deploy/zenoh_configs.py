@@ -137,6 +137,21 @@ def client_config(user: str, password: str, connect: list[str] | None = None) ->
     }
 
 
+def tls_client_config(user: str, password: str, connect: list[str], tls_dir: str = TLS_DIR) -> dict[str, Any]:
+    """An offboard client over mutual TLS: ``ca.pem`` and its own ``<user>.pem``/``<user>-key.pem``
+    (an X.509 v3 certificate signed by the robot's CA), plus the password as on the robot."""
+    config = client_config(user, password, connect)
+    config["transport"]["link"] = {
+        "tls": {
+            "root_ca_certificate": f"{tls_dir}/ca.pem",
+            "connect_private_key": f"{tls_dir}/{user}-key.pem",
+            "connect_certificate": f"{tls_dir}/{user}.pem",
+            "enable_mtls": True,
+        }
+    }
+    return config
+
+
 def new_passwords(names: list[str] | None = None) -> dict[str, str]:
     return {name: secrets.token_urlsafe(PASSWORD_BYTES) for name in (names or users())}
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
+import subprocess
 import time
 from pathlib import Path
 
@@ -169,3 +171,53 @@ def test_the_stack_works_under_access_control(robot):
             await asyncio.wait_for(task, 10.0)
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def _make_certs(d: Path, client: str) -> None:
+    """A CA, the router's certificate for 127.0.0.1 and a client certificate (X.509 v3)."""
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
+    _openssl("req", "-x509", *ec, "-keyout", "ca-key.pem", "-out", "ca.pem", "-days", "1", "-subj", "/CN=archer-test-ca", cwd=d)
+    for name, ext in (("router", "subjectAltName=IP:127.0.0.1\n"), (client, f"subjectAltName=DNS:{client}\nextendedKeyUsage=clientAuth\n")):
+        (d / f"{name}.ext").write_text(ext)
+        _openssl("req", *ec, "-keyout", f"{name}-key.pem", "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=d)
+        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+                 "-out", f"{name}.pem", "-days", "1", "-extfile", f"{name}.ext", cwd=d)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is not installed")
+def test_tls_router_admits_only_clients_with_a_certificate_and_keeps_the_acl(tmp_path):
+    _make_certs(tmp_path, "planner")
+    endpoint = "tls/127.0.0.1:" + free_endpoint().rsplit(":", 1)[1]
+    passwords = zc.new_passwords()
+    (tmp_path / "users.txt").write_text(zc.users_file_text(passwords))
+    sessions = []
+
+    def open_json(name: str, config: dict) -> zenoh.Session:
+        (tmp_path / f"{name}.json5").write_text(json.dumps(config))
+        session = zenoh.open(zenoh.Config.from_file(str(tmp_path / f"{name}.json5")))
+        sessions.append(session)
+        return session
+
+    try:
+        open_json("router", zc.router_config([endpoint], str(tmp_path / "users.txt"), tls=True, tls_dir=str(tmp_path)))
+        planner = open_json("planner", zc.tls_client_config("planner", passwords["planner"], [endpoint], str(tmp_path)))
+        no_cert = zc.client_config("planner", passwords["planner"], [endpoint])
+        no_cert["transport"]["link"] = {"tls": {"root_ca_certificate": str(tmp_path / "ca.pem")}}
+        with pytest.raises(zenoh.ZError):  # a password alone does not pass mutual TLS
+            open_json("nocert", no_cert)
+        received: list[str] = []
+        sub = planner.declare_subscriber(f"{NS}/**", lambda s: received.append(str(s.key_expr)))
+        observer = open_json("observer", zc.tls_client_config("planner", passwords["planner"], [endpoint], str(tmp_path)))
+        time.sleep(DELIVERY_S)
+        observer.put(TOPICS["waypoints"].key(NS), b"{}")  # the planner's own topic: allowed
+        observer.put(TOPICS["torque_cmd"].key(NS), b"{}")  # not the planner's: denied
+        time.sleep(DELIVERY_S)
+        sub.undeclare()
+        assert received == [TOPICS["waypoints"].key(NS)]
+    finally:
+        for s in reversed(sessions):
+            s.close()
