@@ -41,12 +41,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+from services.realtime import make_realtime
+
 log = logging.getLogger("archer.supervisor")
 
 UNIT_DIR = Path(__file__).resolve().parent.parent / "deploy" / "systemd"
 POLL_S = 0.05  # supervision tick for exits and timeouts (notifications wake it at once)
 CLEAN_SIGNALS = frozenset({signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE})
 WATCHDOG_SIGNAL = signal.SIGABRT  # systemd's default WatchdogSignal=
+SUPERVISOR_RT_PRIORITY = 20  # SCHED_FIFO of the supervision thread: above normal tasks, below control loops
 KILL_GRACE_S = 1.0  # after SIGKILL, a group still there holds only zombies
 PR_SET_CHILD_SUBREAPER = 36  # prctl(2)
 _UCRED = struct.Struct("3i")  # pid, uid, gid
@@ -301,6 +304,9 @@ class Supervisor:
         log.info("unit %s: %s %s", unit, what, detail, extra={"fields": {"unit": unit, "event": what, "detail": detail}})
 
     def _run(self) -> None:
+        # As PID 1 is, this thread must run the moment a main process dies: what it left
+        # behind (a control loop) is still publishing. Logged and skipped where refused.
+        make_realtime(priority=SUPERVISOR_RT_PRIORITY)
         try:
             while True:
                 with self._lock:
