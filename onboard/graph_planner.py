@@ -26,9 +26,10 @@ Pipeline (Algorithm 3):
    path-length bound plus ``time_weight`` times each segment's duration (0 is the
    thesis's cost; a little of it stops the search from preferring slow, short paths) from the
    current state to the goal at rest. The start is the state itself, joined to the
-   graph by the same reachability test and cut, together with every node that
-   contains the state in its tube (Problem 7.1); the goal is joined the same way,
-   and graph nodes at rest within the goal tolerance also end a path.
+   graph by the same reachability test and cut (when it cannot be, the nodes that
+   contain the state in its tube, Problem 7.1); the goal, at rest, is joined the same
+   way (paths end exactly there; only when it cannot be joined do graph nodes at rest
+   within the goal tolerance end a path).
 4. **Refine** (:meth:`GraphPlanner.refine`): the MPC of eq. 7.2 from
    :mod:`onboard.bezier_mpc`, warm-started with the graph path, each segment kept on
    the free side of separating halfspaces to its nearest obstacles; one SQP
@@ -706,15 +707,18 @@ class GraphPlanner:
         self.stats.plans += 1
         N = graph.n_nodes
         goal_state = np.array([self.goal[0], self.goal[1], 0.0, 0.0])
-        # Start: the state itself joined by free segments, plus nodes containing it in the tube.
+        # Start: the state itself joined by free segments (the reference starts where the
+        # robot is); only when none is free, the nodes containing it in the tube (Problem 7.1).
         # Search cost: path-length bound (Property 2.49) plus time_weight per segment (its duration).
         extra = self.params.time_weight * graph.spec.tau
         start_margin = self.start_margin(x0)
         s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True, margin=start_margin)
         s_costs = s_costs + extra
-        contains = np.flatnonzero(
-            (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
-            & np.all(np.abs(graph.nodes[:, 2:] - x0[2:]) <= self.params.start_speed_tol, axis=1))
+        contains = np.zeros(0, dtype=np.int64)
+        if len(s_nodes) == 0:
+            contains = np.flatnonzero(
+                (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
+                & np.all(np.abs(graph.nodes[:, 2:] - x0[2:]) <= self.params.start_speed_tol, axis=1))
         start_edge_ctrl = {int(n): c for n, c in zip(s_nodes, s_ctrl)}
         start_nodes = [s_nodes, contains]
         start_costs = [s_costs, np.zeros(len(contains))]
@@ -727,17 +731,18 @@ class GraphPlanner:
                 start_edge_ctrl[N] = direct
                 start_nodes.append(np.array([N]))
                 start_costs.append(np.array([bz.path_length_bound(direct) + extra]))
-        # Goal: nodes joined to the goal at rest, and nodes at rest within the tolerance.
+        # Goal: nodes joined to the goal at rest (the path ends exactly there); only when
+        # none is, nodes at rest within the tolerance end a path.
         g_nodes, g_costs, g_ctrl = self._connect(goal_state, outgoing=False)
         goal_costs = np.full(N, np.inf)
         goal_costs[g_nodes] = g_costs + extra
         goal_edge_ctrl = {int(n): c for n, c in zip(g_nodes, g_ctrl)}
-        at_goal = np.flatnonzero(
-            (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
-            & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
-        goal_costs[at_goal] = 0.0
-        for n in at_goal:
-            goal_edge_ctrl.pop(int(n), None)
+        at_goal = np.zeros(0, dtype=np.int64)
+        if len(g_nodes) == 0 and N not in start_edge_ctrl:
+            at_goal = np.flatnonzero(
+                (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
+                & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
+            goal_costs[at_goal] = 0.0
         result = search(graph, free, x0, np.concatenate(start_nodes).astype(np.int64),
                         np.concatenate(start_costs), goal_state, goal_costs,
                         self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)

@@ -256,11 +256,11 @@ class PlannerParams:
     node_density: float = 110.0  # [1/m^2] nodes per square metre of an automatic planning region
     sampling: str = "uniform"  # "uniform" (random positions and velocities) or "grid"
     grid_velocities: int = 3  # "grid": velocity values per axis (odd keeps 0)
-    rest_grid: float = 0.25  # [m] extra graph nodes at rest on a lattice of this spacing (0: none): narrow gaps
+    rest_grid: float = 0.15  # [m] extra graph nodes at rest on a lattice of this spacing (0: none): narrow gaps
     time_weight: float = 0.15  # [m/s] search cost per second of path on top of its length (0: length only)
     seed: int = 0  # node sampling seed
     tube: float = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
-    tube_growth: float = 1.25  # on a broken promise, plan with the achieved tube times this
+    tube_growth: float = 1.1  # on a broken promise, plan with the achieved tube times this
     robot_radius: float = 0.0  # [m] robot footprint radius; 0: read from the MJCF
     bounds_padding: float = 0.5  # [m] planning region around start, goal and obstacles
     bounds_quantum: float = 1.0  # [m] region corners snap to this grid (graph cache hits)

@@ -287,8 +287,9 @@ def test_moving_obstacle_triggers_a_replan_around_it(graph):
     planner.set_goal((5.0, 3.0), 0.1)
     assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
     assert not planner.needs_replan((1.0, 3.0), 0, 0.3)
-    # The obstacle moves onto the straight line: the world changed, the old path now collides.
-    moved = [_box(3.0, 3.0, 0.3, 0.3)]
+    # The obstacle moves onto the path: the world changed, the old path now collides.
+    mid = _dense(planner.path.control_points[len(planner.path.control_points) // 2], 3)[1]
+    moved = [_box(mid[0], mid[1], 0.3, 0.3)]
     planner.set_obstacles(moved)
     assert planner.needs_replan((1.0, 3.0), 0, 0.3)
     old = planner.path.control_points

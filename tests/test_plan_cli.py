@@ -43,7 +43,7 @@ def test_plan_through_the_gap_and_cache_hit(tmp_path):
     run = _archer(["plan", "--input", str(path), "--json"], tmp_path)
     assert run.returncode == 0, run.stderr
     out = json.loads(run.stdout)
-    assert out["found"] and out["nodes"] == 1500 + 25 * 25 and out["lattice_nodes"] == 625  # 0.25 m rest lattice
+    assert out["found"] and out["nodes"] == 1500 + 41 * 41 and out["lattice_nodes"] == 41 * 41  # 0.15 m rest lattice
     assert out["edges"] > 5000 and not out["graph_cached"]
     assert out["clearance"] == pytest.approx(0.18)
     assert set(out["limits"]) == {"v_max", "a_max", "segment_s"} and out["plan_ms"] > 0
