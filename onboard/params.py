@@ -349,7 +349,7 @@ class RecorderParams:
     flush_s: float = 1.0  # close an MCAP chunk this often, so a crash loses at most this [s]
     compression: str = "zstd"  # "zstd", "lz4" or "none"
     keep_bytes: int = 8 * 1024 * 1024 * 1024  # delete the oldest finished files beyond this
-    status_period_s: float = 1.0  # record every live service's status this often [s]
+    status_period_s: float = 5.0  # record every live service's status this often [s] (a query costs them CPU)
 
 
 SECTIONS: dict[str, type] = {

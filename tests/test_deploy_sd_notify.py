@@ -111,14 +111,21 @@ def test_runtime_pings_ready_then_watchdog_only_while_progressing(tmp_path, monk
         manager.close()
 
 
-class BrokenStatus(Service):
-    name = "broken"
+class CostlyStatus(Service):
+    name = "costly"
+    extra_calls = 0
 
     def status_extra(self) -> dict[str, float]:
-        raise AttributeError("not set up yet")
+        self.extra_calls += 1
+        return {}
 
 
-def test_a_broken_status_does_not_break_the_status_line():
+def test_the_status_line_leaves_status_extra_alone():
+    """systemd's STATUS goes out every second: it must not run a service's costly extras."""
     from services.sd_notify import status_line
 
-    assert status_line(BrokenStatus(ns="archer/test")).startswith("starting; status unavailable: AttributeError")
+    service = CostlyStatus(ns="archer/test")
+    service.rate("tick").tick()
+    service.fail("boom")
+    assert status_line(service) == "starting; tick 0 Hz; errors 1; last error: boom"
+    assert service.extra_calls == 0
