@@ -22,6 +22,7 @@ from onboard.params import SafetyLimits
 from sim_twin import model as tm
 
 NS = 1_000_000_000
+AT_LIMIT = 0.999  # a wheel command within 0.1 % of the available torque counts as saturated
 
 
 class Actuation:
@@ -41,7 +42,7 @@ class Actuation:
         self._foot_max = min(safety.foot_torque_max, robot.foot_torque_peak)
         self.counters: dict[str, int] = {"applied": 0, "no_command": 0, "disarmed": 0, "stale": 0, "non_finite": 0}
         self.wheel_ticks = 0  # wheel-ticks applied (3 per applied command)
-        self.wheel_saturated = 0  # wheel-ticks whose torque was clipped (limit or motor curve)
+        self.wheel_saturated = 0  # wheel-ticks asking for all the torque there is (limit or motor curve)
         self.last_applied = (0.0, 0.0, 0.0, 0.0)  # wheel x, y, z, foot [N m]
 
     def _zero(self, data: mujoco.MjData, reason: str) -> None:
@@ -72,11 +73,13 @@ class Actuation:
         out = [0.0, 0.0, 0.0, 0.0]
         for i in range(3):
             want = wt[i]
-            tau = lim if want > lim else -lim if want < -lim else want
+            avail = lim
             speed = qvel[self._wheel_dof[i]]
-            if tau * speed > 0.0 and (speed > knee or speed < -knee):  # driving past the knee: motor curve
-                tau = robot.wheel_torque_available(speed, tau)
-            if tau != want:
+            if want * speed > 0.0 and (speed > knee or speed < -knee):  # driving past the knee: motor curve
+                avail = abs(robot.wheel_torque_available(speed, lim if want > 0.0 else -lim))
+            tau = avail if want > avail else -avail if want < -avail else want
+            # A controller that clamps to the same limits before sending still saturates.
+            if want >= avail * AT_LIMIT or want <= -avail * AT_LIMIT:
                 self.wheel_saturated += 1
             out[i] = tau
         fl = self._foot_max

@@ -11,8 +11,8 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   the whole run sampled every ``TRACE_EVERY`` ticks (``*_continuous_m``);
 - ``goal_reached``: the final CoM is within the goal tolerance of the target (the goal, or the
   start for in-place scenarios) and the robot did not fall;
-- ``torque_saturation_fraction``: wheel-ticks whose commanded torque the limits or the motor curve
-  clipped (:class:`sim_twin.actuation.Actuation`).
+- ``torque_saturation_fraction``: wheel-ticks whose commanded torque reached or exceeded what the
+  limits and the motor curve allow (:class:`sim_twin.actuation.Actuation`), whoever clamped it.
 """
 
 from __future__ import annotations

@@ -121,6 +121,10 @@ def test_actuation_clamps_to_limits_and_motor_curve() -> None:
     act.apply(_cmd(0, wheel=(-1.4, 0.0, 0.0)), 0, data)
     assert data.ctrl[0] == pytest.approx(-1.4)  # braking: full torque
     assert act.saturation_fraction == pytest.approx(3 / 9)
+    # a command already clamped to the limit by the controller still counts as saturated
+    data.qvel[dof] = 0.0
+    act.apply(_cmd(0, wheel=(safety.wheel_torque_max, 0.0, 0.0)), 0, data)
+    assert act.saturation_fraction == pytest.approx(4 / 12)
     # the sim15nm variant's runner raises the wheel limit to its 15 N m
     runner = LockstepRunner(RunConfig(scenario="hop-in-place", variant="sim15nm", controller="passive"))
     assert runner.safety.wheel_torque_max == pytest.approx(15.0)
