@@ -43,7 +43,7 @@ from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
 
 NS_DEFAULT = "archer/soak"
 GOAL_RESEND_S = 1.0
-STATUS_PERIOD_S = 5.0
+STATUS_PERIOD_S = 30.0  # status queries cost the services CPU: few
 RESTART_GAP_NS = 500_000_000  # a pause in torque commands this long: the old control is gone
 SERVICES = "estimator,control,planner,recorder"
 
