@@ -319,6 +319,8 @@ class RecorderService(Service):
         return data
 
     def status_extra(self) -> dict[str, float]:
+        if not hasattr(self, "files"):
+            return {}  # asked before setup() ran (the status queryable comes first)
         totals = self.totals()
         return {
             "received": totals["received"],

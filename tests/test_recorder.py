@@ -190,3 +190,9 @@ def test_an_unfinished_file_yields_what_was_flushed(tmp_path):
     assert salvaged == list(range(1, 51))
     files.finish({})
     assert [json.loads(r.data)["seq"] for r in read_recording(files.finished)] == list(range(1, 61))
+
+
+def test_status_before_setup_answers():
+    """The status queryable exists before setup(): an early `archer status` must get a reply."""
+    status = RecorderService(ns=NS).status()
+    assert status.state == "starting" and status.extra == {}
