@@ -17,17 +17,10 @@ from services.bench_control import synthetic_state
 from services.cmd_introspect import query_status
 from services.control import ControlService
 from services.zenoh_session import open_session
+from helpers import wait_for
 
 NS = "archer/test-control"
-TIMEOUT_S = 30.0
 
-
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
 
 
 class Feeder:
@@ -64,15 +57,15 @@ def test_control_service_end_to_end(zenoh_router):
         ]
         feeder = Feeder(client)
         try:
-            await _wait_for(lambda: service.state in ("running", "degraded") and service._loop_proc is not None)
+            await wait_for(lambda: service.state in ("running", "degraded") and service._loop_proc is not None)
             # before any estimate: disarmed zero commands, every tick
-            await _wait_for(lambda: len(got["torque_cmd"]) > 50)
+            await wait_for(lambda: len(got["torque_cmd"]) > 50)
             assert not got["torque_cmd"][-1].armed
             assert got["torque_cmd"][-1].wheel_torque == [0.0, 0.0, 0.0]
 
             feeder.thread.start()
-            await _wait_for(lambda: any(c.armed for c in got["torque_cmd"][-20:]))
-            await _wait_for(lambda: {"touchdown", "liftoff", "apex"} <= {e.event for e in got["phase"]})
+            await wait_for(lambda: any(c.armed for c in got["torque_cmd"][-20:]))
+            await wait_for(lambda: {"touchdown", "liftoff", "apex"} <= {e.event for e in got["phase"]})
             assert any(e.trip == "arm" for e in got["safety"])
             n0, t0 = len(got["torque_cmd"]), time.monotonic()
             await asyncio.sleep(1.0)
@@ -80,7 +73,7 @@ def test_control_service_end_to_end(zenoh_router):
             assert rate > 500.0  # nominal 1 kHz; a loaded shared machine without RT priority loses ticks
             armed = [c for c in got["torque_cmd"][-200:] if c.armed]
             assert armed and all(all(math.isfinite(v) and abs(v) <= 1.5 for v in c.wheel_torque) for c in armed)
-            await _wait_for(lambda: len(got["tube"]) > 0)
+            await wait_for(lambda: len(got["tube"]) > 0)
             assert got["tube"][-1].hops >= 1
 
             # a malformed and a non-finite estimate are refused and counted, never used
@@ -89,22 +82,22 @@ def test_control_service_end_to_end(zenoh_router):
             st, _ = synthetic_state(0.0, time.monotonic_ns())
             bad = msgspec.json.encode(st).replace(b'"foot_vel":', b'"foot_vel":1e999,"x":', 1)
             client.put(key, bad)
-            await _wait_for(lambda: service._loop_proc.last.get("rejected", {}).get("state", 0) >= 2)
+            await wait_for(lambda: service._loop_proc.last.get("rejected", {}).get("state", 0) >= 2)
 
             # the estimator dies: stale trip, then disarm after the fault bound
             feeder.paused = True
-            await _wait_for(lambda: any(e.trip == "estimate_lost" for e in got["safety"]))
+            await wait_for(lambda: any(e.trip == "estimate_lost" for e in got["safety"]))
             assert any(e.trip == "estimate_stale" for e in got["safety"])
             await asyncio.sleep(0.05)
             assert not got["torque_cmd"][-1].armed
-            await _wait_for(lambda: service.counters.get("trip.estimate_lost") == 1)  # logged in the parent
+            await wait_for(lambda: service.counters.get("trip.estimate_lost") == 1)  # logged in the parent
 
             # operator re-arms through the parameter queryable
             feeder.paused = False
             req = m.ParamRequest(set={"control.arm_request": 1})
             replies = await asyncio.to_thread(lambda: list(client.get(params_key(NS, "control"), payload=msgspec.json.encode(req))))
             assert replies and replies[0].ok is not None
-            await _wait_for(lambda: got["torque_cmd"][-1].armed)
+            await wait_for(lambda: got["torque_cmd"][-1].armed)
 
             # status carries the loop's timing figures
             status = await asyncio.to_thread(query_status, client, NS, "control")

@@ -24,17 +24,10 @@ from services.cmd_introspect import query_status
 from services.estimator import EstimatorService
 from services.zenoh_session import open_session
 from test_estimator_synthetic import ROBOT, synthetic_hops
+from helpers import wait_for
 
 NS_KEY = "archer/estimator-test"
-TIMEOUT_S = 20.0
 
-
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
 
 
 def _payloads(track, t0_ns: int) -> tuple[list[tuple[int, str, bytes]], dict[int, np.ndarray]]:
@@ -86,7 +79,7 @@ def test_service_publishes_the_estimate_at_rate(zenoh_router):
                                         lambda s: states.append(m.decode(s.payload.to_bytes(), m.StateEstimate)))
         stop = threading.Event()
         try:
-            await _wait_for(lambda: service.state in ("running", "degraded") and len(states) > 10)
+            await wait_for(lambda: service.state in ("running", "degraded") and len(states) > 10)
             assert not states[-1].valid  # nothing fused yet
             imu_key = TOPICS["imu"].key(NS_KEY)
             client.put(imu_key, b"{not json")  # malformed: rejected by the runtime, counted

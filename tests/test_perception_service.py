@@ -17,17 +17,10 @@ from services.cmd_introspect import query_status
 from services.perception import PerceptionService
 from services.zenoh_session import open_session
 from test_perception_pipeline import TREES, render
+from helpers import wait_for
 
 NS = "archer/perception-test"
-TIMEOUT_S = 20.0
 
-
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
 
 
 def _state(x: float, y: float) -> m.StateEstimate:
@@ -54,7 +47,7 @@ def test_service_publishes_polytopes_and_grid_at_rate(zenoh_router, mode):
             client.declare_subscriber(TOPICS["grid"].key(NS), lambda s: grids.append(decode_grid(s.payload.to_bytes()))),
         ]
         try:
-            await _wait_for(lambda: service.state == "running")
+            await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)  # let the subscriptions meet
             client.put(TOPICS["state"].key(NS), m.encode(_state(0.0, 0.0)))
             await asyncio.sleep(0.2)
@@ -65,7 +58,7 @@ def test_service_publishes_polytopes_and_grid_at_rate(zenoh_router, mode):
                 img = render((0.0, 0.0, 0.5), yaw=yaw, cylinders=TREES, stamp_ns=(k + 1) * 200_000_000)
                 client.put(depth_key, encode_depth(img))
             client.put(depth_key, encode_depth(render((0.0, 0.0, 0.5), stamp_ns=100)))  # older: out of order
-            await _wait_for(lambda: service.counters.get("views") == 3 and len(sets) >= 12)
+            await wait_for(lambda: service.counters.get("views") == 3 and len(sets) >= 12)
             last = sets[-1][1]
             assert last.mode == mode and last.source == "perception" and last.polytopes
             # Rate: the stamps of successive sets, within the 4-20 Hz band.

@@ -16,19 +16,12 @@ from onboard.topics import TOPICS
 from services.cmd_introspect import query_status
 from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
 from services.zenoh_session import open_session
+from helpers import wait_for
 
 NS = "archer/planner-test"
-TIMEOUT_S = 30.0
 PARAMS = PlannerParams(nodes=900, tube=0.05)
 ROBOT_RADIUS = 0.13
 
-
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
 
 
 def _state(x: float, y: float) -> m.StateEstimate:
@@ -68,12 +61,12 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
 
         feeder = asyncio.create_task(stream_state())
         try:
-            await _wait_for(lambda: service.state == "running")
+            await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
             obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)])
             client.put(TOPICS["polytopes"].key(NS), m.encode(obstacles))
             client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[3.0, 0.0], tolerance=0.1)))
-            await _wait_for(lambda: any(not r.hold for r in refs) and wps)
+            await wait_for(lambda: any(not r.hold for r in refs) and wps)
             ref = next(r for r in refs if not r.hold)
             first = np.array(ref.segments[0].control_points[0])
             assert np.max(np.abs(first)) <= PARAMS.tube + 1e-6  # starts within the tube (box) of the state
@@ -93,7 +86,7 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             # The low level reports a tube over the promise: a contract report, and a larger tube.
             client.put(TOPICS["tube"].key(NS), m.encode(m.TrackingTube(hops=20, impact_err_p50=0.1, impact_err_p95=0.2,
                                                                          impact_err_max=0.3, attitude_err_p95=0.05)))
-            await _wait_for(lambda: reports)
+            await wait_for(lambda: reports)
             rep = reports[0]
             assert rep.layer == "planner" and rep.violated and rep.violations == 1
             assert rep.promised == pytest.approx(0.05) and rep.achieved == pytest.approx(0.2)
@@ -103,7 +96,7 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             assert status.counters["rejected.polytopes_geometry"] >= 1 and status.extra["path"] == 1.0
             # A goal inside an obstacle: no path, a hold reference (hop in place), and the status says so.
             client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[1.5, 0.0], tolerance=0.1)))
-            await _wait_for(lambda: service.status_extra()["path"] == 0.0 and refs[-1].hold)
+            await wait_for(lambda: service.status_extra()["path"] == 0.0 and refs[-1].hold)
             hold = refs[-1]
             assert hold.segments[0].control_points[0] == [0.0, 0.0]
             status = await asyncio.to_thread(query_status, client, NS, "planner")
@@ -130,13 +123,13 @@ def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
         refs: list[bytes] = []
         sub = client.declare_subscriber(TOPICS["reference"].key(NS + "2"), lambda s: refs.append(s.payload.to_bytes()))
         try:
-            await _wait_for(lambda: service.state == "running")
+            await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
             old = _state(0.0, 0.0)
             old.stamp_ns -= int(2e9)
             client.put(TOPICS["state"].key(NS + "2"), m.encode(old))
             client.put(TOPICS["goal"].key(NS + "2"), m.encode(m.Goal(position=[2.0, 0.0])))
-            await _wait_for(lambda: service.counters.get("stale_state") > 5)
+            await wait_for(lambda: service.counters.get("stale_state") > 5)
             assert refs == []
         finally:
             sub.undeclare()

@@ -16,6 +16,7 @@ from onboard.topics import TOPICS, liveliness_key, params_key, status_key
 from services.cmd_introspect import live_services, query_status
 from services.runtime import Service
 from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
+from helpers import wait_for
 
 NS = "archer/test"
 TIMEOUT_S = 10.0
@@ -38,13 +39,6 @@ class RelayService(Service):
         self.count("relayed")
 
 
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.02)
-
 
 def _imu(gz: float) -> m.ImuSample:
     return m.ImuSample(quat=[1.0, 0, 0, 0], gyro=[0.0, 0.0, gz], accel=[0.0, 0.0, 9.81])
@@ -58,19 +52,19 @@ def test_service_relays_rejects_and_reports(zenoh_router):
         received: list[m.TorqueCommand] = []
         sub = client.declare_subscriber(TOPICS["torque_cmd"].key(NS), lambda s: received.append(m.decode(s.payload.to_bytes(), m.TorqueCommand)))
         try:
-            await _wait_for(lambda: service.state == "running")
+            await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)  # let the subscription reach the service
             imu_key = TOPICS["imu"].key(NS)
             client.put(imu_key, m.encode(_imu(0.5)))
             for bad in (b"garbage", b'{"quat":[1,0,0,0]}', m.encode(_imu(float("nan")))):
                 client.put(imu_key, bad)
             client.put(imu_key, m.encode(_imu(99.0)))  # clamped by the safety parameter
-            await _wait_for(lambda: len(received) == 2)
+            await wait_for(lambda: len(received) == 2)
             assert received[0].wheel_torque[2] == pytest.approx(0.5)
             assert received[1].wheel_torque[2] == pytest.approx(1.5)
             assert [r.seq for r in received] == [1, 2]
             # each bad payload counted once per subscription (slot and async handler)
-            await _wait_for(lambda: service.counters.get("rejected.imu") == 6)
+            await wait_for(lambda: service.counters.get("rejected.imu") == 6)
             assert service.imu_slot.get()[0].gyro[2] == 99.0
 
             # a second session sees the liveliness token and gets the status
@@ -109,7 +103,7 @@ def test_shutdown_leaves_no_thread_or_session(zenoh_router):
     async def scenario() -> Service:
         service = RelayService(ns=NS, endpoint=zenoh_router)
         task = asyncio.create_task(service.run())
-        await _wait_for(lambda: service.state == "running")
+        await wait_for(lambda: service.state == "running")
         service.request_stop()
         await asyncio.wait_for(task, 5.0)
         return service

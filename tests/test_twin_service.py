@@ -14,17 +14,11 @@ from onboard.topics import TOPICS
 from services.cmd_introspect import query_status
 from services.zenoh_session import open_session
 from sim_twin.twin_service import ScenarioReferenceService, TwinService
+from helpers import wait_for
 
 NS = "archer/twintest"
 TIMEOUT_S = 10.0
 
-
-async def _wait_for(predicate, timeout_s: float = TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_router) -> None:
@@ -46,7 +40,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
             subs.append(client.declare_subscriber(topic.key(NS), on_sample))
         cmd_key = TOPICS["torque_cmd"].key(NS)
         try:
-            await _wait_for(lambda: twin.state == "running" and len(got["imu"]) > 50)
+            await wait_for(lambda: twin.state == "running" and len(got["imu"]) > 50)
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.4:  # commands at about 500 Hz: wheel x spins up
                 client.put(cmd_key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[0.05, 0.0, 0.0],
@@ -56,7 +50,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
             assert spin > 0.5  # 0.05 N m on the wheel's 1.1e-3 kg m^2: 45 rad/s^2 while commands are fresh
             await asyncio.sleep(0.3)  # silence: the twin's watchdog zeroes the torque
             assert twin.actuation.last_applied == (0.0, 0.0, 0.0, 0.0)
-            await _wait_for(lambda: len(got["safety"]) >= 1 and len(got["goal"]) >= 1 and len(got["reference"]) >= 1)
+            await wait_for(lambda: len(got["safety"]) >= 1 and len(got["goal"]) >= 1 and len(got["reference"]) >= 1)
             assert got["safety"][0].trip == "command_stale" and not got["safety"][0].armed
 
             status = await asyncio.to_thread(query_status, client, NS, "twin")
