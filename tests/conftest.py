@@ -26,3 +26,17 @@ def zenoh_session(zenoh_router):
         yield session
     finally:
         session.close()
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_bus():
+    """Fail any test that leaves a python-can virtual bus or a socketcand client open."""
+    from can.interfaces import virtual
+
+    from drivers.socketcand import SocketcandBus
+
+    before = {name for name, queues in virtual.channels.items() if queues}
+    yield
+    leaked = {name: len(q) for name, q in virtual.channels.items() if q and name not in before}
+    assert not leaked, f"test leaked python-can buses: {leaked}"
+    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"

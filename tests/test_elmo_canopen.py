@@ -16,7 +16,6 @@ import uuid
 import can
 import canopen
 import pytest
-from can.interfaces import virtual
 
 from drivers.elmo import codec as c
 from drivers.elmo.device import DriveGroup, ElmoDrive, JointDrive
@@ -29,13 +28,6 @@ from onboard.params import HardwareParams
 NODE = 5
 CFG = DriveConfig()
 RATED_TORQUE_NM = CFG.rated_torque_mnm / 1000.0
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_bus():
-    yield
-    leaked = {name: len(queues) for name, queues in virtual.channels.items() if name.startswith("canopen-")}
-    assert not leaked, f"test leaked python-can buses: {leaked}"
 
 
 @pytest.fixture

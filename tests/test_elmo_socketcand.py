@@ -15,12 +15,6 @@ from drivers.socketcand import ERROR_FLAG, SocketcandBus, SocketcandServer, form
 SETTLE_S = 0.15  # the server holds frames back until a new client's raw mode settled
 
 
-@pytest.fixture(autouse=True)
-def no_leaked_bus():
-    yield
-    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"
-
-
 def echo_plus_one(frame: c.Frame, now: float) -> list[c.Frame]:
     """A device that answers every frame with the identifier + 1 and the same data."""
     return [c.Frame(frame.can_id + 1, frame.data)]

@@ -19,16 +19,9 @@ import canopen
 import pytest
 import serial
 
-from drivers.socketcand import SocketcandBus
 
 ARCHER = [sys.executable, "-m", "services.cli", "emulate"]
 LIVENESS_S = 0.5  # twin tests check physics, not timing: heartbeat/link bounds a loaded machine keeps
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_bus():
-    yield
-    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"
 
 
 def start(*args: str) -> tuple[subprocess.Popen, dict]:

@@ -18,7 +18,6 @@ import uuid
 import can
 import msgspec
 import pytest
-from can.interfaces import virtual
 
 from drivers.elmo import codec as c
 from drivers.elmo.emulator import VirtualBusRunner, make_emulator
@@ -26,7 +25,6 @@ from drivers.teensy.emulator import TeensyEmulator
 from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
-from drivers.socketcand import SocketcandBus
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
 from services.zenoh_session import open_session
 
@@ -35,14 +33,6 @@ SAFETY = SafetyLimits()
 STALE_NS = int(SAFETY.command_stale_s * 1e9)
 SLACK_S = 0.15  # scheduling on a loaded 2-core machine
 TIMEOUT_S = 10.0
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_bus():
-    yield
-    leaked = {name: len(queues) for name, queues in virtual.channels.items() if name.startswith("hw-")}
-    assert not leaked, f"test leaked python-can buses: {leaked}"
-    assert SocketcandBus.open_buses == 0, "test leaked a socketcand bus"
 
 
 # --- the command gate (pure) ----------------------------------------------------------------
