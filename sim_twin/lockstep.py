@@ -131,6 +131,8 @@ class LockstepRunner:
         t = 0.0
         k = 0
         planner_feed = getattr(planner, "feed", None)  # a perceiving planner eats the depth images
+        # ray casting nobody reads is skipped (only a perceiving planner or a recording reads depth)
+        sensors.capture_depth = record or isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
         # The low level's tube reaches the planner at the topic's rate (the contract check).
         tube_ns = int(NS / TOPICS["tube"].rate_hz) if planner_feed is not None and hasattr(controller, "tube") else 0
         next_tube_ns = tube_ns

@@ -66,19 +66,19 @@ class _Gauss:
 class _Dropout:
     def __init__(self, rng: np.random.Generator, probability: float) -> None:
         self._rng = rng
-        self._p = probability
+        self.p = probability
         self._u: list[float] = []
         self._i = 0
 
     def lost(self) -> bool:
-        if self._p <= 0.0:
+        if self.p <= 0.0:
             return False
         if self._i >= len(self._u):
             self._u = self._rng.random(_BLOCK).tolist()
             self._i = 0
         u = self._u[self._i]
         self._i += 1
-        return u < self._p
+        return u < self.p
 
 
 def _qmul_small(q: list[float], dx: float, dy: float, dz: float) -> list[float]:
@@ -177,6 +177,10 @@ class SensorSuite:
         if p.encoder_counts_per_rev <= 0:
             raise ValueError("encoder_counts_per_rev must be positive")
         self._enc_res = 2 * math.pi / p.encoder_counts_per_rev if noisy else 0.0
+        self._contact_threshold = p.contact_threshold_n
+        # False: depth images are not made at all (a lockstep run whose depth nobody reads;
+        # the depth stream draws from its own generator, so the other sensors are unchanged)
+        self.capture_depth = True
 
         # Addresses into qpos / qvel / sensordata / actuator_force.
         root = model.joint(tm.ROOT_JOINT)
@@ -210,28 +214,34 @@ class SensorSuite:
     def tick(self, data: mujoco.MjData, now_ns: int) -> list[tuple[str, object]]:
         """Capture what is due at ``now_ns`` and return ``(topic, message)`` pairs delivered now."""
         out: list[tuple[str, object]] = []
-        qpos, qvel = data.qpos.tolist(), data.qvel.tolist()  # plain floats: numpy scalars are slow per tick
-        if self.imu.due(now_ns) and not self.imu.dropout.lost():
-            self.imu.push(now_ns, self._imu(data, qpos, qvel, now_ns))
-        if self.joints.due(now_ns) and not self.joints.dropout.lost():
-            self.joints.push(now_ns, self._joints(data, qpos, qvel, now_ns))
-        if self.pose.due(now_ns) and not self.pose.dropout.lost():
-            self.pose.push(now_ns, self._pose(qpos, now_ns))
-        if self.depth.due(now_ns) and not self.depth.dropout.lost():
-            self.depth.push(now_ns, self.depth_image(data, now_ns))
-        self.imu.pop_ready(now_ns, out, "imu")
-        self.joints.pop_ready(now_ns, out, "joints")
-        self.pose.pop_ready(now_ns, out, "pose")
-        self.depth.pop_ready(now_ns, out, "depth")
+        # plain floats, each array read once: numpy scalars and array views are slow per tick
+        qpos, qvel, sd = data.qpos.tolist(), data.qvel.tolist(), data.sensordata.tolist()
+        # the schedule and queue tests inline (four streams a tick; most are not due)
+        imu, joints, pose, depth = self.imu, self.joints, self.pose, self.depth
+        if now_ns >= imu.next_ns and imu.due(now_ns) and not (imu.dropout.p > 0.0 and imu.dropout.lost()):
+            imu.push(now_ns, self._imu(sd, qpos, qvel, now_ns))
+        if now_ns >= joints.next_ns and joints.due(now_ns) and not (joints.dropout.p > 0.0 and joints.dropout.lost()):
+            joints.push(now_ns, self._joints(data, sd, qpos, qvel, now_ns))
+        if now_ns >= pose.next_ns and pose.due(now_ns) and not (pose.dropout.p > 0.0 and pose.dropout.lost()):
+            pose.push(now_ns, self._pose(qpos, now_ns))
+        if (self.capture_depth and now_ns >= depth.next_ns and depth.due(now_ns)
+                and not (depth.dropout.p > 0.0 and depth.dropout.lost())):
+            depth.push(now_ns, self.depth_image(data, now_ns))
+        if imu.queue and imu.queue[0][0] <= now_ns:
+            imu.pop_ready(now_ns, out, "imu")
+        if joints.queue and joints.queue[0][0] <= now_ns:
+            joints.pop_ready(now_ns, out, "joints")
+        if pose.queue and pose.queue[0][0] <= now_ns:
+            pose.pop_ready(now_ns, out, "pose")
+        if depth.queue and depth.queue[0][0] <= now_ns:
+            depth.pop_ready(now_ns, out, "depth")
         return out
 
-    def _imu(self, data: mujoco.MjData, qpos: list[float], qvel: list[float], now_ns: int) -> m.ImuSample:
+    def _imu(self, sd: list[float], qpos: list[float], qvel: list[float], now_ns: int) -> m.ImuSample:
         n = self._imu_noise.row()
         a, g, b = self._imu_att_std, self._gyro_std, self._accel_std
         gb, ab = self.gyro_bias, self.accel_bias
         i, j, k = self._qp + 3, self._qv + 3, self._accel_adr
-        sd = data.sensordata[k:k + 3].tolist()
-        k = 0
         quat = _qmul_small(qpos[i:i + 4], a * n[0], a * n[1], a * n[2]) if a > 0 else qpos[i:i + 4]
         self.imu.seq += 1
         return m.ImuSample(
@@ -242,26 +252,28 @@ class SensorSuite:
             accel=[sd[k] + ab[0] + b * n[6], sd[k + 1] + ab[1] + b * n[7], sd[k + 2] + ab[2] + b * n[8]],
         )
 
-    def _quantize(self, angle: float) -> float:
-        r = self._enc_res
-        return round(angle / r) * r if r > 0 else angle
-
-    def _joints(self, data: mujoco.MjData, qpos: list[float], qvel: list[float], now_ns: int) -> m.JointSensors:
+    def _joints(self, data: mujoco.MjData, sd: list[float], qpos: list[float], qvel: list[float], now_ns: int) -> m.JointSensors:
         force = data.actuator_force.tolist()
         n = self._joint_noise.row()
         wv, wt = self._wheel_vel_std, self._wheel_torque_std
         wp, wq, wa = self._wheel_qp, self._wheel_qv, self._wheel_act
+        r = self._enc_res  # encoder quantization, inline (four angles a tick)
+        if r > 0:
+            p0, p1, p2 = round(qpos[wp[0]] / r) * r, round(qpos[wp[1]] / r) * r, round(qpos[wp[2]] / r) * r
+            spool = round(qpos[self._spool_qp] / r) * r
+        else:
+            p0, p1, p2, spool = qpos[wp[0]], qpos[wp[1]], qpos[wp[2]], qpos[self._spool_qp]
         self.joints.seq += 1
         return m.JointSensors(
             stamp_ns=now_ns,
             seq=self.joints.seq,
-            wheel_pos=[self._quantize(qpos[wp[0]]), self._quantize(qpos[wp[1]]), self._quantize(qpos[wp[2]])],
+            wheel_pos=[p0, p1, p2],
             wheel_vel=[qvel[wq[0]] + wv * n[0], qvel[wq[1]] + wv * n[1], qvel[wq[2]] + wv * n[2]],
             wheel_torque=[force[wa[0]] + wt * n[3], force[wa[1]] + wt * n[4], force[wa[2]] + wt * n[5]],
             foot_pos=qpos[self._foot_qp] + self._foot_pos_std * n[6],
             foot_vel=qvel[self._foot_qv] + self._foot_vel_std * n[7],
-            foot_contact=bool(data.sensordata[self._touch_adr] > self.params.contact_threshold_n),
-            foot_motor_pos=self._quantize(qpos[self._spool_qp]),
+            foot_contact=sd[self._touch_adr] > self._contact_threshold,
+            foot_motor_pos=spool,
         )
 
     def _pose(self, qpos: list[float], now_ns: int) -> m.PoseMeasurement:
