@@ -40,6 +40,7 @@ from services.recorder import read_recording, recording_files
 
 NS = 1e9
 MAX_POINTS = 20_000  # per plotted series: more points only slow matplotlib down
+PERIOD_WINDOW_S = 1.0  # message periods are summarised per window
 _BY_SUFFIX = {t.suffix: t for t in TOPICS.values()}
 _STATUS_SUFFIX = "/status"
 
@@ -110,6 +111,15 @@ def tracking_errors(states: Series, refs: Series) -> tuple[np.ndarray, np.ndarra
         t.append(stamp)
         err.append(math.hypot(st.position[0] - x, st.position[1] - y))
     return np.array(t, dtype=np.int64), np.array(err)
+
+
+def _per_window(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """p99 and max of ``values`` per ``PERIOD_WINDOW_S`` of ``t``: readable where 600k raw points are not."""
+    bins = np.floor(t / PERIOD_WINDOW_S).astype(np.int64)
+    edges = np.flatnonzero(np.diff(bins)) + 1
+    groups = np.split(values, edges)
+    starts = bins[np.concatenate(([0], edges))] * PERIOD_WINDOW_S
+    return starts, np.array([np.percentile(g, 99) for g in groups]), np.array([g.max() for g in groups])
 
 
 def _pct(a: np.ndarray, q: float) -> float:
@@ -262,8 +272,9 @@ def plot(series: dict[str, Series], out: Path) -> dict[str, Any]:
             continue
         period_ms = np.diff(np.asarray(s.stamps, dtype=np.int64)) / 1e6
         arrival_ms = np.diff(np.asarray(s.arrivals, dtype=np.int64)) / 1e6
-        th = _thin(len(period_ms))
-        ax.plot(secs(s.stamps[1:])[th], period_ms[th], lw=0.5, label=f"{name}: stamp period")
+        t_bin, p99, pmax = _per_window(secs(s.stamps[1:]), period_ms)
+        line = ax.plot(t_bin, p99, lw=0.8, label=f"{name}: period p99 per {PERIOD_WINDOW_S:g} s")[0]
+        ax.plot(t_bin, pmax, lw=0.5, ls=":", color=line.get_color(), label=f"{name}: period max")
         timing[name] = {
             "period_ms_p50": _pct(period_ms, 50), "period_ms_p99": _pct(period_ms, 99), "period_ms_max": _pct(period_ms, 100),
             "arrival_ms_p99": _pct(arrival_ms, 99), "arrival_ms_max": _pct(arrival_ms, 100),
@@ -271,7 +282,8 @@ def plot(series: dict[str, Series], out: Path) -> dict[str, Any]:
     ax.set_ylabel("[ms]")
     ax.set_yscale("log")
     ax.legend(loc="best", fontsize=8)
-    ax.set_title("message periods")
+    ax.set_xlabel("t [s]")
+    ax.set_title("message periods (publisher stamps)")
     control = series.get("status:control")
     if control is not None and control.msgs:
         ct = secs(control.stamps)
@@ -283,6 +295,7 @@ def plot(series: dict[str, Series], out: Path) -> dict[str, Any]:
         ax2.legend(loc="best", fontsize=8)
     ax2.set_xlabel("t [s]")
     ax2.set_ylabel("[us]")
+    ax2.set_yscale("log")  # p99 of microseconds beside maxima of milliseconds
     ax2.set_title("control loop (from its recorded status)" if control else "control loop: no status recorded")
     summary["timing"] = timing
     save(fig, "timing.png")
