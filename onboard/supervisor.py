@@ -35,23 +35,29 @@ from onboard.params import ControlParams, SafetyLimits
 NS = 1_000_000_000
 
 Vec3 = tuple[float, float, float]
+_ESTIMATE_FAULTS = ("estimate_nonfinite", "estimate_invalid", "estimate_stale")
 
 
+_isfinite = math.isfinite
+
+
+# Both checks run every tick: all(map(...)) tests in C, a generator resumes per value.
 def estimate_is_finite(s: StateEstimate) -> bool:
-    vals = (*s.position, *s.velocity, *s.quat, *s.omega, *s.wheel_vel, s.foot_pos, s.foot_vel)
-    return all(math.isfinite(v) for v in vals)
+    return all(map(_isfinite, (*s.position, *s.velocity, *s.quat, *s.omega, *s.wheel_vel, s.foot_pos, s.foot_vel)))
 
 
 def reference_is_usable(ref: ComReference) -> bool:
     if not ref.segments:
         return False
     for seg in ref.segments:
-        if not (math.isfinite(seg.t0) and math.isfinite(seg.duration) and seg.duration > 0.0):
+        if not (_isfinite(seg.t0) and _isfinite(seg.duration) and seg.duration > 0.0):
             return False
-        if not seg.control_points or any(not math.isfinite(c) for p in seg.control_points for c in p):
+        pts = seg.control_points
+        if not pts:
             return False
-        if any(len(p) < 2 for p in seg.control_points):
-            return False
+        for p in pts:
+            if len(p) < 2 or not all(map(_isfinite, p)):
+                return False
     return True
 
 
@@ -133,8 +139,9 @@ class Supervisor:
                     self.disarm(now_ns, "estimate_lost", (now_ns - self._fault_since_ns) / NS,
                                 self.params.estimate_fault_disarm_s)
             return False
-        for name in ("estimate_nonfinite", "estimate_invalid", "estimate_stale"):
-            self._active.discard(name)
+        if self._active:
+            for name in _ESTIMATE_FAULTS:
+                self._active.discard(name)
         self._fault_since_ns = None
 
         tilt = qt.tilt(s.quat)
@@ -157,10 +164,11 @@ class Supervisor:
         if not reference_is_usable(ref):
             self._edge(now_ns, "reference_invalid", True, 0.0, 0.0)
             return None
-        self._active.discard("reference_invalid")
         age = now_ns - ref.stamp_ns
         stale = age > self._reference_stale_ns
-        self._edge(now_ns, "reference_stale", stale, age / NS, self.limits.reference_stale_s)
+        if stale or self._active:  # nothing to record or clear on a healthy tick
+            self._active.discard("reference_invalid")
+            self._edge(now_ns, "reference_stale", stale, age / NS, self.limits.reference_stale_s)
         return None if stale else ref
 
     def limit_command(
@@ -173,7 +181,7 @@ class Supervisor:
         clamped = False
         overspeed = False
         worst_t, worst_s = 0.0, 0.0
-        if not all(math.isfinite(v) for v in (*wheel, foot)):
+        if not all(map(_isfinite, (*wheel, foot))):
             # a bug upstream must never reach a motor
             self._trip(now_ns, "command_nonfinite", math.nan, 0.0)
             return (0.0, 0.0, 0.0), 0.0
@@ -189,11 +197,12 @@ class Supervisor:
                 worst_s = max(worst_s, abs(w))
                 t = 0.0
             out[i] = t
-        self._edge(now_ns, "wheel_torque", clamped, worst_t, tmax)
-        self._edge(now_ns, "wheel_speed", overspeed, worst_s, smax)
         fmax = self.limits.foot_torque_max
         foot_clamped = foot > fmax or foot < -fmax
-        self._edge(now_ns, "foot_torque", foot_clamped, abs(foot), fmax)
+        if clamped or overspeed or foot_clamped or self._active:  # nothing to record or clear on a clean tick
+            self._edge(now_ns, "wheel_torque", clamped, worst_t, tmax)
+            self._edge(now_ns, "wheel_speed", overspeed, worst_s, smax)
+            self._edge(now_ns, "foot_torque", foot_clamped, abs(foot), fmax)
         if foot_clamped:
             foot = fmax if foot > 0 else -fmax
         return (out[0], out[1], out[2]), foot
