@@ -167,6 +167,23 @@ def test_scalar_reference_sampling_agrees_with_onboard_bezier(degree):
         assert (vx, vy) == pytest.approx(tuple(v))
 
 
+@pytest.mark.parametrize("degree", [1, 3])
+def test_unrolled_reference_sampling_is_bit_identical_to_the_loop(degree):
+    # the lockstep run's determinism across versions rests on the same bits, not approx
+    from onboard.low_level import _bernstein_point
+
+    rng = np.random.default_rng(10 + degree)
+    for _ in range(200):
+        pts = rng.uniform(-5.0, 5.0, (degree + 1, 2)).tolist()
+        tau = float(rng.uniform(0.1, 10.0))
+        ref = ComReference(t_ref_ns=0, segments=[BezierSegment(t0=0.0, duration=tau, control_points=pts)])
+        t = float(rng.uniform(0.0, tau))
+        s = t / tau
+        k = degree / tau
+        hod = [[k * (b[0] - a[0]), k * (b[1] - a[1])] for a, b in zip(pts[:-1], pts[1:])]
+        assert sample_reference(ref, t) == (*_bernstein_point(pts, s), *_bernstein_point(hod, s))
+
+
 # --- the composed controller on synthetic estimates ---------------------------------------------
 
 
