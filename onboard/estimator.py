@@ -146,6 +146,8 @@ class StateEstimator:
         self._accel_range2 = p.accel_range_m_s2 ** 2
         self._valid_pos_var = p.valid_pos_std_m ** 2
         self._valid_att_var = p.valid_att_std_rad ** 2
+        self._max_extrapolation_ns = int(p.max_extrapolation_s * NS)
+        self._imu_timeout_ns = p.imu_timeout_s * NS  # a float, compared as before
         self._counters: dict[str, int] = {}
         # inputs
         self._t_imu = -1
@@ -431,14 +433,18 @@ class StateEstimator:
 
     # --- output -------------------------------------------------------------------------
 
+    @property
+    def has_imu(self) -> bool:
+        """Whether any IMU sample arrived: before that there is no state to publish."""
+        return self._t_imu >= 0
+
     def estimate(self, now_ns: int) -> StateEstimate:
         """The state at ``now_ns``, predicted from the newest IMU sample by at most
         ``max_extrapolation_s``; ``stamp_ns`` says the time it is valid at."""
-        p = self.params
         if self._pending is not None:
             self._step_com()
         t_imu = self._t_imu
-        lag_ns = min(max(now_ns - t_imu, 0), int(p.max_extrapolation_s * NS)) if t_imu >= 0 else 0
+        lag_ns = min(max(now_ns - t_imu, 0), self._max_extrapolation_ns) if t_imu >= 0 else 0
         tau = lag_ns / NS
         com = self.com
         px, py, pz = com.position
@@ -469,7 +475,7 @@ class StateEstimator:
         av = att.body_variances()
         valid = (
             max(self._t_pose_fused, com.last_fused_stamp) >= 0
-            and now_ns - t_imu <= p.imu_timeout_s * NS
+            and now_ns - t_imu <= self._imu_timeout_ns
             and ppp <= self._valid_pos_var
             and max(av) <= self._valid_att_var
         )
