@@ -30,6 +30,7 @@ import dataclasses
 import functools
 import logging
 import multiprocessing as mp
+import os
 import signal
 import threading
 from multiprocessing.connection import Connection
@@ -45,7 +46,7 @@ from onboard.low_level import LowLevelController
 from onboard.params import ControlParams, SafetyLimits
 from onboard.topics import TOPICS
 from services.clock import WallClock
-from services.realtime import DeadlineLoop, make_realtime
+from services.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime
 from services.runtime import LatestSlot, Service, TypedPublisher
 from services.zenoh_session import open_session
 from sim_twin import model as twin_model
@@ -155,6 +156,7 @@ class LoopConfig:
     control: ControlParams
     safety: SafetyLimits
     duration_s: float = 0.0  # > 0: stop by itself after this long (the bench)
+    parent_pid: int = 0  # the loop process dies with this process (0: no check)
 
 
 class ControlLoop:
@@ -223,13 +225,17 @@ class ControlLoop:
         if self.cfg.duration_s > 0 and self._ticks >= self.cfg.duration_s * self.cfg.control.rate_hz:
             self.loop.stop(timeout_s=0)
 
-    def report(self) -> dict[str, Any]:
-        """Loop statistics and what happened since the last report (for the parent)."""
+    def report(self, final: bool = False) -> dict[str, Any]:
+        """Loop statistics and what happened since the last report (for the parent).
+
+        Periodic reports summarise the last ``STATUS_WINDOW`` ticks (a full-ring
+        percentile would stall this process for milliseconds); the final one all of them.
+        """
         with self._trip_lock:
             trips, self._unsent_trips = self._unsent_trips, []
         tube = self.ctrl.tube(0)
         return {
-            "loop": self.loop.recorder.stats().as_dict(),
+            "loop": self.loop.recorder.stats(None if final else STATUS_WINDOW).as_dict(),
             "armed": self.ctrl.armed,
             "disarm_reason": self.ctrl.supervisor.disarm_reason,
             "hops": self.ctrl.phase.hop,
@@ -253,6 +259,7 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     breaks (parent gone)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    die_with_parent(cfg.parent_pid)
     try:
         applied = make_realtime(cfg.control.rt_priority or None, cfg.control.cpu if cfg.control.cpu >= 0 else None)
         loop = ControlLoop(cfg)
@@ -294,7 +301,7 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     server.start()
     loop.loop.run_here()
     done.set()
-    final = loop.report()
+    final = loop.report(final=True)
     final["final"] = True
     if loop.loop.error is not None:
         final["error"] = repr(loop.loop.error)
@@ -379,12 +386,13 @@ class ControlService(Service):
         self._loop_proc: LoopProcess | None = None
         self._restart = asyncio.Event()
         self._trips_logged = 0
+        self._progress_ticks = 0
         await self._start_loop()
 
     def _loop_config(self) -> LoopConfig:
         self._applied_control = self.params["control"]
         return LoopConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
-                          control=self.params["control"], safety=self.params["safety"])
+                          control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid())
 
     async def _start_loop(self) -> None:
         proc = LoopProcess(self._loop_config())
@@ -409,10 +417,10 @@ class ControlService(Service):
                 await asyncio.to_thread(proc.stop)
                 await self._start_loop()
             elif not proc.alive:
+                # A failure, not a stop: the process exits non-zero so that systemd
+                # (Restart=on-failure) or the supervisor starts control again.
                 self.state = "error"
-                self.fail("control loop process exited")
-                self.log.error("control loop process exited", extra={"fields": {"exitcode": proc.proc.exitcode}})
-                return
+                raise RuntimeError(f"control loop process exited with code {proc.proc.exitcode}")
 
     def _absorb(self, rep: dict[str, Any]) -> None:
         """Log every safety trip the loop reported; keep the figures for the status."""
@@ -459,6 +467,16 @@ class ControlService(Service):
     def request_disarm(self) -> None:
         if self._loop_proc is not None:
             self._loop_proc.send("disarm")
+
+    def progress(self) -> bool:
+        """The loop process is alive and its tick count advanced since the last check."""
+        proc = self._loop_proc
+        if proc is None or not proc.alive:
+            return False
+        ticks = proc.last.get("loop", {}).get("ticks", 0)
+        advanced = ticks > self._progress_ticks
+        self._progress_ticks = ticks
+        return advanced
 
     def status_extra(self) -> dict[str, float]:
         rep = self._loop_proc.last if self._loop_proc is not None else {}

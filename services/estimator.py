@@ -76,6 +76,9 @@ class EstimatorService(Service):
             while queue:
                 topic, msg = queue.popleft()
                 dispatch[topic](msg)
+            if not self.est.has_imu:  # nothing to stamp an estimate with yet
+                self.count("ticks_without_imu")
+                return
             state = self.est.estimate(self.clock.now_ns())
         self._state_pub.put(state)
         self._ticks.tick()
@@ -101,6 +104,9 @@ class EstimatorService(Service):
         with self._lock:
             self._build(self.params["estimator"])
         self.log.info("estimator rebuilt with new parameters")
+
+    def progress(self) -> bool:
+        return self._loop.progressing()
 
     def status_extra(self) -> dict[str, float]:
         with self._lock:

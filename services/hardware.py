@@ -378,6 +378,9 @@ class HardwareService(Service):
         if self.backend is not None:
             await asyncio.to_thread(self.backend.close)
 
+    def progress(self) -> bool:
+        return self.loop.progressing()
+
     def status_extra(self) -> dict[str, float]:
         out: dict[str, float] = {}
         if self.loop is not None:

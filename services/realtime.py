@@ -9,8 +9,10 @@ as an overrun instead of silently stretching the period. Waiting sleeps until
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
+import signal
 import sys
 import threading
 import time
@@ -23,6 +25,7 @@ log = logging.getLogger("archer.realtime")
 
 SPIN_S = 150e-6  # spin this long before each deadline instead of sleeping
 STATS_CAPACITY = 1 << 16  # ring of recent ticks kept for percentiles (65 s at 1 kHz)
+STATUS_WINDOW = 5000  # ticks a status report summarises: a full-ring percentile costs ms
 RT_SWITCH_INTERVAL_S = 0.0005  # CPython GIL hand-over interval while a hard loop runs
 
 
@@ -48,6 +51,28 @@ def make_realtime(priority: int | None = None, cpu: int | None = None) -> dict[s
             applied["priority"] = f"refused: {exc}"
             log.warning("real-time priority refused", extra={"fields": {"priority": priority, "error": str(exc)}})
     return applied
+
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Have the kernel SIGKILL this process when its parent dies.
+
+    A hard-rate loop in a child process must not outlive the service that owns it
+    (a killed control service would otherwise leave its loop publishing torque).
+    Where prctl is unavailable the child still stops when its pipe breaks.
+    """
+    if parent_pid <= 0:
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            log.warning("prctl(PR_SET_PDEATHSIG) refused", extra={"fields": {"errno": ctypes.get_errno()}})
+    except (OSError, AttributeError) as exc:
+        log.warning("prctl unavailable", extra={"fields": {"error": str(exc)}})
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
 
 
 @dataclass
@@ -82,12 +107,20 @@ class LoopRecorder:
         if overrun:
             self.overruns += 1
 
-    def stats(self) -> LoopStats:
+    @property
+    def ticks(self) -> int:
+        return self._n
+
+    def stats(self, last: int | None = None) -> LoopStats:
+        """Percentiles over the ring, or over the ``last`` ticks only (cheap enough for a status)."""
         n = min(self._n, len(self._late))
+        if last is not None:
+            n = min(n, last)
         if n == 0:
-            return LoopStats(0, self.overruns, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        late = np.abs(self._late[:n]) * 1e6
-        compute = self._compute[:n] * 1e6
+            return LoopStats(self._n, self.overruns, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        idx = (self._n - n + np.arange(n)) % len(self._late)
+        late = np.abs(self._late[idx]) * 1e6
+        compute = self._compute[idx] * 1e6
         return LoopStats(
             ticks=self._n,
             overruns=self.overruns,
@@ -127,6 +160,7 @@ class DeadlineLoop:
         self._stop = threading.Event()
         self.recorder = LoopRecorder()
         self.error: BaseException | None = None
+        self._progress_ticks = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
@@ -140,6 +174,13 @@ class DeadlineLoop:
     @property
     def running(self) -> bool:
         return self._thread.is_alive()
+
+    def progressing(self) -> bool:
+        """Whether the loop ticked since the last call and has not crashed (gates watchdogs)."""
+        ticks = self.recorder.ticks
+        advanced = ticks > self._progress_ticks
+        self._progress_ticks = ticks
+        return advanced and self.error is None
 
     def run_here(self) -> None:
         """Run the loop on the calling thread (for a dedicated process)."""

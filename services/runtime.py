@@ -361,7 +361,8 @@ class Service:
             counters=self.counters.snapshot(),
             last_error=self.last_error,
             contract=self.contract_state,
-            extra={k: float(v) for k, v in self.status_extra().items()},
+            # before setup() has run, a service's own figures do not exist yet
+            extra={} if self.state == "starting" else {k: float(v) for k, v in self.status_extra().items()},
         )
 
     def _on_status_query(self, query: zenoh.Query) -> None:

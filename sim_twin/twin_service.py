@@ -190,6 +190,9 @@ class TwinService(Service):
         out["contract_violations"] = self.contract_violations
         return out
 
+    def progress(self) -> bool:
+        return self.loop.progressing()
+
     def status_extra(self) -> dict[str, float]:
         out: dict[str, float] = {"sim_time_s": self.sim_ns / NS, "realtime_factor": self.realtime_factor}
         if self.loop is not None:

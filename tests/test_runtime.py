@@ -68,7 +68,16 @@ def test_service_relays_rejects_and_reports(zenoh_router):
             assert service.imu_slot.get()[0].gyro[2] == 99.0
 
             # a second session sees the liveliness token and gets the status
-            names = await asyncio.to_thread(live_services, client, NS)
+            # liveliness propagates asynchronously: ask until the token is seen
+            names: list[str] = []
+
+            async def token_seen() -> bool:
+                names[:] = await asyncio.to_thread(live_services, client, NS)
+                return "relay" in names
+
+            for _ in range(10):
+                if await token_seen():
+                    break
             assert "relay" in names
             status = await asyncio.to_thread(query_status, client, NS, "relay")
             assert status.state == "running"
