@@ -379,7 +379,7 @@ class HardwareService(Service):
             await asyncio.to_thread(self.backend.close)
 
     def progress(self) -> bool:
-        return self.loop.progressing()
+        return self.loop is not None and self.loop.progressing()
 
     def status_extra(self) -> dict[str, float]:
         out: dict[str, float] = {}

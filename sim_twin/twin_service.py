@@ -191,7 +191,7 @@ class TwinService(Service):
         return out
 
     def progress(self) -> bool:
-        return self.loop.progressing()
+        return self.loop is not None and self.loop.progressing()
 
     def status_extra(self) -> dict[str, float]:
         out: dict[str, float] = {"sim_time_s": self.sim_ns / NS, "realtime_factor": self.realtime_factor}
