@@ -14,7 +14,7 @@ import numpy as np
 
 
 @dataclass(frozen=True)
-class TestMap:
+class SyntheticMap:
     name: str
     occupied: np.ndarray  # (rows, cols) bool
     start: tuple[int, int]  # (row, col) of a free cell
@@ -26,7 +26,7 @@ def _border(occ: np.ndarray) -> None:
     occ[:, 0] = occ[:, -1] = True
 
 
-def rooms(size: int = 200, seed: int = 0) -> TestMap:
+def rooms(size: int = 200, seed: int = 0) -> SyntheticMap:
     """A 3 x 3 grid of rooms with walls 3 cells thick and one or two doors per wall."""
     rng = np.random.default_rng(seed)
     occ = np.zeros((size, size), dtype=bool)
@@ -57,7 +57,7 @@ def rooms(size: int = 200, seed: int = 0) -> TestMap:
     return _finish("rooms", occ, rng)
 
 
-def corridors(size: int = 200, seed: int = 0) -> TestMap:
+def corridors(size: int = 200, seed: int = 0) -> SyntheticMap:
     """Corridors 6-12 cells wide: a ring, cross links and a diagonal one."""
     rng = np.random.default_rng(seed)
     occ = np.ones((size, size), dtype=np.uint8)
@@ -73,7 +73,7 @@ def corridors(size: int = 200, seed: int = 0) -> TestMap:
     return _finish("corridors", out, rng)
 
 
-def clutter(size: int = 200, seed: int = 0, count: int = 60) -> TestMap:
+def clutter(size: int = 200, seed: int = 0, count: int = 60) -> SyntheticMap:
     """Random boxes and discs (a forest seen from above)."""
     rng = np.random.default_rng(seed)
     occ = np.zeros((size, size), dtype=np.uint8)
@@ -90,7 +90,7 @@ def clutter(size: int = 200, seed: int = 0, count: int = 60) -> TestMap:
     return _finish("clutter", out, rng)
 
 
-def _finish(name: str, occ: np.ndarray, rng: np.random.Generator) -> TestMap:
+def _finish(name: str, occ: np.ndarray, rng: np.random.Generator) -> SyntheticMap:
     """Start and goal: far apart free cells with some clearance, in one region."""
     free = (~occ).astype(np.uint8)
     _, comp = cv2.connectedComponents(free, connectivity=4)
@@ -102,7 +102,7 @@ def _finish(name: str, occ: np.ndarray, rng: np.random.Generator) -> TestMap:
     i = int(rng.integers(len(rr)))
     d2 = (rr - rr[i]) ** 2 + (cc - cc[i]) ** 2
     j = int(np.argmax(d2))
-    return TestMap(name, occ, (int(rr[i]), int(cc[i])), (int(rr[j]), int(cc[j])))
+    return SyntheticMap(name, occ, (int(rr[i]), int(cc[i])), (int(rr[j]), int(cc[j])))
 
 
 BUILDERS = {"rooms": rooms, "corridors": corridors, "clutter": clutter}
