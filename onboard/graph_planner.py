@@ -575,8 +575,9 @@ class GraphPlanner:
 
     def region_for(self, position: np.ndarray) -> tuple[float, float, float, float]:
         """Planning region: the fixed bounds, or start, goal and obstacles (or cells) padded by
-        ``bounds_padding`` plus twice the margin (room to pass an obstacle at the edge), snapped
-        outward to ``bounds_quantum``."""
+        ``bounds_padding`` plus twice the margin (room to pass an obstacle at the edge; the
+        margin of a tube of at least ``region_tube``, so that a tube growing up to it needs
+        no new graph), snapped outward to ``bounds_quantum``."""
         if self.fixed_bounds is not None:
             return self.fixed_bounds
         pts = [np.asarray(position, float)[:2]]
@@ -587,7 +588,7 @@ class GraphPlanner:
             pts.extend([polys.aabb[:, :2].min(axis=0), polys.aabb[:, 2:].max(axis=0)])
         pts_arr = np.array(pts)
         q = self.params.bounds_quantum
-        pad = self.params.bounds_padding + 2 * self.margin
+        pad = self.params.bounds_padding + 2 * (self.robot_radius + max(self.tube, self.params.region_tube))
         lo = np.floor((pts_arr.min(axis=0) - pad) / q) * q
         hi = np.ceil((pts_arr.max(axis=0) + pad) / q) * q
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])

@@ -262,7 +262,8 @@ class PlannerParams:
     tube: float = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
     tube_growth: float = 1.1  # on a broken promise, plan with the achieved tube times this
     robot_radius: float = 0.0  # [m] robot footprint radius; 0: read from the MJCF
-    bounds_padding: float = 0.5  # [m] planning region around start, goal and obstacles
+    bounds_padding: float = 0.5  # [m] planning region around start, goal and obstacles (plus twice the margin)
+    region_tube: float = 0.2  # [m] the region leaves room for a tube this large: no new graph while the tube grows to it
     bounds_quantum: float = 1.0  # [m] region corners snap to this grid (graph cache hits)
     goal_speed_tol: float = 0.05  # [m/s] graph nodes this slow near the goal may end a path
     start_speed_tol: float = 0.1  # [m/s] velocity part of "the node contains the state"
