@@ -254,16 +254,7 @@ class ComFilter:
         if (yx * yx + yy * yy + yz * yz) / s > self._gate:
             return False
         ka, kb = a / s, b / s
-        dpx, dpy, dpz = ka * yx, ka * yy, ka * yz
-        dvx, dvy, dvz = kb * yx, kb * yy, kb * yz
-        x[0] += dpx
-        x[1] += dpy
-        x[2] += dpz
-        x[3] += dvx
-        x[4] += dvy
-        x[5] += dvz
-        self._p = [p00 - ka * a, p01 - ka * b, p11 - kb * b]
-        self._shift_output(dpx, dpy, dpz, dvx, dvy, dvz)
+        self._correct(ka, kb, yx, yy, yz, [p00 - ka * a, p01 - ka * b, p11 - kb * b])
         return True
 
     def _update_velocity(self, zx: float, zy: float, zz: float, var: float) -> bool:
@@ -277,6 +268,12 @@ class ComFilter:
         if (yx * yx + yy * yy + yz * yz) / s > self._gate:
             return False
         ka, kb = p01 / s, p11 / s
+        self._correct(ka, kb, yx, yy, yz, [p00 - ka * p01, p01 - ka * p11, p11 - kb * p11])
+        return True
+
+    def _correct(self, ka: float, kb: float, yx: float, yy: float, yz: float, p_new: list[float]) -> None:
+        """Apply the per-axis gains ``(ka, kb)`` to the innovation and adopt ``p_new``."""
+        x = self._x
         dpx, dpy, dpz = ka * yx, ka * yy, ka * yz
         dvx, dvy, dvz = kb * yx, kb * yy, kb * yz
         x[0] += dpx
@@ -285,9 +282,8 @@ class ComFilter:
         x[3] += dvx
         x[4] += dvy
         x[5] += dvz
-        self._p = [p00 - ka * p01, p01 - ka * p11, p11 - kb * p11]
+        self._p = p_new
         self._shift_output(dpx, dpy, dpz, dvx, dvy, dvz)
-        return True
 
     def _reset_position(self, zx: float, zy: float, zz: float, var: float) -> None:
         x = self._x

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 from drivers.elmo.emulator import InertiaLoad, MotorModel
 from drivers.teensy import protocol as p
+from onboard import quaternion as quat
 from onboard.params import HardwareParams
 
 log = logging.getLogger("archer.drivers.teensy.emulator")
@@ -57,16 +58,6 @@ class Injection:
     replug_at: float | None = None
     counts: dict[str, int] = field(default_factory=dict)
 
-
-def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
 
 
 class TeensyEmulator:
@@ -229,7 +220,7 @@ class TeensyEmulator:
         cmd = self.attitude
         assert cmd is not None
         qd = cmd.quat_des
-        err = _quat_mul((qd[0], -qd[1], -qd[2], -qd[3]), self.body.quat)
+        err = quat.mul(quat.conj(qd), self.body.quat)
         sign = 1.0 if err[0] >= 0 else -1.0  # the shorter way round
         out = []
         for k in range(3):
