@@ -46,10 +46,12 @@ CACHE_ENV = "ARCHER_CACHE_DIR"
 
 
 def graph_cache_dir() -> Path:
-    """``$ARCHER_CACHE_DIR/graphs``, else ``$XDG_CACHE_HOME/archer/graphs``, else ``~/.cache/archer/graphs``."""
-    root = os.environ.get(CACHE_ENV)
-    if root:
-        return Path(root) / "graphs"
+    """``$ARCHER_CACHE_DIR/graphs``, else systemd's ``$CACHE_DIRECTORY/graphs`` (a unit with
+    ``CacheDirectory=``), else ``$XDG_CACHE_HOME/archer/graphs``, else ``~/.cache/archer/graphs``."""
+    for env in (CACHE_ENV, "CACHE_DIRECTORY"):
+        root = os.environ.get(env)
+        if root:
+            return Path(root.split(":")[0]) / "graphs"
     xdg = os.environ.get("XDG_CACHE_HOME")
     return (Path(xdg) if xdg else Path.home() / ".cache") / "archer" / "graphs"
 
@@ -67,8 +69,11 @@ def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.
             pass  # rebuilt below
     graph = gp.build_graph(spec)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
+        except OSError:
+            return graph, False  # a read-only or missing cache: plan without it
         try:
             with os.fdopen(fd, "wb") as fh:
                 np.savez(fh, **graph.to_arrays())

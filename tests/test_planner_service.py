@@ -151,6 +151,11 @@ def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
     g3, cached3 = load_or_build_graph(spec, tmp_path)
     assert not cached3 and np.array_equal(g3.dst, g1.dst)
     assert load_or_build_graph(dataclasses.replace(spec, seed=9), tmp_path)[1] is False
+    # A cache that cannot be written (a read-only home under systemd): the graph all the same.
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    g4, cached4 = load_or_build_graph(spec, blocker / "graphs")
+    assert not cached4 and np.array_equal(g4.dst, g1.dst)
 
 
 def test_footprint_radius_comes_from_the_mjcf():
