@@ -64,6 +64,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, field
 
+import msgspec
 import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
@@ -473,7 +474,8 @@ class PlannerStats:
     no_path: int = 0
     cuts: int = 0
     graph_builds: int = 0
-    refines: int = 0
+    refines: int = 0  # MPC solves
+    refine_reused: int = 0  # refine calls answered with the last solution (nothing changed)
     refine_failures: int = 0
     edges_free: int = 0
 
@@ -513,6 +515,7 @@ class GraphPlanner:
         self._mpc = None
         self._mpc_tube = -1.0
         self._last_solution = None
+        self._last_refined: tuple | None = None  # (knot, world version, path, first knot, reference)
         self.contract_violations = 0
         self._reports: list[msgs.ContractReport] = []
 
@@ -789,9 +792,8 @@ class GraphPlanner:
             limits = reach.box_limits(model, prm.a_max, [-inf, -inf, -prm.v_max, -prm.v_max],
                                       [inf, inf, prm.v_max, prm.v_max], tube=self.tube, tube_norm=2)
             test = reach.BezierReachability(model, limits, prm.mpc_dt)
-            init = [self.tube, self.tube, prm.start_speed_tol, prm.start_speed_tol]
             self._mpc = BezierMpc(test, prm.mpc_horizon, MPC_WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
-                                  init_radius=[r if r > MPC_MIN_RADIUS else 0.0 for r in init],
+                                  init_radius=self._init_radius(),
                                   max_planes=max(planes, prm.halfspaces), terminal="equal")
             self._mpc_tube = self.tube
             self._last_solution = None
@@ -807,6 +809,11 @@ class GraphPlanner:
         graph path) from its nearest obstacles, or to its free cell. The solution is
         certified by the MPC and then checked by the exact cut; when either fails the
         graph path itself is returned (it is collision free). None without a path.
+
+        Between two knots the QP only changes by the measured state: while the last
+        solution's first knot still lies within the tube of the state (it stays feasible)
+        and nothing else changed, that solution is returned again without a solve
+        (``stats.refine_reused``).
         """
         if self.path is None:
             return None
@@ -815,6 +822,11 @@ class GraphPlanner:
         dt, N = prm.mpc_dt, prm.mpc_horizon
         path = self.path
         j0 = max(0, int(round((stamp_ns - self.path_t0_ns) * 1e-9 / dt)))
+        kept = self._last_refined
+        if (kept is not None and kept[0] == j0 and kept[1] == self._world_version and kept[2] is path
+                and np.all(np.abs(kept[3] - x) <= self._init_radius())):
+            self.stats.refine_reused += 1
+            return msgspec.structs.replace(kept[4], stamp_ns=stamp_ns)
         times = (j0 + np.arange(N + 1)) * dt
         ref = path_states(path.control_points, path.tau, times)
         warm = ref.copy()
@@ -842,10 +854,19 @@ class GraphPlanner:
                 for dur, c in chain_tail(path.control_points, path.tau, float(times[-1])):
                     segs.append(msgs.BezierSegment(t0=float(t), duration=float(dur), control_points=c.tolist()))
                     t += dur
-                return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=False)
+                out = msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=False)
+                self._last_refined = (j0, self._world_version, path, sol.waypoints[0].copy(), out)
+                return out
         self.stats.refine_failures += 1
         self._last_solution = None
+        self._last_refined = None
         return self.path_reference(stamp_ns)
+
+    def _init_radius(self) -> np.ndarray:
+        """How far the MPC's first knot may sit from the state (7.2b): the tube, the speed tolerance."""
+        prm = self.params
+        r = np.array([self.tube, self.tube, prm.start_speed_tol, prm.start_speed_tol])
+        return np.where(r > MPC_MIN_RADIUS, r, 0.0)
 
     # --- contract with the low level ------------------------------------------------------
 

@@ -278,6 +278,7 @@ class PlannerParams:
     tube_max: float = 0.5  # [m] the tube the planner grows to at most after broken promises
     contract_min_hops: int = 5  # impacts in the low level's tube window before it is judged
     state_stale_s: float = 0.1  # [s] an older state estimate is not planned from
+    nice: int = 10  # the planner process lowers its CPU priority by this much: it must never starve the 1 kHz loops
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,9 @@ def test_refinement_follows_the_robot_along_the_path(graph):
         assert steps == pytest.approx(round(steps), abs=1e-6)
         horizon = np.stack([np.array(s.control_points) for s in ref.segments[: PARAMS.mpc_horizon]])
         lengths.append(float(bz.path_length_bound(horizon).sum()))
-    assert planner.stats.refine_failures == 0 and planner.stats.refines == 40
+    st = planner.stats
+    assert st.refine_failures == 0 and st.refines + st.refine_reused == 40
+    assert st.refines >= 20  # a solve at least at every knot (every 0.1 s; the calls come every 0.05 s)
     # The refinement shortens (or keeps) the graph path over the same horizon.
     graph_pts = gp.path_states(planner.path.control_points, planner.path.tau,
                                np.linspace(1.95, 1.95 + PARAMS.mpc_horizon * PARAMS.mpc_dt, 400))[:, :2]
@@ -141,3 +143,20 @@ def test_contract_check_grows_the_tube_and_reports(graph):
     huge = msgs.TrackingTube(hops=30, impact_err_p50=1.0, impact_err_p95=2.0, impact_err_max=3.0, attitude_err_p95=0.1)
     assert planner.check_tube(huge).violations == 2 and planner.tube == PARAMS.tube_max
     assert [r.violations for r in planner.drain_contract_reports()] == [1, 2] and planner.drain_contract_reports() == []
+
+
+def test_the_last_solution_is_reused_only_while_nothing_changed(graph):
+    planner = _planner(graph)
+    start = planner.path.states[0]
+    t0 = planner.path_t0_ns
+    first = planner.refine(start[:2], start[2:], t0)
+    again = planner.refine(start[:2] + 0.01, start[2:], t0 + 20_000_000)  # same knot, state moved 1 cm
+    assert planner.stats.refines == 1 and planner.stats.refine_reused == 1
+    assert again.segments == first.segments and again.stamp_ns == t0 + 20_000_000
+    planner.refine(start[:2] + 0.2, start[2:], t0 + 30_000_000)  # out of the tube: solve again
+    assert planner.stats.refines == 2
+    planner.set_obstacles(OBSTACLES[:2])  # the world changed: solve again
+    planner.refine(start[:2], start[2:], t0 + 40_000_000)
+    assert planner.stats.refines == 3
+    planner.refine(start[:2], start[2:], t0 + 100_000_000)  # the next knot: solve again
+    assert planner.stats.refines == 4
