@@ -15,7 +15,9 @@ def test_forest_start_is_planned_and_the_contract_is_checked():
     assert m["planner"] == "graph" and m["planner_plans"] >= 1 and m["planner_no_path"] == 0
     assert m["collisions"] == 0 and m["falls"] == 0
     planner = plug.planner
-    assert planner.path is not None and planner.stats.refines > 100
+    # refinement ran every planner tick: solved when the knot or the world changed, else reused
+    st = planner.stats
+    assert planner.path is not None and st.refines > 10 and st.refines + st.refine_reused > 100
     # The tube reached the planner: every broken promise it saw is in the run's count, and
     # each made it plan with a larger tube.
     assert m["contract_violations"] == planner.contract_violations
