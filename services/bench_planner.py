@@ -12,7 +12,9 @@ nodes, the default planner parameters. Prints:
   that a shared, loaded machine distorts least; ``threads``: numba threads;
 - ``search_ms_p50``: start and goal joined to the graph and A*, random free start/goal
   pairs until ``--queries`` paths are found (``paths_found`` of ``queries`` tried);
-- ``refine_ms_p50``/``refine_ms_p99``: one SQP iteration of the MPC (eq. 7.2);
+- ``refine_ms_p50``/``refine_ms_p99``: one refine call at ``refine_hz`` along the path: an
+  SQP iteration of the MPC (eq. 7.2) when a knot passed (``refine_solves``), else the last
+  solution again (``refine_reused``);
 - ``unsound_edges``: kept edges whose densely sampled curve (``--samples`` points) comes
   within the margin of an obstacle (must be 0); ``missed_edges``: cut edges whose dense
   samples all keep the margin (the convex-hull test's conservatism).
@@ -163,6 +165,8 @@ def measure(args: argparse.Namespace) -> dict:
         "search_ms_p50": _pct(search_ms, 50),
         "refine_ms_p50": _pct(refine_ms, 50) if refine_ms else None,
         "refine_ms_p99": _pct(refine_ms, 99) if refine_ms else None,
+        "refine_solves": planner.stats.refines,
+        "refine_reused": planner.stats.refine_reused,
         "refine_failures": planner.stats.refine_failures,
         "unsound_edges": unsound,
         "missed_edges": missed,
