@@ -14,7 +14,7 @@ nodes, the default planner parameters. Prints:
   pairs until ``--queries`` paths are found (``paths_found`` of ``queries`` tried);
 - ``refine_ms_p50``/``refine_ms_p99``: one refine call at ``refine_hz`` along the path: an
   SQP iteration of the MPC (eq. 7.2) when a knot passed (``refine_solves``), else the last
-  solution again (``refine_reused``);
+  solution again (``refine_reused``); ``refine_solve_ms_p50``/``_p99``: the calls that solved;
 - ``unsound_edges``: kept edges whose densely sampled curve (``--samples`` points) comes
   within the margin of an obstacle (must be 0); ``missed_edges``: cut edges whose dense
   samples all keep the margin (the convex-hull test's conservatism).
@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", type=float, default=0.0, help="world side [m] (0: sized by --nodes)")
     parser.add_argument("--repeat", type=int, default=30, help="timed cuts")
     parser.add_argument("--queries", type=int, default=20, help="timed searches (random start and goal)")
-    parser.add_argument("--refines", type=int, default=50, help="timed MPC iterations")
+    parser.add_argument("--refines", type=int, default=1000, help="timed refine calls (at refine_hz along each path found)")
     parser.add_argument("--samples", type=int, default=100, help="dense samples per edge for the soundness check")
     parser.add_argument("--robot-radius", type=float, default=0.13, help="[m]")
     parser.add_argument("--tube", type=float, default=PlannerParams().tube, help="[m] low-level tube planned with")
@@ -129,7 +129,7 @@ def measure(args: argparse.Namespace) -> dict:
 
     planner.set_obstacles(polys)
     planner.cut()
-    search_ms, refine_ms = [], []
+    search_ms, refine_ms, solve_ms = [], [], []
     found = attempts = 0
     # Random free start and goal; searches that find no path are timed too.
     while found < args.queries and attempts < QUERY_ATTEMPTS * args.queries:
@@ -146,9 +146,12 @@ def measure(args: argparse.Namespace) -> dict:
         for j in range(max(args.refines // args.queries, 1)):
             t_ns = int(j * 1e9 / params.refine_hz)
             expect = gp.path_states(planner.path.control_points, planner.path.tau, np.array([t_ns * 1e-9]))[0]
+            solves = planner.stats.refines
             t0 = time.perf_counter()
             planner.refine(expect[:2], expect[2:], t_ns)
             refine_ms.append((time.perf_counter() - t0) * 1e3)
+            if planner.stats.refines > solves:
+                solve_ms.append(refine_ms[-1])
     return {
         "nodes": graph.n_nodes,
         "edges": graph.n_edges,
@@ -165,6 +168,8 @@ def measure(args: argparse.Namespace) -> dict:
         "search_ms_p50": _pct(search_ms, 50),
         "refine_ms_p50": _pct(refine_ms, 50) if refine_ms else None,
         "refine_ms_p99": _pct(refine_ms, 99) if refine_ms else None,
+        "refine_solve_ms_p50": _pct(solve_ms, 50) if solve_ms else None,
+        "refine_solve_ms_p99": _pct(solve_ms, 99) if solve_ms else None,
         "refine_solves": planner.stats.refines,
         "refine_reused": planner.stats.refine_reused,
         "refine_failures": planner.stats.refine_failures,
