@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+from drivers.faults import LatchedFaults
 from drivers.elmo import codec as c
 from drivers.elmo.sdo import SdoClient, SdoError
 from drivers.elmo.transport import CanTransport
@@ -229,8 +230,11 @@ class GroupStats:
     per_node_missed: dict[int, int] = field(default_factory=dict)
 
 
-class DriveGroup:
+class DriveGroup(LatchedFaults):
     """Every drive on one bus, exchanged as one batch per tick."""
+
+    device_name = "drive"
+    fault_log = log
 
     def __init__(
         self,
@@ -263,16 +267,6 @@ class DriveGroup:
         self._host_heartbeat = c.make_heartbeat(params.host_node_id, c.NmtState.OPERATIONAL)
 
     # --- faults ---------------------------------------------------------------------------
-
-    @property
-    def faulted(self) -> bool:
-        return bool(self.faults)
-
-    def latch(self, reason: str) -> None:
-        if reason not in self.faults:
-            self.faults.append(reason)
-            self.stats.faults_latched += 1
-            log.error("drive fault latched", extra={"fields": {"reason": reason}})
 
     # --- start-up ---------------------------------------------------------------------------
 

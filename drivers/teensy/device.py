@@ -17,6 +17,7 @@ import logging
 from dataclasses import dataclass
 from typing import Literal
 
+from drivers.faults import LatchedFaults
 from drivers.teensy import protocol as p
 from drivers.teensy.transport import SerialLink
 
@@ -39,7 +40,10 @@ class TeensyStats:
     recoveries: int = 0
 
 
-class Teensy:
+class Teensy(LatchedFaults):
+    device_name = "Teensy"
+    fault_log = log
+
     def __init__(self, link: SerialLink, mode: Mode, link_timeout_s: float) -> None:
         if mode not in ("torque", "attitude"):
             raise ValueError(f"unknown Teensy mode {mode!r}")
@@ -76,16 +80,6 @@ class Teensy:
         return p.make_heartbeat(self._next_seq(), int(now * 1000))
 
     # --- faults -------------------------------------------------------------------------
-
-    @property
-    def faulted(self) -> bool:
-        return bool(self.faults)
-
-    def latch(self, reason: str) -> None:
-        if reason not in self.faults:
-            self.faults.append(reason)
-            self.stats.faults_latched += 1
-            log.error("Teensy fault latched", extra={"fields": {"reason": reason}})
 
     def recover(self, now: float) -> bool:
         """Recovery on command: clears the faults if the link is up and sensors are fresh."""
