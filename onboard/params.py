@@ -46,6 +46,8 @@ class HardwareParams:
 
     backend: str = "can"  # "can": ELMO drives over CANopen; "teensy": framed serial
     rate_hz: float = 1000.0  # exchange rate with the drives / the Teensy [Hz]
+    rt_priority: int = 70  # SCHED_FIFO priority of the exchange thread, below control (0: leave the scheduler alone)
+    cpu: int = -1  # CPU the exchange thread is pinned to (-1: no pinning)
     # CAN (python-can arguments; the emulator prints them)
     can_interface: str = "socketcand"
     can_channel: str = "can0"

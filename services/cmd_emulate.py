@@ -36,6 +36,7 @@ from drivers.teensy.emulator import TeensyEmulator
 from drivers.teensy.protocol import VERSION
 from onboard.params import HardwareParams
 from services.config import ConfigError, load_params
+from services.realtime import make_realtime
 
 DOCS = "docs/teensy_protocol.md"
 
@@ -126,6 +127,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety)")
     parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
     parser.add_argument("--seed", type=int, default=0, help="--twin: scenario and sensor-noise seed")
+    parser.add_argument(
+        "--rt-priority", type=int, default=0,
+        help="SCHED_FIFO priority for the emulator's threads when permitted (0: none); the emulated "
+        "devices stand in for silicon that never waits for the host's CPU",
+    )
 
 
 def _node_ids(text: str) -> tuple[int, ...]:
@@ -238,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"archer emulate: {exc}", file=sys.stderr)
         return 2
+    if args.rt_priority:
+        make_realtime(args.rt_priority)  # before any thread starts: they inherit the policy
     plant = None
     if args.twin:
         gears = _gear_ratios()

@@ -36,7 +36,7 @@ from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
 from onboard import messages as msgs
 from onboard.params import HardwareParams, SafetyLimits
-from services.realtime import DeadlineLoop
+from services.realtime import DeadlineLoop, make_realtime
 from services.runtime import LatestSlot, Service
 
 NS = 1_000_000_000
@@ -303,7 +303,12 @@ class HardwareService(Service):
         else:
             raise ValueError(f"hardware.backend must be 'can' or 'teensy', not {hw.backend!r}")
         await asyncio.to_thread(self.backend.open)
-        self.loop = DeadlineLoop(1.0 / hw.rate_hz, self._tick, name="hardware-loop")
+        self.loop = DeadlineLoop(1.0 / hw.rate_hz, self._tick, name="hardware-loop", on_start=self._make_loop_realtime)
+
+    def _make_loop_realtime(self) -> None:
+        hw = self.params["hardware"]
+        applied = make_realtime(hw.rt_priority or None, hw.cpu if hw.cpu >= 0 else None)
+        self.log.info("exchange thread scheduling", extra={"fields": applied})
 
     def on_params_changed(self, section: str) -> None:
         value = self.params["hardware"].recover_request

@@ -152,11 +152,16 @@ class DeadlineLoop:
     overrun: the loop skips the missed deadlines instead of bursting to catch up.
     """
 
-    def __init__(self, period_s: float, tick: Callable[[float], None], name: str = "deadline-loop") -> None:
+    def __init__(
+        self, period_s: float, tick: Callable[[float], None], name: str = "deadline-loop",
+        on_start: Callable[[], None] | None = None,
+    ) -> None:
+        """``on_start`` runs first on the loop's own thread (scheduling policy is per thread)."""
         if period_s <= 0:
             raise ValueError("period must be positive")
         self.period_s = period_s
         self._tick = tick
+        self._on_start = on_start
         self._stop = threading.Event()
         self.recorder = LoopRecorder()
         self.error: BaseException | None = None
@@ -187,6 +192,8 @@ class DeadlineLoop:
         self._run()
 
     def _run(self) -> None:
+        if self._on_start is not None:
+            self._on_start()
         previous = sys.getswitchinterval()
         sys.setswitchinterval(RT_SWITCH_INTERVAL_S)  # other threads must not hold the GIL for 5 ms
         period = self.period_s

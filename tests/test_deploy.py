@@ -53,11 +53,12 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
         exec_start = one(unit, "Service", "ExecStart").split()
         assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICE_CLASSES
         assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
-        realtime = service == "control"
+        realtime = service in ("control", "hardware")  # the 1 kHz loop and the bus master
         assert (one(unit, "Service", "RestrictRealtime") == "no") == realtime
         assert ("LimitRTPRIO" in unit["Service"]) == realtime
     control = parsed["archer-control.service"]["Service"]
     assert control["NotifyAccess"] == ["all"] and control["AmbientCapabilities"] == ["CAP_SYS_NICE"]
+    assert parsed["archer-hardware.service"]["Service"]["AmbientCapabilities"] == ["CAP_SYS_NICE"]
     robot = one(parsed["archer.target"], "Unit", "Wants").split()
     sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
     assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)
