@@ -45,7 +45,9 @@ def make_realtime(priority: int | None = None, cpu: int | None = None) -> dict[s
             log.warning("cpu affinity refused", extra={"fields": {"cpu": cpu, "error": str(exc)}})
     if priority is not None:
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            # reset on fork: processes this thread starts (a supervisor's services) must not
+            # inherit a real-time class meant for this thread alone
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
             applied["priority"] = f"SCHED_FIFO {priority}"
         except (OSError, AttributeError) as exc:
             applied["priority"] = f"refused: {exc}"

@@ -6,12 +6,14 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from services.supervisor import Supervisor, UnitSpec, parse_timespan, parse_unit, sim_specs, spec_from_unit
+from services.realtime import make_realtime
+from services.supervisor import SUPERVISOR_RT_PRIORITY, Supervisor, UnitSpec, parse_timespan, parse_unit, sim_specs, spec_from_unit
 from services.zenoh_session import free_endpoint
 
 REPO = Path(__file__).resolve().parent.parent
@@ -106,6 +108,22 @@ def test_ordering_waits_for_ready(unit_script):
         codes = sup.stop()
     assert codes == {"first": -signal.SIGTERM, "second": -signal.SIGTERM}
     assert [e.unit for e in sup.events if e.what == "stop"] == ["second", "first"]  # reverse order
+
+
+def test_units_do_not_inherit_the_supervisors_real_time_class(unit_script):
+    probe = threading.Thread(target=lambda: applied.update(make_realtime(priority=SUPERVISOR_RT_PRIORITY)))
+    applied: dict[str, str] = {}
+    probe.start()
+    probe.join()
+    if not applied["priority"].startswith("SCHED_FIFO"):
+        pytest.skip(f"this kernel refuses SCHED_FIFO: {applied['priority']}")
+    sup = Supervisor([spec(unit_script, "unit")])
+    sup.start()  # the supervision thread raises itself to SCHED_FIFO, then forks the unit
+    try:
+        assert sup.wait_active(timeout_s=TIMEOUT_S)
+        assert os.sched_getscheduler(sup.pid("unit")) == os.SCHED_OTHER
+    finally:
+        sup.stop()
 
 
 def test_restart_on_failure_but_not_after_a_clean_exit(unit_script):
