@@ -176,11 +176,12 @@ class BezierMpc:
         return np.concatenate([np.arange(k * n, (k + 2) * n), self.nx + k * R.nz + np.arange(R.nz)]).astype(int)
 
     def _split_rows(self) -> None:
-        """Separate rows acting on one waypoint only (imposed once per node) when G is constant."""
+        """Separate rows acting on one waypoint only (imposed once per node) when G is
+        constant; pair each remaining row with its negation (one two-sided row)."""
         R, n = self.reach, self.reach.n
         F = R.F_full
         if R.G_const is None:
-            self.seg_rows = np.arange(F.shape[0])
+            self._pair_seg_rows(np.arange(F.shape[0]))
             self.node_A = np.zeros((0, n))
             self.node_b = np.zeros(0)
             return
@@ -190,7 +191,7 @@ class BezierMpc:
         rhs = np.concatenate([R.G_const[only0], R.G_const[onlyT]])
         _, idx = np.unique(np.round(np.column_stack([node, rhs]), 12), axis=0, return_index=True)
         node, rhs = node[np.sort(idx)], rhs[np.sort(idx)]
-        self.seg_rows = np.flatnonzero(~(only0 | onlyT))
+        self._pair_seg_rows(np.flatnonzero(~(only0 | onlyT)))
         # axis-aligned node rows fold into the waypoint bounds
         self.node_lo = np.full(n, -np.inf)
         self.node_hi = np.full(n, np.inf)
@@ -207,6 +208,37 @@ class BezierMpc:
                 keep.append((row, b))
         self.node_A = np.array([r for r, _ in keep]).reshape(-1, n)
         self.node_b = np.array([b for _, b in keep])
+
+    def _pair_seg_rows(self, rows: np.ndarray) -> None:
+        """``seg_rows``: the segment rows of ``F_full`` the QP imposes as upper bounds;
+        ``seg_lower``: the row whose negation each one is (its lower bound), -1 for none.
+        The reachability rows come in such pairs (|velocity|, |acceleration| <= limit):
+        one two-sided row instead of two halves the rows ADMM iterates on."""
+        F = self.reach.F_full[rows]
+        scale = np.abs(F).max(axis=1, keepdims=True)
+        key = np.round(F / np.where(scale > 0, scale, 1.0), 12) + 0.0  # + 0.0: no negative zeros
+        index = {k.tobytes(): i for i, k in enumerate(key)}
+        taken = np.zeros(len(rows), bool)
+        upper, lower = [], []
+        for i in range(len(rows)):
+            if taken[i]:
+                continue
+            taken[i] = True
+            j = index.get((-key[i] + 0.0).tobytes(), -1)
+            if j >= 0 and not taken[j]:
+                taken[j] = True
+                lower.append(rows[j])
+            else:
+                lower.append(-1)
+            upper.append(rows[i])
+        self.seg_rows = np.array(upper, int)
+        self.seg_lower = np.array(lower, int)
+
+    def _seg_bounds(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the (scaled) segment rows from right-hand sides ``G`` ``(..., K)``."""
+        paired = self.seg_lower >= 0
+        lo = np.where(paired, -G[..., self.seg_lower], -np.inf)
+        return lo / self.seg_scale, G[..., self.seg_rows] / self.seg_scale
 
     def _build_cost(self) -> None:
         R, N, W = self.reach, self.horizon, self.weights
@@ -328,7 +360,8 @@ class BezierMpc:
         self.u_static = np.full(row, np.inf)
         self.u_static[self.r_node] = np.tile(self.node_b, N + 1)
         if R.G_const is not None:
-            self.u_static[self.r_seg] = np.tile(R.G_const[self.seg_rows] / self.seg_scale, N)
+            lo, hi = self._seg_bounds(R.G_const)
+            self.l_static[self.r_seg], self.u_static[self.r_seg] = np.tile(lo, N), np.tile(hi, N)
 
     def _A_matrix(self) -> sp.csc_matrix:
         return sp.csc_matrix((self._coo_vals[self._perm], self._A_indices, self._A_indptr), shape=(self.n_rows, self.nvar))
@@ -459,7 +492,8 @@ class BezierMpc:
             hi = np.minimum(hi, self.node_hi)
         else:
             G = R.G(R.references(ref[:-1]))  # (N, K): references from each reference waypoint
-            u[self.r_seg] = (G[:, self.seg_rows] / self.seg_scale).reshape(-1)
+            lo_seg, hi_seg = self._seg_bounds(G)
+            l[self.r_seg], u[self.r_seg] = lo_seg.reshape(-1), hi_seg.reshape(-1)
         lo[0], hi[0] = x_init - self.x0_radius, x_init + self.x0_radius
         if self.terminal == "equal":
             lo[N] = hi[N] = ref[N]
