@@ -50,6 +50,7 @@ _PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
 _POLISH_REGULARIZATION = 1e-9  # keeps the active-set KKT system factorizable
 _POLISH_REFINEMENTS = 3
 _POLISH_ROUNDS = 3  # active-set solves per polish: violated rows join the set after each
+_POLISH_RESIDUAL = 1e-9  # relative residual of the range-space system past which its rows count as dependent
 _POLISH_MAX_COND = 1e8  # P better conditioned than this: polish with its dense inverse (range space)
 _ATTEMPTS = 2  # a second, tighter ADMM pass when neither the iterate nor its polish certifies
 _RETRY_EPS_FACTOR = 0.01
@@ -272,9 +273,9 @@ class BezierMpc:
         coo = P.tocoo()
         self._P_full_coo = (coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data)
         # The polish eliminates x with P's inverse when P is well conditioned (positive
-        # state and terminal weights): a small dense system per active set, about ten
-        # times faster than factorizing the sparse KKT system each time.
-        Pd = P.toarray() + _POLISH_REGULARIZATION * np.eye(self.nvar)
+        # state and terminal weights): a small dense system per active set, ten times
+        # faster than factorizing the sparse KKT system each time.
+        Pd = P.toarray()
         ev = np.linalg.eigvalsh(Pd)
         well = ev[0] > 0 and ev[-1] < _POLISH_MAX_COND * ev[0]
         self._P_inv = np.linalg.inv(Pd) if well else None
@@ -605,7 +606,7 @@ class BezierMpc:
     def _solve_kkt(self, rows: np.ndarray, q: np.ndarray, rhs_rows: np.ndarray) -> np.ndarray | None:
         """``x`` of ``min 0.5 x' P x + q' x`` subject to ``A[rows] x = rhs_rows``."""
         if self._P_inv is not None:
-            return self._polish_range_space(self._dense_rows(rows), q, rhs_rows)
+            return self._polish_range_space(rows, q, rhs_rows)
         Aa = self._A_csr[rows]
         nv, na = self.nvar, len(rows)
         Pr, Pc, Pv = self._P_full_coo
@@ -632,38 +633,29 @@ class BezierMpc:
         xp = sol[:nv]
         return xp if np.all(np.isfinite(xp)) else None
 
-    def _dense_rows(self, rows: np.ndarray) -> np.ndarray:
-        """Rows of the constraint matrix as a dense block (a gather; scipy's row slicing costs more)."""
+    def _polish_range_space(self, rows: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """The polish's KKT system ``[P, Aa'; Aa, 0] [x; nu] = [-q; b]`` (``Aa = A[rows]``)
+        solved by eliminating ``x`` with P's dense inverse: ``(Aa P^-1 Aa') nu = Aa P^-1
+        (-q) - b``, ``x = P^-1 (-q - Aa' nu)``. Each active row has a few entries, so the
+        products are gathers of P^-1's rows; dependent rows get the least-squares ``nu``."""
         csr = self._A_csr
         start = csr.indptr[rows]
-        count = csr.indptr[rows + 1] - start
-        pos = np.repeat(start - np.cumsum(count) + count, count) + np.arange(int(count.sum()))
-        out = np.zeros((len(rows), self.nvar))
-        out[np.repeat(np.arange(len(rows)), count), csr.indices[pos]] = csr.data[pos]
-        return out
-
-    def _polish_range_space(self, Aa: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-        """The polish's KKT system ``[P + d I, Aa'; Aa, -d I] [x; nu] = [-q; b]`` solved by
-        eliminating ``x`` with the dense inverse of ``P + d I``: ``(Aa P^-1 Aa' + d I) nu =
-        Aa P^-1 (-q) - b``. Iterative refinement against the unregularized system undoes ``d``."""
-        reg = _POLISH_REGULARIZATION
-        W = Aa @ self._P_inv  # (na, nv)
-        S = W @ Aa.T
-        S[np.diag_indices_from(S)] += reg
+        count = csr.indptr[rows + 1] - start  # >= 1: every row stores its entries, zeros included
+        first = np.cumsum(count) - count  # where each row starts in the gathered entries
+        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
+        cols, vals = csr.indices[pos], csr.data[pos]
+        x_free = self._P_inv @ -q  # the unconstrained minimizer
+        W = np.add.reduceat(vals[:, None] * self._P_inv[cols], first, axis=0)  # Aa P^-1
+        S = np.add.reduceat(W[:, cols] * vals, first, axis=1)  # Aa P^-1 Aa'
+        r = np.add.reduceat(vals * x_free[cols], first) - b
         try:
-            S_inv = np.linalg.inv(S)  # a few dozen rows: cheaper than a factorization's call overhead
+            nu = np.linalg.solve(S, r)
+            singular = np.linalg.norm(S @ nu - r) > _POLISH_RESIDUAL * (1.0 + np.linalg.norm(r))
         except np.linalg.LinAlgError:
-            return None
-
-        def solve(f: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            nu = S_inv @ (W @ f - g)
-            return self._P_inv @ f - W.T @ nu, nu
-
-        f = -q
-        x, nu = solve(f, b)
-        for _ in range(_POLISH_REFINEMENTS):
-            dx, dnu = solve(f - self._P_full @ x - Aa.T @ nu, b - Aa @ x)
-            x, nu = x + dx, nu + dnu
+            singular = True
+        if singular:  # dependent active rows
+            nu = np.linalg.lstsq(S, r)[0]
+        x = x_free - W.T @ nu
         return x if np.all(np.isfinite(x)) else None
 
     def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
