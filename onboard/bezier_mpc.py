@@ -326,20 +326,16 @@ class BezierMpc:
         es = np.array([e[2] for e in ent], int)
         ecoef = np.array([e[3] for e in ent])
         self._plane_start = sum(len(v) for v in coo_v)
-        pk, ph, pd, pcoef = [], [], [], []
+        pflat, pcoef = [], []  # each plane entry: index into the flat (N, P, m) normals, coefficient
         for k in range(N):
             cols = self._seg_cols(k)
             for h in range(P_):
                 base = row + (k * P_ + h) * (p + 1)
                 add(base + ej, cols[es], np.zeros(len(ej)))
-                pk.append(np.full(len(ej), k))
-                ph.append(np.full(len(ej), h))
-                pd.append(ed)
+                pflat.append((k * P_ + h) * m + ed)
                 pcoef.append(ecoef)
         row += nrow_planes
-        self._pk = np.concatenate(pk) if pk else np.zeros(0, int)
-        self._ph = np.concatenate(ph) if ph else np.zeros(0, int)
-        self._pd = np.concatenate(pd) if pd else np.zeros(0, int)
+        self._pflat = np.concatenate(pflat) if pflat else np.zeros(0, int)
         self._pcoef = np.concatenate(pcoef) if pcoef else np.zeros(0)
         r_all = np.concatenate(coo_r)
         c_all = np.concatenate(coo_c)
@@ -353,6 +349,9 @@ class BezierMpc:
         self._A_indices = ids.indices.copy()
         self._A_indptr = ids.indptr.copy()
         self._coo_vals = v_all
+        where = np.empty_like(self._perm)
+        where[self._perm] = np.arange(len(self._perm))
+        self._plane_pos = where[self._plane_start :]  # the plane entries in the matrix's data
         self.n_rows = row
         # static bounds
         self.row_margin = np.full(row, self.margin)
@@ -447,7 +446,7 @@ class BezierMpc:
                 raise ValueError("plane normals must be finite and offsets not NaN")
             dual = {1: np.inf, 2: 2, np.inf: 1}[R.limits.tube_norm]
             b = b - np.linalg.norm(a, ord=dual, axis=-1) * R.limits.tube
-        vals = a[self._pk, self._ph, self._pd] * self._pcoef
+        vals = a.reshape(-1)[self._pflat] * self._pcoef
         rhs = np.repeat(b, p + 1, axis=1).reshape(-1)  # row order: (k, h, j)
         return vals, rhs
 
@@ -501,13 +500,11 @@ class BezierMpc:
         l[self.r_box], u[self.r_box] = lo.reshape(-1), hi.reshape(-1)
         vals, rhs = self._plane_values(planes)
         u[self.r_plane] = rhs
-        plane_slot = slice(self._plane_start, self._plane_start + len(vals))
-        a_changed = self.max_planes > 0 and not np.array_equal(self._coo_vals[plane_slot], vals)
-        if a_changed:  # new values in the same pattern; the solver refactors only then
-            self._coo_vals[plane_slot] = vals
-            self._A = self._A_matrix()
-            self._A_csr = None
         A = self._A
+        a_changed = self.max_planes > 0 and not np.array_equal(A.data[self._plane_pos], vals)
+        if a_changed:  # new values in the same pattern; the solver refactors only then
+            A.data[self._plane_pos] = vals
+            self._A_csr = None
         if np.any(l > u) or np.any(np.isnan(u)):
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
         # the solver sees every inequality tightened by the margin
@@ -668,10 +665,11 @@ class BezierMpc:
             y = np.full(self.nvar, np.nan)
         Ay = A @ y
         eq = l == u
-        with np.errstate(invalid="ignore"):
-            excess = np.maximum(np.where(np.isfinite(u), Ay - u, -np.inf), np.where(np.isfinite(l), l - Ay, -np.inf))
-        viol = float(np.max(excess[~eq], initial=-np.inf)) if finite else np.inf
-        eq_res = float(np.abs(Ay[eq] - l[eq]).max(initial=0.0)) if finite else np.inf
+        if finite:  # infinite bounds give -inf excess: Ay is finite
+            viol = float(np.max(np.maximum(Ay - u, l - Ay)[~eq], initial=-np.inf))
+            eq_res = float(np.abs(Ay[eq] - l[eq]).max(initial=0.0))
+        else:
+            viol = eq_res = np.inf
         scale = 1.0 + float(np.abs(l[eq]).max(initial=0.0))
         ok = finite and viol <= 0.0 and eq_res <= 10 * self.eps * scale
         X = y[: self.nx].reshape(N + 1, n)
