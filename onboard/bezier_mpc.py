@@ -352,6 +352,11 @@ class BezierMpc:
         where = np.empty_like(self._perm)
         where[self._perm] = np.arange(len(self._perm))
         self._plane_pos = where[self._plane_start :]  # the plane entries in the matrix's data
+        # the same matrix by rows (the polish gathers active rows): pattern, and where each
+        # row-major entry sits in the column-major data
+        by_rows = ids.tocsr()
+        self._row_ptr, self._row_cols = by_rows.indptr, by_rows.indices
+        self._row_data_pos = where[by_rows.data.astype(int) - 1]
         self.n_rows = row
         # static bounds
         self.row_margin = np.full(row, self.margin)
@@ -372,7 +377,6 @@ class BezierMpc:
 
     def _setup_solver(self) -> None:
         A = self._A = self._A_matrix()
-        self._A_csr = None
         q = np.zeros(self.nvar)
         l, u = self.l_static.copy(), self.u_static.copy()
         l[self.r_box], u[self.r_box] = -1e3, 1e3  # placeholders, replaced at the first solve
@@ -504,7 +508,6 @@ class BezierMpc:
         a_changed = self.max_planes > 0 and not np.array_equal(A.data[self._plane_pos], vals)
         if a_changed:  # new values in the same pattern; the solver refactors only then
             A.data[self._plane_pos] = vals
-            self._A_csr = None
         if np.any(l > u) or np.any(np.isnan(u)):
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
         # the solver sees every inequality tightened by the margin
@@ -582,14 +585,12 @@ class BezierMpc:
         eq = ls == us
         active = eq | (np.abs(dual) > tol)
         upper = ~eq & (dual > 0)  # which bound an active row sits on
-        if self._A_csr is None:
-            self._A_csr = A.tocsr()
         for _ in range(_POLISH_ROUNDS):
             rows = np.flatnonzero(active)
             rhs_rows = np.where(upper[rows], us[rows], ls[rows])
             if not np.all(np.isfinite(rhs_rows)):
                 return None
-            xp = self._solve_kkt(rows, q, rhs_rows)
+            xp = self._solve_kkt(A, rows, q, rhs_rows)
             if xp is None:
                 return None
             Ay = A @ xp
@@ -600,12 +601,22 @@ class BezierMpc:
             upper |= over
         return xp
 
-    def _solve_kkt(self, rows: np.ndarray, q: np.ndarray, rhs_rows: np.ndarray) -> np.ndarray | None:
+    def _active_entries(self, A: sp.csc_matrix, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The entries of ``A[rows]``, row after row: where each row starts, columns, values.
+        Every row has at least one stored entry (unused plane slots store zeros)."""
+        start = self._row_ptr[rows]
+        count = self._row_ptr[rows + 1] - start
+        first = np.cumsum(count) - count
+        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
+        return first, self._row_cols[pos], A.data[self._row_data_pos[pos]]
+
+    def _solve_kkt(self, A: sp.csc_matrix, rows: np.ndarray, q: np.ndarray, rhs_rows: np.ndarray) -> np.ndarray | None:
         """``x`` of ``min 0.5 x' P x + q' x`` subject to ``A[rows] x = rhs_rows``."""
+        first, cols, vals = self._active_entries(A, rows)
         if self._P_inv is not None:
-            return self._polish_range_space(rows, q, rhs_rows)
-        Aa = self._A_csr[rows]
+            return self._polish_range_space(first, cols, vals, q, rhs_rows)
         nv, na = self.nvar, len(rows)
+        Aa = sp.csr_matrix((vals, cols, np.append(first, len(vals))), shape=(na, nv))
         Pr, Pc, Pv = self._P_full_coo
         ar, ac = np.repeat(np.arange(na), np.diff(Aa.indptr)), Aa.indices
         reg = _POLISH_REGULARIZATION
@@ -630,17 +641,12 @@ class BezierMpc:
         xp = sol[:nv]
         return xp if np.all(np.isfinite(xp)) else None
 
-    def _polish_range_space(self, rows: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    def _polish_range_space(self, first: np.ndarray, cols: np.ndarray, vals: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
         """The polish's KKT system ``[P, Aa'; Aa, 0] [x; nu] = [-q; b]`` (``Aa = A[rows]``)
         solved by eliminating ``x`` with P's dense inverse: ``(Aa P^-1 Aa') nu = Aa P^-1
         (-q) - b``, ``x = P^-1 (-q - Aa' nu)``. Each active row has a few entries, so the
-        products are gathers of P^-1's rows; dependent rows get the least-squares ``nu``."""
-        csr = self._A_csr
-        start = csr.indptr[rows]
-        count = csr.indptr[rows + 1] - start  # >= 1: every row stores its entries, zeros included
-        first = np.cumsum(count) - count  # where each row starts in the gathered entries
-        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
-        cols, vals = csr.indices[pos], csr.data[pos]
+        products are gathers of P^-1's rows (entries from :meth:`_active_entries`);
+        dependent rows get the least-squares ``nu``."""
         x_free = self._P_inv @ -q  # the unconstrained minimizer
         W = np.add.reduceat(vals[:, None] * self._P_inv[cols], first, axis=0)  # Aa P^-1
         S = np.add.reduceat(W[:, cols] * vals, first, axis=1)  # Aa P^-1 Aa'

@@ -281,21 +281,20 @@ def test_both_polish_solvers_give_the_active_set_optimum(seed):
     mpc.solve(ref[0], target, (a, b))
     rng = np.random.default_rng(seed)
     A = mpc._A
-    mpc._A_csr = A.tocsr()
     rows = np.unique(np.concatenate([[0, 1, 2, 3], rng.choice(mpc.n_rows, 12, replace=False)]))
     Aa = A.tocsr()[rows].toarray()
     assume(np.linalg.matrix_rank(Aa) == len(rows))  # independent rows: one answer
     q = rng.normal(size=mpc.nvar)
     rhs = rng.normal(size=len(rows)) * 0.1
-    dense = mpc._solve_kkt(rows, q, rhs)
+    dense = mpc._solve_kkt(A, rows, q, rhs)
     P_inv, mpc._P_inv = mpc._P_inv, None
-    sparse = mpc._solve_kkt(rows, q, rhs)
+    sparse = mpc._solve_kkt(A, rows, q, rhs)
     mpc._P_inv = P_inv
     assert dense is not None and sparse is not None
     np.testing.assert_allclose(Aa @ dense, rhs, atol=1e-8)
     np.testing.assert_allclose(dense, sparse, atol=1e-6)
     # a row twice (dependent rows, consistent right-hand side): the same answer
-    twice = mpc._solve_kkt(np.append(rows, rows[-1]), q, np.append(rhs, rhs[-1]))
+    twice = mpc._solve_kkt(A, np.append(rows, rows[-1]), q, np.append(rhs, rhs[-1]))
     np.testing.assert_allclose(twice, dense, atol=1e-6)
 
 
