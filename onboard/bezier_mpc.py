@@ -541,7 +541,8 @@ class BezierMpc:
                     return first
                 polished = self._polish(res.x, res.y, A, ls, us, q)
                 if polished is not None:
-                    sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj)
+                    obj_p = float(0.5 * polished @ (self._P_full @ polished) + q @ polished)
+                    sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj_p)
                     if sol.ok:
                         return sol
             return first
