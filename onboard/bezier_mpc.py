@@ -272,13 +272,6 @@ class BezierMpc:
         self._P_full = sp.csr_matrix(P)
         coo = P.tocoo()
         self._P_full_coo = (coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data)
-        # The polish eliminates x with P's inverse when P is well conditioned (positive
-        # state and terminal weights): a small dense system per active set, ten times
-        # faster than factorizing the sparse KKT system each time.
-        Pd = P.toarray()
-        ev = np.linalg.eigvalsh(Pd)
-        well = ev[0] > 0 and ev[-1] < _POLISH_MAX_COND * ev[0]
-        self._P_inv = np.linalg.inv(Pd) if well else None
         self.q_diag = diag
 
     def _build_constraints(self) -> None:
@@ -381,6 +374,15 @@ class BezierMpc:
         l, u = self.l_static.copy(), self.u_static.copy()
         l[self.r_box], u[self.r_box] = -1e3, 1e3  # placeholders, replaced at the first solve
         if self.backend == "osqp":
+            # Our polish eliminates x with P's inverse when P is well conditioned (positive
+            # state and terminal weights): a small dense system per active set, ten times
+            # faster than factorizing the sparse KKT system each time.
+            self._P_inv = None
+            if self.polish:
+                Pd = self._P_full.toarray()
+                ev = np.linalg.eigvalsh(Pd)
+                if ev[0] > 0 and ev[-1] < _POLISH_MAX_COND * ev[0]:
+                    self._P_inv = np.linalg.inv(Pd)
             # OSQP's polish prints a line when it finds no active constraint; an equality
             # row (x_0 pinned in some component, or x_N) is always active, so it stays silent.
             has_equality = bool(np.any(self.x0_radius == 0.0)) or self.terminal == "equal"
