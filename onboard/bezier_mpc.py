@@ -61,7 +61,9 @@ _RETRY_EPS_FACTOR = 0.01
 _OSQP_SCALING_UNIT_ROWS = 0
 _OSQP_SCALING_PHYSICAL_ROWS = 10
 _OSQP_CHECK_TERMINATION = 5  # a warm-started tick converges in 10-20 iterations: check often
-_OSQP_ADAPTIVE_RHO_INTERVAL = 100  # iterations between rho updates (each refactors the KKT system)
+# rho may change at every termination check (it refactors only on a change past OSQP's
+# tolerance): on 7 bench seeds the p99 was 0.99-1.61 ms against 1.13-2.60 ms every 100
+_OSQP_ADAPTIVE_RHO_INTERVAL = 5
 
 
 @dataclass(frozen=True)
