@@ -18,6 +18,8 @@ does):
 - Stopping or after the main process died, the rest of its process group (as a
   cgroup) gets SIGTERM, then SIGKILL after ``TimeoutStopSec=``; units stop in the
   reverse order of starting.
+- ``Nice=``: the CPU priority of the unit's processes (the hard-rate loops and their
+  inputs above the planner, perception and the recorder).
 
 Every transition is an :class:`Event` (``events``); :meth:`Supervisor.summary`
 counts restarts per unit.
@@ -129,6 +131,7 @@ class UnitSpec:
     stop_timeout_s: float | None = DEFAULT_STOP_TIMEOUT_S
     start_limit_burst: int = DEFAULT_START_LIMIT_BURST
     start_limit_interval_s: float = DEFAULT_START_LIMIT_INTERVAL_S
+    nice: int = 0  # Nice=: CPU priority of the whole process (-20 highest .. 19 lowest)
     env: dict[str, str] = field(default_factory=dict)
 
 
@@ -167,6 +170,7 @@ def spec_from_unit(service: str, argv: list[str], unit_dir: Path = UNIT_DIR, **o
         stop_timeout_s=parse_timespan(last(s, "TimeoutStopSec", "90s")),
         start_limit_burst=int(last(u, "StartLimitBurst", str(DEFAULT_START_LIMIT_BURST))),
         start_limit_interval_s=parse_timespan(last(u, "StartLimitIntervalSec", "10s")) or 0.0,
+        nice=int(last(s, "Nice", "0")),
     )
     fields.update(overrides)
     return UnitSpec(**fields)
@@ -196,7 +200,7 @@ def sim_specs(services: list[str], endpoint: str, ns: str, config: str | None = 
 class Event:
     t: float  # time.monotonic()
     unit: str
-    what: str  # "start", "ready", "exit", "watchdog", "start-timeout", "restart-scheduled", "start-limit-hit", "stop"
+    what: str  # "start", "ready", "exit", "watchdog", "start-timeout", "restart-scheduled", "start-limit-hit", "stop", "nice-refused"
     detail: str = ""
 
 
@@ -348,12 +352,25 @@ class Supervisor:
             list(spec.argv), env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out, start_new_session=True
         )
         unit.pidfd = _pidfd(unit.proc.pid)
+        self._renice(unit)
         unit.state = "activating" if spec.notify else "active"
         unit.started_at = unit.last_ping = now
         unit.starts.append(now)
         self._event(spec.name, "start", f"pid {unit.proc.pid}")
         if not spec.notify:
             self._became_active(unit)
+
+    def _renice(self, unit: _Unit) -> None:
+        """Nice= after the fact (0 when the unit sets none: the supervisor's own value is not
+        inherited, as under systemd). Linux keeps the value per thread, and the child is still
+        starting its interpreter (one thread); every thread it starts later inherits it.
+        Raising priority needs CAP_SYS_NICE (systemd has it); refused, it runs as it is."""
+        assert unit.proc is not None
+        try:
+            if os.getpriority(os.PRIO_PROCESS, unit.proc.pid) != unit.spec.nice:
+                os.setpriority(os.PRIO_PROCESS, unit.proc.pid, unit.spec.nice)
+        except OSError as exc:
+            self._event(unit.spec.name, "nice-refused", f"Nice={unit.spec.nice}: {exc}")
 
     def _became_active(self, unit: _Unit) -> None:
         if unit.spec.name not in self._order:

@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import logging
 import math
+import os
 import sys
 import time
 
@@ -30,9 +32,12 @@ from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.lockstep import RunConfig, run
 
+log = logging.getLogger("archer.sim")
+
 MODES = ("lockstep", "realtime")
 STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode when archer run knows them
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
+ROUTINE_UNIT_EVENTS = ("start", "ready")  # the rest says why a unit went down
 SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 BAR_WIDTH = 30
@@ -133,6 +138,18 @@ def run_lockstep(args: argparse.Namespace) -> dict:
     return result.metrics
 
 
+def _take_twin_priority() -> None:
+    """This process runs the twin: give it the twin unit's Nice= (threads started later inherit
+    it; the supervised services get their own units' values). Refused, it runs as it is."""
+    from services.supervisor import spec_from_unit
+
+    nice = spec_from_unit("twin", []).nice
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except OSError as exc:
+        log.warning("twin priority refused", extra={"fields": {"nice": nice, "error": str(exc)}})
+
+
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.cmd_run import SERVICE_CLASSES
     from services.supervisor import Supervisor, sim_specs
@@ -165,6 +182,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
     missing = [s for s in wanted if s not in SERVICE_CLASSES]
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
+    _take_twin_priority()
+
     async def main() -> dict:
         twin = TwinService(ns=ns, endpoint=endpoint, params={"twin": twin_params, "safety": params["safety"]})
         local = [twin]
@@ -178,6 +197,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
         sup = Supervisor(sim_specs(units, endpoint, ns, args.config))
         wall0 = time.perf_counter()
+        twin_started = time.monotonic()
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S):
@@ -192,6 +212,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
                 await asyncio.sleep(0.02)
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
             wall0 = time.perf_counter()
+            twin_started = time.monotonic()
             while time.perf_counter() - wall0 < duration:
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
@@ -200,6 +221,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
                 if twin.metrics.fell and not args.keep_going:
                     break
         finally:
+            run_ended = time.monotonic()  # what the stop itself does is no failure
             exit_codes = await asyncio.to_thread(sup.stop)
             for s in local:
                 s.request_stop()
@@ -212,6 +234,11 @@ def run_realtime(args: argparse.Namespace) -> dict:
         out["services_missing"] = missing
         out["service_exit_codes"] = exit_codes
         out["service_restarts"] = {n: u["restarts"] for n, u in sup.summary().items()}
+        # why a unit went down, as systemd's journal would say (seconds since the twin started)
+        out["service_failures"] = [
+            {"t_s": round(e.t - twin_started, 3), "unit": e.unit, "what": e.what, "detail": e.detail}
+            for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
+        ]
         out["endpoint"] = endpoint
         return out
 

@@ -91,6 +91,8 @@ def test_unit_files_parse_into_the_policy_the_supervisor_applies():
     ordered = {s.name: s for s in sim_specs(["estimator", "control", "planner"], "tcp/127.0.0.1:1", "archer/x")}
     assert ordered["control"].after == ("estimator",)  # the router and hardware are not in a sim run
     assert ordered["planner"].after == ("control",)
+    nice = {name: spec_from_unit(name, ["true"]).nice for name in ("router", "estimator", "control", "recorder", "perception")}
+    assert nice["router"] < nice["estimator"] < nice["control"] == nice["recorder"] == 0 < nice["perception"]
     assert ordered["planner"].argv[-6:] == ("--endpoint", "tcp/127.0.0.1:1", "--namespace", "archer/x", "--log-level", "WARNING")
 
 
@@ -122,6 +124,17 @@ def test_units_do_not_inherit_the_supervisors_real_time_class(unit_script):
     try:
         assert sup.wait_active(timeout_s=TIMEOUT_S)
         assert os.sched_getscheduler(sup.pid("unit")) == os.SCHED_OTHER
+    finally:
+        sup.stop()
+
+
+def test_nice_applies_to_the_units_process(unit_script):
+    sup = Supervisor([spec(unit_script, "unit", nice=7)])
+    sup.start()
+    try:
+        assert sup.wait_active(timeout_s=TIMEOUT_S)
+        pid = sup.pid("unit")
+        assert {os.getpriority(os.PRIO_PROCESS, int(tid)) for tid in os.listdir(f"/proc/{pid}/task")} == {7}
     finally:
         sup.stop()
 
