@@ -30,6 +30,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,17 @@ GOAL_RESEND_S = 1.0
 STATUS_PERIOD_S = 30.0  # status queries cost the services CPU: few
 RESTART_GAP_NS = 500_000_000  # a pause in torque commands this long: the old control is gone
 SERVICES = "estimator,control,planner,recorder"
+SIL_CONFIG = Path(__file__).resolve().parent / "config" / "sil.toml"
+
+
+def _sil_config(base: Path, rec_dir: Path) -> str:
+    """``base`` with the recording going to ``rec_dir`` in 30 s files, as TOML."""
+    tables = tomllib.loads(base.read_text())
+    tables.setdefault("recorder", {}).update(directory=str(rec_dir), chunk_s=30.0)
+    return "".join(
+        f"[{name}]\n" + "".join(f"{key} = {json.dumps(value)}\n" for key, value in table.items()) + "\n"
+        for name, table in tables.items()
+    )
 
 
 def _children(pid: int) -> list[tuple[int, list[bytes]]]:
@@ -127,13 +139,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--services", default=SERVICES)
     ap.add_argument("--out", default="soak", help="output directory")
     ap.add_argument("--namespace", default=NS_DEFAULT)
+    ap.add_argument("--config", default=str(SIL_CONFIG), help="the SIL profile the run starts from")
     args = ap.parse_args(argv)
 
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     rec_dir = out / "rec"
     config = out / "sil.toml"
-    config.write_text(f'[recorder]\ndirectory = "{rec_dir}"\nchunk_s = 30.0\n')
+    config.write_text(_sil_config(Path(args.config), rec_dir))
     endpoint = free_endpoint()
     goals = [tuple(float(v) for v in g.split(",")) for g in args.goals.split(";")]
     kills = sorted((float(k.split("@")[1]), k.split("@")[0]) for k in args.kill)

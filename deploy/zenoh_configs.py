@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from onboard.topics import SERVICES, TOPICS, liveliness_key, params_key, status_key
+from services.zenoh_session import link_queue_config
 
 NS_PATTERN = "archer/*"  # every robot's namespace
 ALL_KEYS = "archer/**"
@@ -109,13 +110,13 @@ def router_config(
         "listen": {"endpoints": listen},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
-        "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}, "link": {"tx": {"queue": link_queue_config()}}},
         "access_control": access_control(),
     }
     if tls:
         # Mutual TLS on the LAN endpoint: a workstation needs a certificate signed
         # by the robot's CA as well as a password.
-        config["transport"]["link"] = {
+        config["transport"]["link"] |= {
             "tls": {
                 "root_ca_certificate": f"{tls_dir}/ca.pem",
                 "listen_private_key": f"{tls_dir}/router-key.pem",
@@ -133,7 +134,7 @@ def client_config(user: str, password: str, connect: list[str] | None = None) ->
         "connect": {"endpoints": connect or [f"tcp/127.0.0.1:{ROUTER_PORT}"]},
         "listen": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}, "link": {"tx": {"queue": link_queue_config()}}},
     }
 
 
@@ -141,7 +142,7 @@ def tls_client_config(user: str, password: str, connect: list[str], tls_dir: str
     """An offboard client over mutual TLS: ``ca.pem`` and its own ``<user>.pem``/``<user>-key.pem``
     (an X.509 v3 certificate signed by the robot's CA), plus the password as on the robot."""
     config = client_config(user, password, connect)
-    config["transport"]["link"] = {
+    config["transport"]["link"] |= {
         "tls": {
             "root_ca_certificate": f"{tls_dir}/ca.pem",
             "connect_private_key": f"{tls_dir}/{user}-key.pem",

@@ -33,6 +33,11 @@ class SafetyLimits:
 class MessagingParams:
     endpoint: str = "tcp/127.0.0.1:7447"  # the well-known local router endpoint
     status_period_s: float = 0.5  # how often a service refreshes its rate figures
+    # Batches per link queue for the real_time and interactive_high priorities. An express
+    # message takes a batch of its own, so Zenoh's default of 2 (and 1 ms wait) drops 1 kHz
+    # samples whenever a receiver is ~3 ms late; 16 rides out a 16 ms stall, costs memory
+    # only while a receiver lags, and latest-value readers skip what queued.
+    link_queue_batches: int = 16
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,14 @@ def free_endpoint() -> str:
         return f"tcp/{LOOPBACK}:{s.getsockname()[1]}"
 
 
+QUEUED_PRIORITIES = ("real_time", "interactive_high")  # the 1 kHz and 100 Hz topics (onboard.topics)
+
+
+def link_queue_config(params: MessagingParams = MessagingParams()) -> dict:
+    """``transport/link/tx/queue`` sizes for every session of the stack (see ``link_queue_batches``)."""
+    return {"size": {name: params.link_queue_batches for name in QUEUED_PRIORITIES}}
+
+
 def loopback_config(mode: Mode, endpoint: str) -> zenoh.Config:
     """Config for ``mode`` around ``endpoint``: a router listens on it, others dial it.
 
@@ -47,6 +55,8 @@ def loopback_config(mode: Mode, endpoint: str) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    for name, batches in link_queue_config()["size"].items():
+        conf.insert_json5(f"transport/link/tx/queue/size/{name}", str(batches))
     if mode == "router":
         conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
         conf.insert_json5("connect/endpoints", "[]")

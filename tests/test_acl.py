@@ -18,7 +18,7 @@ from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key
 from services.cmd_introspect import live_services, query_status
 from services.runtime import Service
-from services.zenoh_session import free_endpoint
+from services.zenoh_session import free_endpoint, link_queue_config, loopback_config
 
 NS = "archer/acltest"
 DELIVERY_S = 0.5  # generous time for a put to cross the router on loopback
@@ -30,6 +30,16 @@ def test_checked_in_configs_are_the_generated_ones_and_parse():
         path = ZENOH_DIR / name
         assert path.read_text() == text, f"{name} drifted from onboard/topics.py; run `archer deploy acl --write`"
         zenoh.Config.from_file(str(path))  # Zenoh itself accepts it
+
+
+def test_every_config_queues_the_fast_priorities_alike():
+    expected = link_queue_config()["size"]
+    configs = {"loopback_config": loopback_config("peer", free_endpoint())}
+    configs |= {path.name: zenoh.Config.from_file(str(path)) for path in sorted(ZENOH_DIR.glob("*.json5"))}
+    assert len(configs) == 5
+    for name, config in configs.items():
+        sizes = json.loads(config.get_json("transport/link/tx/queue/size"))
+        assert {k: sizes[k] for k in expected} == expected and expected["real_time"] > 2, name
 
 
 def test_rules_follow_the_publishers_column():
