@@ -156,6 +156,39 @@ class LatestSlot(Generic[M]):
         return self._value
 
 
+class LazyLatestSlot(LatestSlot[M]):
+    """A :class:`LatestSlot` that keeps raw payloads and decodes on read (see
+    :meth:`Service.latest_sampled`); read from one thread."""
+
+    def __init__(self, decode: Callable[[bytes], M], reject: Callable[[Exception], None]) -> None:
+        super().__init__()
+        self._decode = decode
+        self._reject = reject
+        self._raw: tuple[bytes, int] | None = None
+        self._decoded_from: tuple[bytes, int] | None = None
+
+    def put_payload(self, payload: bytes, recv_ns: int) -> None:
+        self._writes += 1
+        self._raw = (payload, recv_ns)
+
+    def get(self) -> tuple[M, int] | None:
+        raw = self._raw
+        if raw is not None and raw is not self._decoded_from:
+            self._decoded_from = raw
+            try:
+                self._value = (self._decode(raw[0]), raw[1])
+            except msgs.MessageError as exc:
+                self._reject(exc)
+        return self._value
+
+    def take(self) -> tuple[M, int] | None:
+        writes = self._writes
+        if writes == self._taken_seq:
+            return None
+        self._taken_seq = writes
+        return self.get()
+
+
 class TypedPublisher(Generic[M]):
     """Publishes one topic's messages: fills ``seq`` and, when zero, ``stamp_ns``."""
 
@@ -267,14 +300,13 @@ class Service:
         self._declared.append(pub)
         return pub
 
-    def _decoder(self, topic: Topic) -> Callable[[zenoh.Sample], Any]:
+    def _decoder(self, topic: Topic) -> Callable[[bytes], Any]:
         if topic.binary:
             from onboard import binary_messages as bm
 
-            decode_binary = {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary]
-            return lambda sample: decode_binary(sample.payload.to_bytes())
+            return {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary]
         msg_type = topic.msg_type
-        return lambda sample: msgs.decode(sample.payload.to_bytes(), msg_type)
+        return lambda payload: msgs.decode(payload, msg_type)
 
     def _reject(self, topic: Topic, exc: Exception) -> None:
         self.counters.add(f"rejected.{topic.name}")
@@ -296,7 +328,7 @@ class Service:
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
-                msg = decode(sample)
+                msg = decode(sample.payload.to_bytes())
             except msgs.MessageError as exc:
                 self._reject(topic, exc)
                 return
@@ -309,6 +341,25 @@ class Service:
         """A latest-value slot kept current by a Zenoh subscription."""
         slot: LatestSlot = LatestSlot()
         self.on_message(topic_name, lambda msg: slot.put(msg, self.clock.now_ns()))
+        return slot
+
+    def latest_sampled(self, topic_name: str) -> LazyLatestSlot:
+        """A latest-value slot that decodes (and validates) only what its reader takes.
+
+        For a fast topic read now and then (the twin's metrics read the 1 kHz estimate
+        every tenth tick): every payload is kept, only the one read is decoded. A
+        payload that fails to decode is counted and logged as usual, and the read
+        returns the last good value.
+        """
+        topic = TOPICS[topic_name]
+        rate = self.rate(f"rx.{topic_name}")
+        slot = LazyLatestSlot(self._decoder(topic), lambda exc: self._reject(topic, exc))
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            rate.tick()
+            slot.put_payload(sample.payload.to_bytes(), self.clock.now_ns())
+
+        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
         return slot
 
     def subscribe(self, topic_name: str, callback: Callable[[Any], Awaitable[None]]) -> None:

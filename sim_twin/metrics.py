@@ -130,6 +130,10 @@ class PhysicsMetrics:
         self._cont_err: list[float] = []
         self._est_err: list[float] = []
 
+    def traces_next_tick(self) -> bool:
+        """Whether the next :meth:`update` samples the trace (and reads the estimate)."""
+        return (self.ticks + 1) % TRACE_EVERY == 0
+
     def update(self, t: float, now_ns: int, data: mujoco.MjData, reference: m.ComReference | None,
                estimate: m.StateEstimate | None, applied: tuple[float, float, float, float]) -> None:
         """After the physics step at sim time ``t`` [s]; ``now_ns`` is the time base of ``reference``."""

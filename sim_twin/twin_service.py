@@ -94,8 +94,9 @@ class TwinService(Service):
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
         self.torque_slot = self.latest("torque_cmd")
-        self.reference_slot = self.latest("reference")
-        self.state_slot = self.latest("state")
+        # for the metrics only: decoded when read (the estimate every TRACE_EVERY ticks)
+        self.reference_slot = self.latest_sampled("reference")
+        self.state_slot = self.latest_sampled("state")
         self.subscribe("contract", self._on_contract)
         self.pubs = {name: self.publisher(name) for name in ("imu", "joints", "pose", "depth")}
         self.safety_pub = self.publisher("safety")
@@ -129,7 +130,7 @@ class TwinService(Service):
             else:
                 self.pubs[topic].put(msg)
         ref = self.reference_slot.get()
-        state = self.state_slot.get()
+        state = self.state_slot.get() if self.metrics.traces_next_tick() else None
         self.metrics.update(self.sim_ns / NS, now_ns, data, ref[0] if ref else None, state[0] if state else None,
                             act.last_applied)
         self.rate("tick").tick()

@@ -14,7 +14,7 @@ import pytest
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key, status_key
 from services.cmd_introspect import live_services, query_status
-from services.runtime import Service
+from services.runtime import LazyLatestSlot, Service
 from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
 from helpers import wait_for
 
@@ -30,6 +30,7 @@ class RelayService(Service):
 
     async def setup(self) -> None:
         self.imu_slot = self.latest("imu")
+        self.imu_sampled = self.latest_sampled("imu")
         self.cmd = self.publisher("torque_cmd")
         self.subscribe("imu", self.on_imu)
 
@@ -66,6 +67,9 @@ def test_service_relays_rejects_and_reports(zenoh_router):
             # each bad payload counted once per subscription (slot and async handler)
             await wait_for(lambda: service.counters.get("rejected.imu") == 6)
             assert service.imu_slot.get()[0].gyro[2] == 99.0
+            await wait_for(lambda: service.imu_sampled.get() is not None)
+            assert service.imu_sampled.get()[0].gyro[2] == 99.0  # only what is read is decoded:
+            assert service.counters.get("rejected.imu") == 6  # the bad payloads it skipped count nowhere
 
             # a second session sees the liveliness token and gets the status
             # liveliness propagates asynchronously: ask until the token is seen
@@ -104,6 +108,25 @@ def test_service_relays_rejects_and_reports(zenoh_router):
         assert "relay" not in names
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
+def test_a_sampled_slot_decodes_what_is_read_and_keeps_the_last_good_value():
+    decoded: list[bytes] = []
+    rejected: list[Exception] = []
+
+    def decode(payload: bytes) -> m.ImuSample:
+        decoded.append(payload)
+        return m.decode(payload, m.ImuSample)
+
+    slot = LazyLatestSlot(decode, rejected.append)
+    assert slot.get() is None and slot.take() is None
+    for gz in (1.0, 2.0, 3.0):
+        slot.put_payload(m.encode(_imu(gz)), int(gz))
+    assert slot.get()[0].gyro[2] == 3.0 and slot.get()[1] == 3 and len(decoded) == 1  # decoded once
+    assert slot.take()[0].gyro[2] == 3.0 and slot.take() is None
+    slot.put_payload(m.encode(_imu(float("nan"))), 4)
+    assert slot.get()[0].gyro[2] == 3.0 and len(rejected) == 1  # refused, counted once, last good kept
+    assert slot.get()[0].gyro[2] == 3.0 and len(rejected) == 1
 
 
 def test_shutdown_leaves_no_thread_or_session(zenoh_router):
