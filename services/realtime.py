@@ -32,11 +32,14 @@ STATUS_WINDOW = 5000  # ticks a status report summarises: a full-ring percentile
 RT_SWITCH_INTERVAL_S = 0.0005  # CPython GIL hand-over interval while a hard loop runs
 
 
-def make_realtime(priority: int | None = None, cpu: int | None = None) -> dict[str, str]:
-    """Best effort: SCHED_FIFO at ``priority`` and affinity to ``cpu``.
+def make_realtime(priority: int | None = None, cpu: int | None = None, reset_on_fork: bool = False) -> dict[str, str]:
+    """Best effort: SCHED_FIFO at ``priority`` and affinity to ``cpu`` for the calling thread.
 
-    Returns what was applied or why not; a laptop or an unprivileged container
-    refuses, which is logged and skipped, never fatal.
+    Threads it starts later inherit the class (a loop process's Zenoh threads must, or
+    they deliver its inputs at normal priority); with ``reset_on_fork`` neither they nor
+    processes it starts do (a supervisor's services). Returns what was applied or why
+    not; a laptop or an unprivileged container refuses, which is logged and skipped,
+    never fatal.
     """
     applied: dict[str, str] = {}
     if cpu is not None:
@@ -48,9 +51,8 @@ def make_realtime(priority: int | None = None, cpu: int | None = None) -> dict[s
             log.warning("cpu affinity refused", extra={"fields": {"cpu": cpu, "error": str(exc)}})
     if priority is not None:
         try:
-            # reset on fork: processes this thread starts (a supervisor's services) must not
-            # inherit a real-time class meant for this thread alone
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+            policy = os.SCHED_FIFO | (os.SCHED_RESET_ON_FORK if reset_on_fork else 0)
+            os.sched_setscheduler(0, policy, os.sched_param(priority))
             applied["priority"] = f"SCHED_FIFO {priority}"
         except (OSError, AttributeError) as exc:
             applied["priority"] = f"refused: {exc}"

@@ -310,7 +310,7 @@ class Supervisor:
     def _run(self) -> None:
         # As PID 1 is, this thread must run the moment a main process dies: what it left
         # behind (a control loop) is still publishing. Logged and skipped where refused.
-        make_realtime(priority=SUPERVISOR_RT_PRIORITY)
+        make_realtime(priority=SUPERVISOR_RT_PRIORITY, reset_on_fork=True)  # not for the services it starts
         try:
             while True:
                 with self._lock:

@@ -112,8 +112,27 @@ def test_ordering_waits_for_ready(unit_script):
     assert [e.unit for e in sup.events if e.what == "stop"] == ["second", "first"]  # reverse order
 
 
+def test_threads_a_real_time_thread_starts_share_its_class():
+    """A loop process raises itself, then opens Zenoh: those threads deliver its inputs."""
+    result: dict[str, object] = {}
+
+    def loop_process_main() -> None:
+        applied = make_realtime(priority=SUPERVISOR_RT_PRIORITY)
+        result["applied"] = applied["priority"]
+        worker = threading.Thread(target=lambda: result.update(policy=os.sched_getscheduler(0)))
+        worker.start()
+        worker.join()
+
+    probe = threading.Thread(target=loop_process_main)
+    probe.start()
+    probe.join()
+    if not str(result["applied"]).startswith("SCHED_FIFO"):
+        pytest.skip(f"this kernel refuses SCHED_FIFO: {result['applied']}")
+    assert result["policy"] == os.SCHED_FIFO
+
+
 def test_units_do_not_inherit_the_supervisors_real_time_class(unit_script):
-    probe = threading.Thread(target=lambda: applied.update(make_realtime(priority=SUPERVISOR_RT_PRIORITY)))
+    probe = threading.Thread(target=lambda: applied.update(make_realtime(priority=SUPERVISOR_RT_PRIORITY, reset_on_fork=True)))
     applied: dict[str, str] = {}
     probe.start()
     probe.join()
