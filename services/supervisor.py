@@ -18,8 +18,9 @@ does):
 - Stopping or after the main process died, the rest of its process group (as a
   cgroup) gets SIGTERM, then SIGKILL after ``TimeoutStopSec=``; units stop in the
   reverse order of starting.
-- ``Nice=``: the CPU priority of the unit's processes (the hard-rate loops and their
-  inputs above the planner, perception and the recorder).
+- ``Nice=``, ``CPUSchedulingPolicy=fifo`` with ``CPUSchedulingPriority=``: the CPU
+  priority of the unit's processes (the hard-rate loops and their inputs above the
+  planner, perception and the recorder).
 
 Every transition is an :class:`Event` (``events``); :meth:`Supervisor.summary`
 counts restarts per unit.
@@ -132,6 +133,7 @@ class UnitSpec:
     start_limit_burst: int = DEFAULT_START_LIMIT_BURST
     start_limit_interval_s: float = DEFAULT_START_LIMIT_INTERVAL_S
     nice: int = 0  # Nice=: CPU priority of the whole process (-20 highest .. 19 lowest)
+    fifo_priority: int = 0  # CPUSchedulingPolicy=fifo with CPUSchedulingPriority= (0: normal scheduling)
     env: dict[str, str] = field(default_factory=dict)
 
 
@@ -171,6 +173,7 @@ def spec_from_unit(service: str, argv: list[str], unit_dir: Path = UNIT_DIR, **o
         start_limit_burst=int(last(u, "StartLimitBurst", str(DEFAULT_START_LIMIT_BURST))),
         start_limit_interval_s=parse_timespan(last(u, "StartLimitIntervalSec", "10s")) or 0.0,
         nice=int(last(s, "Nice", "0")),
+        fifo_priority=int(last(s, "CPUSchedulingPriority", "0")) if last(s, "CPUSchedulingPolicy") == "fifo" else 0,
     )
     fields.update(overrides)
     return UnitSpec(**fields)
@@ -200,7 +203,7 @@ def sim_specs(services: list[str], endpoint: str, ns: str, config: str | None = 
 class Event:
     t: float  # time.monotonic()
     unit: str
-    what: str  # "start", "ready", "exit", "watchdog", "start-timeout", "restart-scheduled", "start-limit-hit", "stop", "nice-refused"
+    what: str  # "start", "ready", "exit", "watchdog", "start-timeout", "restart-scheduled", "start-limit-hit", "stop", "nice-refused", "priority-refused"
     detail: str = ""
 
 
@@ -371,6 +374,11 @@ class Supervisor:
                 os.setpriority(os.PRIO_PROCESS, unit.proc.pid, unit.spec.nice)
         except OSError as exc:
             self._event(unit.spec.name, "nice-refused", f"Nice={unit.spec.nice}: {exc}")
+        if unit.spec.fifo_priority:
+            try:
+                os.sched_setscheduler(unit.proc.pid, os.SCHED_FIFO, os.sched_param(unit.spec.fifo_priority))
+            except OSError as exc:
+                self._event(unit.spec.name, "priority-refused", f"CPUSchedulingPriority={unit.spec.fifo_priority}: {exc}")
 
     def _became_active(self, unit: _Unit) -> None:
         if unit.spec.name not in self._order:

@@ -139,15 +139,20 @@ def run_lockstep(args: argparse.Namespace) -> dict:
 
 
 def _take_twin_priority() -> None:
-    """This process runs the twin: give it the twin unit's Nice= (threads started later inherit
-    it; the supervised services get their own units' values). Refused, it runs as it is."""
+    """This process runs the twin: give it the twin unit's scheduling (``Nice=``, and
+    SCHED_FIFO where the unit asks for it) before any thread starts, so that its Zenoh
+    threads share it; the supervised services get their own units' values. Refused, it
+    runs as it is."""
+    from services.realtime import make_realtime
     from services.supervisor import spec_from_unit
 
-    nice = spec_from_unit("twin", []).nice
+    unit = spec_from_unit("twin", [])
     try:
-        os.setpriority(os.PRIO_PROCESS, 0, nice)
+        os.setpriority(os.PRIO_PROCESS, 0, unit.nice)
     except OSError as exc:
-        log.warning("twin priority refused", extra={"fields": {"nice": nice, "error": str(exc)}})
+        log.warning("twin priority refused", extra={"fields": {"nice": unit.nice, "error": str(exc)}})
+    if unit.fifo_priority:
+        make_realtime(unit.fifo_priority)
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
