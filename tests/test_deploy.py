@@ -55,15 +55,15 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
         assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICE_CLASSES
         assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
         raises_itself = service in ("control", "hardware")  # the 1 kHz loop and the bus master
-        fifo_by_systemd = service in ("twin", "estimator")  # the hardware's stand-in, the loop's input
+        fifo_by_systemd = service == "twin"  # the hardware's stand-in
         assert (one(unit, "Service", "RestrictRealtime") == "no") == (raises_itself or fifo_by_systemd)
         assert ("LimitRTPRIO" in unit["Service"]) == raises_itself
         assert (unit["Service"].get("CPUSchedulingPolicy") == ["fifo"]) == fifo_by_systemd
     control = parsed["archer-control.service"]["Service"]
     assert control["NotifyAccess"] == ["all"] and control["AmbientCapabilities"] == ["CAP_SYS_NICE"]
     assert parsed["archer-hardware.service"]["Service"]["AmbientCapabilities"] == ["CAP_SYS_NICE"]
-    twin, estimator = spec_from_unit("twin", ["true"]), spec_from_unit("estimator", ["true"])
-    assert 0 < estimator.fifo_priority < twin.fifo_priority < ControlParams().rt_priority  # physics below the loop
+    twin = spec_from_unit("twin", ["true"])
+    assert 0 < twin.fifo_priority < ControlParams().rt_priority  # physics below the control loop
     robot = one(parsed["archer.target"], "Unit", "Wants").split()
     sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
     assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)
