@@ -355,7 +355,7 @@ class Supervisor:
             list(spec.argv), env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out, start_new_session=True
         )
         unit.pidfd = _pidfd(unit.proc.pid)
-        self._renice(unit)
+        self._apply_scheduling(unit)
         unit.state = "activating" if spec.notify else "active"
         unit.started_at = unit.last_ping = now
         unit.starts.append(now)
@@ -363,11 +363,12 @@ class Supervisor:
         if not spec.notify:
             self._became_active(unit)
 
-    def _renice(self, unit: _Unit) -> None:
-        """Nice= after the fact (0 when the unit sets none: the supervisor's own value is not
-        inherited, as under systemd). Linux keeps the value per thread, and the child is still
-        starting its interpreter (one thread); every thread it starts later inherits it.
-        Raising priority needs CAP_SYS_NICE (systemd has it); refused, it runs as it is."""
+    def _apply_scheduling(self, unit: _Unit) -> None:
+        """Nice= and SCHED_FIFO after the fact (nice 0 when the unit sets none: the supervisor's
+        own value is not inherited, as under systemd). Linux keeps both per thread, and the
+        child is still starting its interpreter (one thread); every thread it starts later
+        inherits them. Raising priority needs CAP_SYS_NICE (systemd has it); refused, the
+        unit runs as it is and the refusal is an event."""
         assert unit.proc is not None
         try:
             if os.getpriority(os.PRIO_PROCESS, unit.proc.pid) != unit.spec.nice:
