@@ -101,7 +101,7 @@ def status_line(service: Service) -> str:
     percentiles over a loop's history, too costly to run every second beside a
     1 kHz loop.
     """
-    rates = ", ".join(f"{name} {meter.hz:.0f} Hz" for name, meter in sorted(service._rates.items()))
+    rates = ", ".join(f"{name} {hz:.0f} Hz" for name, hz in sorted(service.rates_hz().items()))
     parts = [service.state]
     if rates:
         parts.append(rates)
