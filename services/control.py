@@ -46,7 +46,7 @@ from onboard.low_level import LowLevelController
 from onboard.params import ControlParams, SafetyLimits
 from onboard.topics import TOPICS
 from services.clock import WallClock
-from services.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime
+from services.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
 from services.runtime import LatestSlot, Service, TypedPublisher
 from services.zenoh_session import open_session
 from sim_twin import model as twin_model
@@ -261,7 +261,7 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     die_with_parent(cfg.parent_pid)
     try:
-        applied = make_realtime(cfg.control.rt_priority or None, cfg.control.cpu if cfg.control.cpu >= 0 else None)
+        applied = make_realtime_from(cfg.control.rt_priority, cfg.control.cpu)
         loop = ControlLoop(cfg)
     except Exception as exc:  # reported to the parent, which fails the service
         conn.send({"error": repr(exc)})

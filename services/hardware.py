@@ -36,7 +36,7 @@ from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
 from onboard import messages as msgs
 from onboard.params import HardwareParams, SafetyLimits
-from services.realtime import DeadlineLoop, make_realtime
+from services.realtime import DeadlineLoop, make_realtime_from
 from services.runtime import LatestSlot, Service
 
 NS = 1_000_000_000
@@ -307,7 +307,7 @@ class HardwareService(Service):
 
     def _make_loop_realtime(self) -> None:
         hw = self.params["hardware"]
-        applied = make_realtime(hw.rt_priority or None, hw.cpu if hw.cpu >= 0 else None)
+        applied = make_realtime_from(hw.rt_priority, hw.cpu)
         self.log.info("exchange thread scheduling", extra={"fields": applied})
 
     def on_params_changed(self, section: str) -> None:

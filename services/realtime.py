@@ -60,6 +60,12 @@ def make_realtime(priority: int | None = None, cpu: int | None = None, reset_on_
     return applied
 
 
+def make_realtime_from(rt_priority: int, cpu: int) -> dict[str, str]:
+    """:func:`make_realtime` with the parameter sections' convention (``ControlParams``,
+    ``HardwareParams``): priority 0 and cpu -1 leave the scheduler alone."""
+    return make_realtime(rt_priority or None, cpu if cpu >= 0 else None)
+
+
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 PR_SET_TIMERSLACK = 29
 

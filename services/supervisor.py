@@ -364,22 +364,9 @@ class Supervisor:
             self._became_active(unit)
 
     def _apply_scheduling(self, unit: _Unit) -> None:
-        """Nice= and SCHED_FIFO after the fact (nice 0 when the unit sets none: the supervisor's
-        own value is not inherited, as under systemd). Linux keeps both per thread, and the
-        child is still starting its interpreter (one thread); every thread it starts later
-        inherits them. Raising priority needs CAP_SYS_NICE (systemd has it); refused, the
-        unit runs as it is and the refusal is an event."""
         assert unit.proc is not None
-        try:
-            if os.getpriority(os.PRIO_PROCESS, unit.proc.pid) != unit.spec.nice:
-                os.setpriority(os.PRIO_PROCESS, unit.proc.pid, unit.spec.nice)
-        except OSError as exc:
-            self._event(unit.spec.name, "nice-refused", f"Nice={unit.spec.nice}: {exc}")
-        if unit.spec.fifo_priority:
-            try:
-                os.sched_setscheduler(unit.proc.pid, os.SCHED_FIFO, os.sched_param(unit.spec.fifo_priority))
-            except OSError as exc:
-                self._event(unit.spec.name, "priority-refused", f"CPUSchedulingPriority={unit.spec.fifo_priority}: {exc}")
+        for what, detail in apply_unit_scheduling(unit.spec, unit.proc.pid):
+            self._event(unit.spec.name, what, detail)
 
     def _became_active(self, unit: _Unit) -> None:
         if unit.spec.name not in self._order:
@@ -530,6 +517,27 @@ class Supervisor:
             if unit.log_file is not None:
                 unit.log_file.close()
                 unit.log_file = None
+
+
+def apply_unit_scheduling(spec: UnitSpec, pid: int) -> list[tuple[str, str]]:
+    """A unit's ``Nice=`` and SCHED_FIFO for process ``pid`` (0: the caller), as systemd
+    applies them: nice 0 where the unit sets none, so that a supervisor's own value is
+    not inherited. Linux keeps both per thread; applied while the process is still
+    starting its interpreter (one thread), every thread it starts later inherits them.
+    Raising priority needs CAP_SYS_NICE (systemd has it); what is refused is returned
+    as ``(event, detail)`` pairs and the process runs as it is."""
+    refused = []
+    try:
+        if os.getpriority(os.PRIO_PROCESS, pid) != spec.nice:
+            os.setpriority(os.PRIO_PROCESS, pid, spec.nice)
+    except OSError as exc:
+        refused.append(("nice-refused", f"Nice={spec.nice}: {exc}"))
+    if spec.fifo_priority:
+        try:
+            os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(spec.fifo_priority))
+        except OSError as exc:
+            refused.append(("priority-refused", f"CPUSchedulingPriority={spec.fifo_priority}: {exc}"))
+    return refused
 
 
 def _pidfd(pid: int) -> int | None:

@@ -21,7 +21,6 @@ import asyncio
 import json
 import logging
 import math
-import os
 import sys
 import time
 
@@ -139,20 +138,12 @@ def run_lockstep(args: argparse.Namespace) -> dict:
 
 
 def _take_twin_priority() -> None:
-    """This process runs the twin: give it the twin unit's scheduling (``Nice=``, and
-    SCHED_FIFO where the unit asks for it) before any thread starts, so that its Zenoh
-    threads share it; the supervised services get their own units' values. Refused, it
-    runs as it is."""
-    from services.realtime import make_realtime
-    from services.supervisor import spec_from_unit
+    """This process runs the twin: give it the twin unit's scheduling before any thread
+    starts, so that its Zenoh threads share it (the supervised services get their own)."""
+    from services.supervisor import apply_unit_scheduling, spec_from_unit
 
-    unit = spec_from_unit("twin", [])
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, unit.nice)
-    except OSError as exc:
-        log.warning("twin priority refused", extra={"fields": {"nice": unit.nice, "error": str(exc)}})
-    if unit.fifo_priority:
-        make_realtime(unit.fifo_priority)
+    for what, detail in apply_unit_scheduling(spec_from_unit("twin", []), 0):
+        log.warning("twin scheduling refused", extra={"fields": {"event": what, "detail": detail}})
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
