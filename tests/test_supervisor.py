@@ -150,4 +150,6 @@ def test_stale_or_malformed_reference_falls_back_to_hopping_in_place():
     assert sup.check_reference(late + MS, bad) is None
     nan_ref = reference(late, points=((0.0, 0.0), (math.nan, 0.0)))
     assert sup.check_reference(late + 2 * MS, nan_ref) is None
+    assert sup.check_reference(late + 3 * MS, nan_ref) is None  # the verdict holds for the same message
     assert sup.counts["reference_invalid"] == 1
+    assert sup.check_reference(late + 4 * MS, fresh) is fresh  # and does not stick to the next one
