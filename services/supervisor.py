@@ -467,9 +467,7 @@ class Supervisor:
         code = proc.returncode
         unit.exit_codes.append(code)
         unit.proc = None
-        if unit.pidfd is not None:
-            os.close(unit.pidfd)
-            unit.pidfd = None
+        _close_pidfd(unit)
         killed_by = -code if code < 0 else 0
         unit.failed = code > 0 or (killed_by and killed_by not in CLEAN_SIGNALS) or unit.state == "deactivating"
         self._event(unit.spec.name, "exit", f"code {code}" if code >= 0 else f"signal {signal.Signals(killed_by).name}")
@@ -506,9 +504,7 @@ class Supervisor:
                     proc.wait()
                 unit.exit_codes.append(proc.returncode)
                 unit.group, unit.proc = proc.pid, None
-                if unit.pidfd is not None:
-                    os.close(unit.pidfd)
-                    unit.pidfd = None
+                _close_pidfd(unit)
             if unit.group is not None:
                 _stop_group(unit.group, timeout)
                 unit.group = None
@@ -545,6 +541,12 @@ def _pidfd(pid: int) -> int | None:
         return os.pidfd_open(pid)
     except (OSError, AttributeError):
         return None  # an old kernel: exits are found by polling every POLL_S
+
+
+def _close_pidfd(unit: _Unit) -> None:
+    if unit.pidfd is not None:
+        os.close(unit.pidfd)
+        unit.pidfd = None
 
 
 def _signal_group(pgid: int, sig: int) -> None:
