@@ -111,6 +111,7 @@ class TorqueCommand(Message):
     wheel_torque: Vec3  # [N m], at the wheel motor shafts
     foot_torque: float  # [N m], at the foot cable motor output (after the gearbox)
     armed: bool  # False: the receiver applies zero torque and disables
+    commander: str = ""  # instance id of the publishing control service (ServiceStatus.instance)
 
 
 class AttitudeSetpoint(Message):
@@ -121,6 +122,7 @@ class AttitudeSetpoint(Message):
     torque_ff: Vec3  # feed-forward wheel torque [N m]
     foot_torque: float  # [N m]
     armed: bool
+    commander: str = ""  # instance id of the publishing control service (ServiceStatus.instance)
 
 
 # --- planning -------------------------------------------------------------------
@@ -203,6 +205,10 @@ class ServiceStatus(Message):
     last_error: str = ""
     contract: str = "ok"  # "ok", "violated", "unknown"
     extra: dict[str, float] = {}
+    instance: str = ""  # random id of this process's run of the service (commands carry it)
+    host: str = ""
+    pid: int = 0
+    started_unix_s: float = 0.0  # wall-clock start time, for people reading it
 
 
 class ParamRequest(msgspec.Struct, forbid_unknown_fields=True):

@@ -36,7 +36,7 @@ from onboard.params import HardwareParams
 from onboard.topics import TOPICS, namespace, status_key
 from services.clock import WallClock
 from services.realtime import DeadlineLoop
-from services.runtime import TypedPublisher
+from services.runtime import StandInCommander, TypedPublisher
 from services.zenoh_session import free_endpoint, open_session
 
 START_TIMEOUT_S = 30.0  # emulator + service start-up (configuration over SDO)
@@ -92,6 +92,7 @@ def measure(args: argparse.Namespace) -> dict:
     service = None
     config = None
     router = open_session(endpoint, "router")
+    commander = StandInCommander(router, ns)  # the service obeys the one live commander: this bench
     try:
         info = json.loads(emulator.stdout.readline())
         bus = info["bus"]
@@ -115,7 +116,7 @@ def measure(args: argparse.Namespace) -> dict:
             if service.poll() is not None:
                 raise RuntimeError(f"hardware service exited: {service.stderr.read()[-2000:]}")
             pub = TypedPublisher(router, TOPICS["torque_cmd"], ns, WallClock())
-            pub.put(msgs.TorqueCommand(wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=True))
+            pub.put(msgs.TorqueCommand(wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=True, commander=commander.instance))
             pub.undeclare()
             time.sleep(0.05)
         if joints_seen == 0:
@@ -137,7 +138,7 @@ def measure(args: argparse.Namespace) -> dict:
         def tick(_deadline: float) -> None:
             nonlocal sent
             tau = TORQUE_AMPLITUDE * math.sin(2.0 * math.pi * (time.monotonic() - t0) / TORQUE_PERIOD_S)
-            pub.put(msgs.TorqueCommand(wheel_torque=[tau, -tau, tau], foot_torque=tau, armed=True))
+            pub.put(msgs.TorqueCommand(wheel_torque=[tau, -tau, tau], foot_torque=tau, armed=True, commander=commander.instance))
             sent += 1
             if sent == n_total:
                 query.start()
@@ -156,6 +157,7 @@ def measure(args: argparse.Namespace) -> dict:
         for proc in (service, emulator):
             if proc is not None and proc.poll() is None:
                 proc.terminate()
+        commander.close()
         router.close()
         if config is not None:
             os.unlink(config)

@@ -1,13 +1,23 @@
-"""``archer run SERVICE``: run one service in this process until SIGINT/SIGTERM."""
+"""``archer run SERVICE``: run one service in this process until SIGINT/SIGTERM.
+
+Started by a supervisor (``archer sim --mode realtime``), the service stops with it:
+the supervisor names itself in ``$ARCHER_SUPERVISOR_PID`` and the kernel sends the
+service SIGTERM when it dies, even by ``kill -9`` (systemd, which outlives its
+units, sets nothing).
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 
 from services.config import ConfigError, load_params
+from services.realtime import die_with_parent
 from services.runtime import Service, add_service_arguments, run_service, setup_logging
+from services.supervisor import SUPERVISOR_PID_ENV
 
 SERVICE_CLASSES: dict[str, str] = {
     "twin": "sim_twin.twin_service:TwinService",
@@ -39,6 +49,7 @@ def build_service(args: argparse.Namespace) -> Service:
 
 
 def run(args: argparse.Namespace) -> int:
+    die_with_parent(int(os.environ.get(SUPERVISOR_PID_ENV, "0") or 0), signal.SIGTERM)
     setup_logging(args.log_level)
     try:
         service = build_service(args)

@@ -157,6 +157,7 @@ class LoopConfig:
     safety: SafetyLimits
     duration_s: float = 0.0  # > 0: stop by itself after this long (the bench)
     parent_pid: int = 0  # the loop process dies with this process (0: no check)
+    commander: str = ""  # the service's instance id, carried by every command (onboard/commander.py)
 
 
 class ControlLoop:
@@ -210,6 +211,7 @@ class ControlLoop:
             cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None)
         if not cmd.armed:
             self.safe_ticks += 1
+        cmd.commander = self.cfg.commander
         self.pubs["torque_cmd"].put(cmd)
         for ev in ctrl.drain_phase_events():
             self.pubs["phase"].put(ev)
@@ -392,7 +394,8 @@ class ControlService(Service):
     def _loop_config(self) -> LoopConfig:
         self._applied_control = self.params["control"]
         return LoopConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
-                          control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid())
+                          control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid(),
+                          commander=self.instance)
 
     async def _start_loop(self) -> None:
         proc = LoopProcess(self._loop_config())

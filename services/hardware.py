@@ -289,8 +289,9 @@ class HardwareService(Service):
 
     async def setup(self) -> None:
         hw: HardwareParams = self.params["hardware"]
-        self.torque_slot: LatestSlot = self.latest("torque_cmd")
-        self.attitude_slot: LatestSlot | None = self.latest("attitude_cmd") if hw.backend == "teensy" and hw.teensy_mode == "attitude" else None
+        # from the one live commander only (Service.commands): forged commands never reach a drive
+        self.torque_slot: LatestSlot = self.commands("torque_cmd")
+        self.attitude_slot: LatestSlot | None = self.commands("attitude_cmd") if hw.backend == "teensy" and hw.teensy_mode == "attitude" else None
         self.joints_pub = self.publisher("joints")
         self.imu_pub = self.publisher("imu")
         self.safety_pub = self.publisher("safety")

@@ -82,16 +82,19 @@ def _prctl(option: int, value: int) -> bool:
     return False
 
 
-def die_with_parent(parent_pid: int) -> None:
-    """Have the kernel SIGKILL this process when its parent dies.
+def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL) -> None:
+    """Have the kernel send ``sig`` to this process when its parent dies.
 
     A hard-rate loop in a child process must not outlive the service that owns it
-    (a killed control service would otherwise leave its loop publishing torque).
-    Where prctl is unavailable the child still stops when its pipe breaks.
+    (a killed control service would otherwise leave its loop publishing torque), nor
+    a service the supervisor that started it (SIGTERM: it stops cleanly). The kernel
+    signals when the parent *thread* that started us exits: a supervisor starts its
+    units from the one thread that lives as long as it supervises. Where prctl is
+    unavailable a loop child still stops when its pipe breaks.
     """
     if parent_pid <= 0:
         return
-    _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    _prctl(PR_SET_PDEATHSIG, sig)
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os._exit(1)
 

@@ -19,7 +19,10 @@ import argparse
 import asyncio
 import json
 import logging
+import os
+import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -31,16 +34,23 @@ import zenoh
 
 from onboard import messages as msgs
 from onboard.binary_messages import ENCODING as BINARY_ENCODING
+from onboard.commander import UNKNOWN_COMMANDER, CommanderLatch
 from onboard.params import SECTIONS, as_dict, with_overrides
 from onboard.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
 from services import sd_notify
 from services.clock import Clock, WallClock
-from services.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_session
+from services.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_client_session, open_session
 
 JSON_ENCODING = "application/json"
 REJECT_LOG_INTERVAL_S = 1.0  # one log line per burst of rejections per topic
 SHUTDOWN_GRACE_S = 2.0  # how long main() may take to notice ``stopping``
+EXIT_DEADLINE_S = 2.8  # after a stop signal the process is gone by then, clean or not
 ASYNC_QUEUE_DEPTH = 64  # per subscription; the oldest sample is dropped beyond it
+PEER_QUERY_TIMEOUT_S = 1.0  # liveliness and status queries to another instance
+COMMANDER = "control"  # the one service whose commands reach the motors
+COMMANDER_REQUERY_S = 0.5  # a live commander that has not said who it is is asked again this often
+EXIT_CONFLICT = 2  # exit code of a service that found another instance running
+EXIT_SIGINT = 128 + signal.SIGINT  # the shell's convention for a run ended by Ctrl-C
 
 M = TypeVar("M")
 
@@ -79,6 +89,10 @@ def setup_logging(level: str = "INFO") -> None:
         handler.setFormatter(JsonLogFormatter())
         root.addHandler(handler)
     root.setLevel(level)
+
+
+class ServiceConflict(RuntimeError):
+    """Another instance of this service already runs in this namespace."""
 
 
 class Counters:
@@ -258,6 +272,11 @@ class Service:
         self._last_reject_log: dict[str, float] = {}
         self._aio_loop: asyncio.AbstractEventLoop | None = None
         self._started_ns = 0
+        self.instance = secrets.token_hex(8)  # this run of the service; its commands carry it
+        self.started_unix_s = time.time()
+        self._latch: CommanderLatch | None = None  # built by the first commands() slot
+        self._set_up = False  # setup() was entered: teardown() has something to release
+        self._serving_endpoint = self.zenoh_mode == "router"  # a router binds the endpoint: nobody else can
 
     # --- what subclasses override -------------------------------------------------
 
@@ -301,13 +320,14 @@ class Service:
         msg_type = topic.msg_type
         return lambda payload: msgs.decode(payload, msg_type)
 
-    def _reject(self, topic: Topic, exc: Exception) -> None:
-        self.counters.add(f"rejected.{topic.name}")
+    def _reject(self, topic: Topic, exc: Exception, counter: str | None = None) -> None:
+        counter = counter or f"rejected.{topic.name}"
+        self.counters.add(counter)
         now = time.monotonic()
-        if now - self._last_reject_log.get(topic.name, 0.0) >= REJECT_LOG_INTERVAL_S:
-            self._last_reject_log[topic.name] = now
-            total = self.counters.get(f"rejected.{topic.name}")
-            self.log.warning("rejected payload", extra={"fields": {"topic": topic.name, "error": str(exc), "rejected_total": total}})
+        if now - self._last_reject_log.get(counter, 0.0) >= REJECT_LOG_INTERVAL_S:
+            self._last_reject_log[counter] = now
+            total = self.counters.get(counter)
+            self.log.warning("rejected message", extra={"fields": {"topic": topic.name, "error": str(exc), "counter": counter, "rejected_total": total}})
 
     def on_message(self, topic_name: str, deliver: Callable[[Any], None]) -> None:
         """Call ``deliver(msg)`` on a Zenoh thread for every message that decodes.
@@ -379,6 +399,72 @@ class Service:
         self._tasks.append(loop.create_task(consume(), name=f"{self.name}.{topic_name}"))
         self.on_message(topic_name, lambda msg: loop.call_soon_threadsafe(offer, msg))
 
+    def commands(self, topic_name: str) -> LatestSlot:
+        """A latest-value slot of motor commands that only the live commander fills.
+
+        The one-commander rule of :mod:`onboard.commander`: the commander's liveliness
+        token and its status (its instance id) are watched here; a command from any
+        other instance, or while no commander is alive, never reaches the slot (so a
+        flood of forged commands cannot even displace the real ones), and is counted
+        (``rejected.<reason>``) and logged once per burst.
+        """
+        topic = TOPICS[topic_name]
+        latch = self._commander_latch()
+        slot: LatestSlot = LatestSlot()
+        last_query = [0.0]
+
+        def deliver(msg: Any) -> None:  # Zenoh thread
+            reason = latch.refusal(msg.commander)
+            if reason is None:
+                slot.put(msg, self.clock.now_ns())
+                return
+            if reason == UNKNOWN_COMMANDER and time.monotonic() - last_query[0] > COMMANDER_REQUERY_S:
+                last_query[0] = time.monotonic()
+                self._ask_commander(latch)
+            self._reject(topic, ValueError(f"{reason}: {msg.commander!r}"), counter=f"rejected.{reason}")
+
+        self.on_message(topic_name, deliver)
+        return slot
+
+    def _commander_latch(self) -> CommanderLatch:
+        if self._latch is not None:
+            return self._latch
+        latch = self._latch = CommanderLatch()
+
+        def on_liveliness(sample: zenoh.Sample) -> None:  # Zenoh thread
+            if sample.kind == zenoh.SampleKind.PUT:
+                latch.commander_appeared()
+                self._ask_commander(latch)
+            else:
+                was = latch.instance
+                latch.commander_gone()
+                self.log.warning("commander gone", extra={"fields": {"instance": was}})
+
+        key = liveliness_key(self.ns, COMMANDER)
+        self._declared.append(self.session.liveliness().declare_subscriber(key, on_liveliness, history=True))
+        return latch
+
+    def _ask_commander(self, latch: CommanderLatch) -> None:
+        """Ask the live commander's status who it is (the reply arrives on a Zenoh thread)."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                st = msgs.decode(reply.ok.payload.to_bytes(), msgs.ServiceStatus)
+            except msgs.MessageError:
+                self.count("rejected.commander_status")
+                return
+            before = latch.instance
+            if latch.commander_identified(st.instance) and before is None:
+                self.log.info("commander latched", extra={"fields": {"instance": st.instance, "host": st.host, "pid": st.pid}})
+            elif latch.instance != st.instance:
+                self.count("commander_conflicts")
+                self.log.error("a second commander answered; keeping the first",
+                               extra={"fields": {"kept": latch.instance, "refused": st.instance, "host": st.host, "pid": st.pid}})
+
+        self.session.get(status_key(self.ns, COMMANDER), on_reply, timeout=PEER_QUERY_TIMEOUT_S)
+
     # --- health -----------------------------------------------------------------------
 
     def rate(self, name: str) -> RateMeter:
@@ -411,6 +497,10 @@ class Service:
             contract=self.contract_state,
             # before setup() has run, a service's own figures do not exist yet
             extra={} if self.state == "starting" else {k: float(v) for k, v in self.status_extra().items()},
+            instance=self.instance,
+            host=socket.gethostname(),
+            pid=os.getpid(),
+            started_unix_s=self.started_unix_s,
         )
 
     def _on_status_query(self, query: zenoh.Query) -> None:
@@ -459,7 +549,9 @@ class Service:
         if mode == "peer" and not self._zenoh_config_file and not endpoint_in_use(self.endpoint):
             # No router yet: this service serves the well-known endpoint itself.
             try:
-                return open_session(self.endpoint, "router")
+                session = open_session(self.endpoint, "router")
+                self._serving_endpoint = True
+                return session
             except zenoh.ZError:
                 pass  # another process won the race; join it as a peer
         return open_session(self.endpoint, mode, self._zenoh_config_file)
@@ -470,9 +562,11 @@ class Service:
         if self.session is None:
             self.session = await asyncio.to_thread(self._open_session)
         try:
+            await asyncio.to_thread(self._refuse_if_running)
             self._declared.append(self.session.liveliness().declare_token(liveliness_key(self.ns, self.name)))
             self._declared.append(self.session.declare_queryable(status_key(self.ns, self.name), self._on_status_query))
             self._declared.append(self.session.declare_queryable(params_key(self.ns, self.name), self._on_params_query))
+            self._set_up = True
             await self.setup()
             self.state = "running"
             self._tasks.append(asyncio.create_task(sd_notify.keep_alive(self), name=f"{self.name}.sd_notify"))
@@ -496,13 +590,42 @@ class Service:
             self.state = "stopping"
             await self._close()
 
+    def _refuse_if_running(self) -> None:
+        """Raise :class:`ServiceConflict` when this service's token is already declared:
+        two estimators, or two commanders on one set of motors, must never run.
+
+        Asked through a client session of its own: this service's peer session may not
+        have learnt the router's tokens yet. A service that serves the endpoint itself
+        (no router was there) is alone by construction."""
+        if self._serving_endpoint:
+            return
+        probe = open_client_session(self.endpoint, self._zenoh_config_file)
+        try:
+            key = liveliness_key(self.ns, self.name)
+            if not any(r.ok is not None for r in probe.liveliness().get(key, timeout=PEER_QUERY_TIMEOUT_S)):
+                return
+            other = "no status reply"
+            for reply in probe.get(status_key(self.ns, self.name), timeout=PEER_QUERY_TIMEOUT_S):
+                if reply.ok is None:
+                    continue
+                try:
+                    st = msgs.decode(reply.ok.payload.to_bytes(), msgs.ServiceStatus)
+                except msgs.MessageError:
+                    continue
+                started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(st.started_unix_s))
+                other = f"host {st.host}, pid {st.pid}, started {started}, instance {st.instance}"
+        finally:
+            probe.close()
+        raise ServiceConflict(f"{self.name} already runs under {self.ns} ({other}); stop it first")
+
     async def _close(self) -> None:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
         try:
-            await self.teardown()
+            if self._set_up:
+                await self.teardown()
         finally:
             for entity in reversed(self._declared):
                 try:
@@ -524,6 +647,29 @@ class Service:
         self.call_in_loop(self.stopping.set)
 
 
+class StandInCommander:
+    """What a torque consumer needs to obey a publisher that is not the control service
+    (a bench, a test): the commander's liveliness token and a status naming an instance
+    id, which the publisher's commands carry (``commander=stand_in.instance``)."""
+
+    def __init__(self, session: zenoh.Session, ns: str) -> None:
+        self.instance = secrets.token_hex(8)
+        self._started_ns = time.monotonic_ns()
+        self._entities = [
+            session.liveliness().declare_token(liveliness_key(ns, COMMANDER)),
+            session.declare_queryable(status_key(ns, COMMANDER), self._on_status_query),
+        ]
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        status = msgs.ServiceStatus(service=COMMANDER, state="running", uptime_s=(time.monotonic_ns() - self._started_ns) / 1e9,
+                                    rates_hz={}, counters={}, instance=self.instance, host=socket.gethostname(), pid=os.getpid())
+        query.reply(query.key_expr, msgs.encode(status), encoding=zenoh.Encoding(JSON_ENCODING))
+
+    def close(self) -> None:
+        for entity in self._entities:
+            entity.undeclare()
+
+
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="TOML file overriding parameters by section")
     parser.add_argument("--endpoint", help="Zenoh endpoint (default tcp/127.0.0.1:7447 or $ARCHER_ZENOH_ENDPOINT)")
@@ -532,18 +678,50 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-level", default="INFO")
 
 
+def exit_by_deadline(code: int, deadline_s: float = EXIT_DEADLINE_S) -> None:
+    """Make sure this process is gone ``deadline_s`` from now, with ``code``, whatever
+    its clean-up is stuck on (a Zenoh close, a child that does not answer)."""
+
+    def force() -> None:
+        logging.getLogger("archer").error("clean shutdown overran; exiting", extra={"fields": {"deadline_s": deadline_s}})
+        os._exit(code)
+
+    timer = threading.Timer(deadline_s, force)
+    timer.daemon = True
+    timer.start()
+
+
+def stop_signal_exit_code(sig: int) -> int:
+    """0 for SIGTERM (a requested stop), 130 for SIGINT (the shell's Ctrl-C convention)."""
+    return EXIT_SIGINT if sig == signal.SIGINT else 0
+
+
 def run_service(service: Service) -> int:
-    """Run ``service`` until SIGINT/SIGTERM; returns the process exit code."""
+    """Run ``service`` until SIGINT/SIGTERM; returns the process exit code: 0 after SIGTERM,
+    130 after SIGINT, 2 when another instance runs, 1 on a crash."""
+    exit_code = 0
+
+    def on_signal(sig: int) -> None:
+        nonlocal exit_code
+        if service.stopping.is_set():
+            return
+        exit_code = stop_signal_exit_code(sig)
+        exit_by_deadline(exit_code)
+        service.stopping.set()
 
     async def runner() -> None:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, service.stopping.set)
+            # also where the caller left SIGINT ignored (a background job of a script)
+            loop.add_signal_handler(sig, on_signal, sig)
         await service.run()
 
     try:
         asyncio.run(runner())
+    except ServiceConflict as exc:
+        print(f"archer run: {exc}", file=sys.stderr)
+        return EXIT_CONFLICT
     except Exception:
         service.log.exception("service crashed")
         return 1
-    return 0
+    return exit_code

@@ -55,6 +55,7 @@ WATCHDOG_SIGNAL = signal.SIGABRT  # systemd's default WatchdogSignal=
 SUPERVISOR_RT_PRIORITY = 20  # SCHED_FIFO of the supervision thread: above normal tasks, below control loops
 KILL_GRACE_S = 1.0  # after SIGKILL, a group still there holds only zombies
 PR_SET_CHILD_SUBREAPER = 36  # prctl(2)
+SUPERVISOR_PID_ENV = "ARCHER_SUPERVISOR_PID"  # a unit's process dies with this process (services/cmd_run.py)
 _UCRED = struct.Struct("3i")  # pid, uid, gid
 _TIME_UNITS = {"us": 1e-6, "ms": 1e-3, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 
@@ -262,11 +263,11 @@ class Supervisor:
         _become_subreaper()
         self._thread.start()
 
-    def wait_active(self, names: list[str] | None = None, timeout_s: float = 60.0) -> bool:
-        """Block until ``names`` (default: all) are active; False on timeout or failure."""
+    def wait_active(self, names: list[str] | None = None, timeout_s: float = 60.0, cancel: threading.Event | None = None) -> bool:
+        """Block until ``names`` (default: all) are active; False on timeout, failure or ``cancel``."""
         wanted = names or list(self._units)
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not (cancel is not None and cancel.is_set()):
             states = [self.state(n) for n in wanted]
             if all(s == "active" for s in states):
                 return True
@@ -341,6 +342,7 @@ class Supervisor:
         env = dict(self._env)
         env.update(spec.env)
         env["NOTIFY_SOCKET"] = self.notify_path
+        env[SUPERVISOR_PID_ENV] = str(os.getpid())
         env.pop("WATCHDOG_PID", None)
         if spec.watchdog_s:
             env["WATCHDOG_USEC"] = str(int(spec.watchdog_s * 1e6))

@@ -21,11 +21,14 @@ import asyncio
 import json
 import logging
 import math
+import signal
 import sys
+import threading
 import time
 
 from onboard.params import with_overrides
 from services.config import ConfigError, load_params
+from services.runtime import EXIT_SIGINT
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
@@ -38,6 +41,7 @@ STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
 ROUTINE_UNIT_EVENTS = ("start", "ready")  # the rest says why a unit went down
 SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
+STOP_DEADLINE_S = 2.9  # [s] after SIGINT/SIGTERM the run is gone by then, its services with it
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 BAR_WIDTH = 30
 
@@ -66,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--endpoint", default=None, help="realtime: Zenoh endpoint (default tcp/127.0.0.1:7447)")
     parser.add_argument("--namespace", default=None, help="realtime: key namespace (default archer/robot0)")
+    parser.add_argument("--join", action="store_true",
+                        help="realtime: join the router already serving the endpoint (default: refuse to start)")
     parser.add_argument("--services", default="auto",
                         help="realtime: comma list of services to run as processes, or 'none' "
                              "(auto: estimator, control and planner, each if archer run knows it)")
@@ -148,8 +154,9 @@ def _take_twin_priority() -> None:
 
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.cmd_run import SERVICE_CLASSES
+    from services.runtime import exit_by_deadline, stop_signal_exit_code
     from services.supervisor import Supervisor, sim_specs
-    from services.zenoh_session import default_endpoint, endpoint_in_use
+    from services.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.topics import namespace
     from sim_twin.twin_service import ScenarioReferenceService, TwinService
 
@@ -167,6 +174,11 @@ def run_realtime(args: argparse.Namespace) -> dict:
         "obstacles": -1 if args.obstacles is None else args.obstacles, "noise": params["twin"].noise and not args.no_noise})
     endpoint = args.endpoint or default_endpoint()
     ns = args.namespace or namespace()
+    if endpoint_in_use(endpoint) and not args.join:
+        # a stack left running (or someone else's) would get a second commander on its keys
+        holder = endpoint_holder(endpoint)
+        raise ValueError(f"{endpoint} is already served by another process{f' ({holder})' if holder else ''}; "
+                         "stop it, choose another --endpoint, or pass --join to run beside it")
     planner = args.planner if args.planner != "auto" else ("graph" if scenario.obstacles else "scenario")
     if args.services == "auto":
         wanted = [s for s in STACK_SERVICES if not (s == "planner" and planner == "scenario")]
@@ -179,8 +191,20 @@ def run_realtime(args: argparse.Namespace) -> dict:
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
     _take_twin_priority()
+    stop_signal: list[int] = []  # the signal that ended the run early
+    stop_requested = threading.Event()  # also read by the supervisor's waits (threads)
+
+    def on_signal(sig: int) -> None:
+        if not stop_signal:
+            stop_signal.append(sig)
+            exit_by_deadline(stop_signal_exit_code(sig), STOP_DEADLINE_S)
+        stop_requested.set()
 
     async def main() -> dict:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            # installed explicitly: a script's background job starts with SIGINT ignored
+            loop.add_signal_handler(sig, on_signal, sig)
         twin = TwinService(ns=ns, endpoint=endpoint, params={"twin": twin_params, "safety": params["safety"]})
         local = [twin]
         if planner == "scenario":
@@ -196,7 +220,9 @@ def run_realtime(args: argparse.Namespace) -> dict:
         twin_started = time.monotonic()
         try:
             sup.start()
-            if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S):
+            if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
+                if stop_requested.is_set():
+                    return {"stopped_by": signal.Signals(stop_signal[0]).name}
                 raise RuntimeError(f"the services did not start: {sup.summary()}")
             tasks.append(asyncio.create_task(twin.run()))
             deadline = time.monotonic() + START_TIMEOUT_S
@@ -205,11 +231,13 @@ def run_realtime(args: argparse.Namespace) -> dict:
                     tasks[0].result()
                 if time.monotonic() > deadline:
                     raise RuntimeError("the twin did not start")
+                if stop_requested.is_set():
+                    break
                 await asyncio.sleep(0.02)
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
             wall0 = time.perf_counter()
             twin_started = time.monotonic()
-            while time.perf_counter() - wall0 < duration:
+            while time.perf_counter() - wall0 < duration and not stop_requested.is_set():
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
                 if tasks[0].done():
@@ -236,6 +264,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
         out["endpoint"] = endpoint
+        if stop_signal:
+            out["stopped_by"] = signal.Signals(stop_signal[0]).name
         return out
 
     return asyncio.run(main())
@@ -253,4 +283,4 @@ def run_sim(args: argparse.Namespace) -> int:
         width = max(len(k) for k in metrics)
         for key, value in metrics.items():
             print(f"{key:<{width}}  {value}")
-    return 0
+    return EXIT_SIGINT if metrics.get("stopped_by") == signal.SIGINT.name else 0

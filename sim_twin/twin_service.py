@@ -1,6 +1,6 @@
 """The real-time twin: the MuJoCo robot in place of the ``hardware`` service, paced to wall time.
 
-Subscribes ``torque_cmd`` (latest value) and, for its metrics only, ``reference``, ``state`` and
+Subscribes ``torque_cmd`` (latest value, from the one live commander: :meth:`Service.commands`) and, for its metrics only, ``reference``, ``state`` and
 ``contract``.
 A :class:`~services.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
 tick it:
@@ -93,7 +93,7 @@ class TwinService(Service):
         self.truth = TruthEstimator(self.model, self.robot)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
-        self.torque_slot = self.latest("torque_cmd")
+        self.torque_slot = self.commands("torque_cmd")  # from the live commander only
         # for the metrics only: decoded when read (the estimate every TRACE_EVERY ticks)
         self.reference_slot = self.latest_sampled("reference")
         self.state_slot = self.latest_sampled("state")

@@ -26,6 +26,7 @@ from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
+from services.runtime import StandInCommander
 from services.zenoh_session import open_session
 
 NS = "archer/hwtest"
@@ -81,6 +82,7 @@ class Commander:
     """Publishes armed torque commands at about 1 kHz from a thread (a stand-in for control)."""
 
     def __init__(self, session, torques=(0.3, -0.3, 0.2, 1.0)) -> None:
+        self.identity = StandInCommander(session, NS)
         self.pub = session.declare_publisher(TOPICS["torque_cmd"].key(NS))
         self.torques = torques
         self.armed = True
@@ -96,7 +98,8 @@ class Commander:
             if self.running.is_set():
                 self.seq += 1
                 t = self.torques
-                self.pub.put(m.encode(m.TorqueCommand(seq=self.seq, stamp_ns=time.monotonic_ns(), wheel_torque=list(t[:3]), foot_torque=t[3], armed=self.armed)))
+                self.pub.put(m.encode(m.TorqueCommand(seq=self.seq, stamp_ns=time.monotonic_ns(), wheel_torque=list(t[:3]), foot_torque=t[3], armed=self.armed,
+                                                      commander=self.identity.instance)))
                 self.last_put = time.monotonic()
             time.sleep(0.001)
 
@@ -104,6 +107,7 @@ class Commander:
         self._stop.set()
         self._thread.join(1.0)
         self.pub.undeclare()
+        self.identity.close()
 
 
 async def wait_for(predicate, timeout_s: float = TIMEOUT_S) -> float:

@@ -12,6 +12,7 @@ from onboard.binary_messages import decode_depth
 from onboard.params import SafetyLimits, TwinParams
 from onboard.topics import TOPICS
 from services.cmd_introspect import query_status
+from services.runtime import StandInCommander
 from services.zenoh_session import open_session
 from sim_twin.twin_service import ScenarioReferenceService, TwinService
 from helpers import wait_for
@@ -39,12 +40,13 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
 
             subs.append(client.declare_subscriber(topic.key(NS), on_sample))
         cmd_key = TOPICS["torque_cmd"].key(NS)
+        commander = StandInCommander(client, NS)
         try:
             await wait_for(lambda: twin.state == "running" and len(got["imu"]) > 50)
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.4:  # commands at about 500 Hz: wheel x spins up
                 client.put(cmd_key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[0.05, 0.0, 0.0],
-                                                             foot_torque=0.0, armed=True)))
+                                                             foot_torque=0.0, armed=True, commander=commander.instance)))
                 await asyncio.sleep(0.002)
             spin = twin.data.qvel[twin.model.joint("wheel_x").dofadr[0]]
             assert spin > 0.5  # 0.05 N m on the wheel's 1.1e-3 kg m^2: 45 rad/s^2 while commands are fresh
@@ -61,6 +63,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
         finally:
             for s in subs:
                 s.undeclare()
+            commander.close()
             client.close()
             twin.request_stop()
             planner.request_stop()

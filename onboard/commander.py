@@ -1,0 +1,60 @@
+"""One commander for the motors: the rule every torque consumer applies.
+
+A consumer of motor commands (the twin, the hardware service) takes them from one
+instance of the control service only: the one whose liveliness token is declared,
+identified by the instance id its status reports and every command carries
+(``TorqueCommand.commander``). A command from any other instance is refused and
+counted, whatever it says; while no commander is alive, every command is refused (a
+publisher without a token is nobody's commander). A takeover therefore needs the
+first commander's token to be gone: a crash, a stop, a lost link.
+
+Pure bookkeeping: the service feeds it liveliness and status replies from Zenoh and
+asks it about each command as it arrives.
+"""
+
+from __future__ import annotations
+
+NO_LIVE_COMMANDER = "no_live_commander"
+FOREIGN_COMMANDER = "foreign_commander"
+UNKNOWN_COMMANDER = "unknown_commander"  # alive, but its instance id is not known yet
+
+
+class CommanderLatch:
+    """Which commander instance the motors obey, and what was refused."""
+
+    def __init__(self) -> None:
+        self.alive = False  # a commander's liveliness token is declared
+        self.instance: str | None = None  # the live commander's instance id, once its status said
+        self.refused: dict[str, int] = {NO_LIVE_COMMANDER: 0, FOREIGN_COMMANDER: 0, UNKNOWN_COMMANDER: 0}
+        self.latches = 0  # how many commander instances were obeyed in turn
+
+    def commander_appeared(self) -> None:
+        self.alive = True
+
+    def commander_gone(self) -> None:
+        self.alive = False
+        self.instance = None
+
+    def commander_identified(self, instance: str) -> bool:
+        """The live commander's status named ``instance``; False when it is not the one
+        already latched (two tokens at once: the first keeps the motors)."""
+        if not self.alive or not instance:
+            return False
+        if self.instance is None:
+            self.instance = instance
+            self.latches += 1
+            return True
+        return self.instance == instance
+
+    def refusal(self, commander: str) -> str | None:
+        """Why a command from ``commander`` must not reach the motors (None: obey it)."""
+        if not self.alive:
+            reason = NO_LIVE_COMMANDER
+        elif self.instance is None:
+            reason = UNKNOWN_COMMANDER
+        elif commander != self.instance:
+            reason = FOREIGN_COMMANDER
+        else:
+            return None
+        self.refused[reason] += 1
+        return reason

@@ -1,0 +1,137 @@
+"""At most one live instance of a service per namespace, and one commander on the motors (issue 14)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+from onboard import messages as m
+from onboard.commander import FOREIGN_COMMANDER, NO_LIVE_COMMANDER, UNKNOWN_COMMANDER, CommanderLatch
+from onboard.params import SafetyLimits, TwinParams
+from onboard.topics import TOPICS, liveliness_key
+from services.runtime import EXIT_CONFLICT, StandInCommander
+from services.zenoh_session import open_session
+from sim_twin.twin_service import TwinService
+from helpers import wait_for
+
+START_TIMEOUT_S = 60.0
+
+
+# --- the rule ---------------------------------------------------------------------------------------
+
+
+def test_the_latch_obeys_only_the_live_identified_commander() -> None:
+    latch = CommanderLatch()
+    assert latch.refusal("a") == NO_LIVE_COMMANDER  # no token: nobody's commander
+    latch.commander_appeared()
+    assert latch.refusal("a") == UNKNOWN_COMMANDER  # alive, status not heard yet
+    assert latch.commander_identified("a")
+    assert latch.refusal("a") is None
+    assert latch.refusal("b") == FOREIGN_COMMANDER and latch.refusal("") == FOREIGN_COMMANDER
+    assert not latch.commander_identified("b")  # a second instance answering keeps nothing
+    assert latch.refusal("b") == FOREIGN_COMMANDER
+    latch.commander_gone()  # the takeover needs the first one gone
+    assert latch.refusal("a") == NO_LIVE_COMMANDER
+    latch.commander_appeared()
+    assert latch.commander_identified("b") and latch.refusal("b") is None and latch.refusal("a") == FOREIGN_COMMANDER
+    assert latch.latches == 2
+    assert latch.refused == {NO_LIVE_COMMANDER: 2, UNKNOWN_COMMANDER: 1, FOREIGN_COMMANDER: 4}
+
+
+# --- one instance per service ---------------------------------------------------------------------
+
+
+def test_a_second_control_service_is_refused_naming_the_first(zenoh_router) -> None:
+    ns = f"archer/twice{os.getpid()}"
+    argv = [sys.executable, "-m", "services.cli", "run", "control", "--endpoint", zenoh_router, "--namespace", ns, "--log-level", "WARNING"]
+    first = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    session = open_session(zenoh_router, "client")
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not any(r.ok is not None for r in session.liveliness().get(liveliness_key(ns, "control"), timeout=1.0)):
+            assert first.poll() is None and time.monotonic() < deadline, "the first control did not start"
+            time.sleep(0.1)
+        second = subprocess.run(argv, capture_output=True, text=True, timeout=START_TIMEOUT_S)
+        assert second.returncode == EXIT_CONFLICT
+        assert "control already runs" in second.stderr
+        assert f"pid {first.pid}" in second.stderr and f"host {socket.gethostname()}" in second.stderr
+        assert "started 20" in second.stderr  # the first one's start time, as a date
+        assert first.poll() is None, "the refused one must not disturb the running one"
+    finally:
+        session.close()
+        if first.poll() is None:
+            first.send_signal(signal.SIGTERM)
+        first.wait(timeout=10)
+    assert first.returncode == 0
+
+
+# --- forged commands never reach the motors ------------------------------------------------------
+
+
+def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_router) -> None:
+    ns = f"archer/forge{os.getpid()}"
+
+    async def scenario() -> None:
+        twin = TwinService(ns=ns, endpoint=zenoh_router, params={"twin": TwinParams(scenario="hop-in-place", seed=0), "safety": SafetyLimits()})
+        task = asyncio.create_task(twin.run())
+        client = open_session(zenoh_router, "peer")
+        key = TOPICS["torque_cmd"].key(ns)
+        wheel_dofs = []
+
+        def wheel_speed() -> float:
+            return max(abs(float(twin.data.qvel[d])) for d in wheel_dofs)
+
+        def put(commander: str, torque: float) -> None:
+            client.put(key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[torque] * 3, foot_torque=torque,
+                                                     armed=True, commander=commander)))
+
+        async def stream(seconds: float, *senders: tuple[str, float]) -> float:
+            """Every sender at about 1 kHz; returns the largest wheel speed seen meanwhile."""
+            fastest = 0.0
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < seconds:
+                for commander, torque in senders:
+                    put(commander, torque)
+                fastest = max(fastest, wheel_speed())
+                await asyncio.sleep(0.001)
+            return fastest
+
+        legit = StandInCommander(client, ns)
+        try:
+            await wait_for(lambda: twin.state == "running")
+            wheel_dofs.extend(int(twin.model.joint(j).dofadr[0]) for j in ("wheel_x", "wheel_y", "wheel_z"))
+            await wait_for(lambda: twin._latch is not None and twin._latch.instance == legit.instance)
+            # the real commander holds the wheels still while a forger asks for 1e9 N m, with
+            # an instance id of its own and with none
+            fastest = await stream(1.5, (legit.instance, 0.0), ("f0rged", 1e9), ("", 1e9))
+            assert fastest < 0.5, f"a forged torque reached the wheels: {fastest:.1f} rad/s"
+            refused = twin.counters.get(f"rejected.{FOREIGN_COMMANDER}")
+            applied = twin.actuation.counters["applied"]
+            assert refused > 500 and applied > 500  # both streams arrived; only one was obeyed
+            assert twin.actuation.last_applied == (0.0, 0.0, 0.0, 0.0)
+
+            # the commander's token gone: nobody commands, the forger least of all
+            legit.close()
+            await wait_for(lambda: twin._latch.instance is None)
+            assert await stream(0.5, ("f0rged", 1e9)) < 0.5
+            assert twin.counters.get(f"rejected.{NO_LIVE_COMMANDER}") > 100
+
+            # a new commander takes over and is obeyed
+            successor = StandInCommander(client, ns)
+            try:
+                await wait_for(lambda: twin._latch.instance == successor.instance)
+                assert await stream(0.5, (successor.instance, 0.05), ("f0rged", -1e9)) > 1.0  # 0.05 N m spins a wheel up
+                assert twin._latch.latches == 2
+            finally:
+                successor.close()
+        finally:
+            client.close()
+            twin.request_stop()
+            await asyncio.wait_for(task, 10.0)
+
+    asyncio.run(scenario())
