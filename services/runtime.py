@@ -426,6 +426,11 @@ class Service:
         self.on_message(topic_name, deliver)
         return slot
 
+    @property
+    def commander_latch(self) -> CommanderLatch | None:
+        """Whose commands this service obeys (None: it takes no commands)."""
+        return self._latch
+
     def _commander_latch(self) -> CommanderLatch:
         if self._latch is not None:
             return self._latch

@@ -189,6 +189,8 @@ class TwinService(Service):
             out.update({f"loop_{k}": v for k, v in self.loop.recorder.stats().as_dict().items()})
         out.update(self.metrics.summary(self.data, self.actuation))
         out["contract_violations"] = self.contract_violations
+        # commands that never reached the motors because of who sent them (onboard/commander.py)
+        out["commands_refused_commander"] = dict(self.commander_latch.refused) if self.commander_latch is not None else {}
         return out
 
     def progress(self) -> bool:

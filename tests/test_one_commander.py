@@ -105,7 +105,7 @@ def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_rou
         try:
             await wait_for(lambda: twin.state == "running")
             wheel_dofs.extend(int(twin.model.joint(j).dofadr[0]) for j in ("wheel_x", "wheel_y", "wheel_z"))
-            await wait_for(lambda: twin._latch is not None and twin._latch.instance == legit.instance)
+            await wait_for(lambda: twin.commander_latch is not None and twin.commander_latch.instance == legit.instance)
             # the real commander holds the wheels still while a forger asks for 1e9 N m, with
             # an instance id of its own and with none
             fastest = await stream(1.5, (legit.instance, 0.0), ("f0rged", 1e9), ("", 1e9))
@@ -117,16 +117,16 @@ def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_rou
 
             # the commander's token gone: nobody commands, the forger least of all
             legit.close()
-            await wait_for(lambda: twin._latch.instance is None)
+            await wait_for(lambda: twin.commander_latch.instance is None)
             assert await stream(0.5, ("f0rged", 1e9)) < 0.5
             assert twin.counters.get(f"rejected.{NO_LIVE_COMMANDER}") > 100
 
             # a new commander takes over and is obeyed
             successor = StandInCommander(client, ns)
             try:
-                await wait_for(lambda: twin._latch.instance == successor.instance)
+                await wait_for(lambda: twin.commander_latch.instance == successor.instance)
                 assert await stream(0.5, (successor.instance, 0.05), ("f0rged", -1e9)) > 1.0  # 0.05 N m spins a wheel up
-                assert twin._latch.latches == 2
+                assert twin.commander_latch.latches == 2
             finally:
                 successor.close()
         finally:
