@@ -299,6 +299,15 @@ class Supervisor:
     def restarts(self, name: str) -> int:
         return self._units[name].restarts
 
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time [s] (user + system) used so far by the live processes of each unit's
+        process group: its main process and what it started (a control loop child)."""
+        groups = {u.proc.pid: n for n, u in self._units.items() if u.proc is not None}
+        out = {n: 0.0 for n in self._units}
+        for pgid, seconds in process_group_cpu_seconds(set(groups)).items():
+            out[groups[pgid]] += seconds
+        return out
+
     def summary(self) -> dict[str, dict[str, object]]:
         return {
             n: {"state": u.state, "restarts": u.restarts, "exit_codes": list(u.exit_codes), "watchdog_pings": u.watchdog_pings, "status": u.status}
@@ -536,6 +545,23 @@ def apply_unit_scheduling(spec: UnitSpec, pid: int) -> list[tuple[str, str]]:
         except OSError as exc:
             refused.append(("priority-refused", f"CPUSchedulingPriority={spec.fifo_priority}: {exc}"))
     return refused
+
+
+def process_group_cpu_seconds(pgids: set[int]) -> dict[int, float]:
+    """User + system CPU seconds of the live processes of each group in ``pgids`` (/proc)."""
+    out = {g: 0.0 for g in pgids}
+    tick = os.sysconf("SC_CLK_TCK")
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        pgid = int(fields[2])
+        if pgid in out:
+            out[pgid] += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+    return out
 
 
 def _pidfd(pid: int) -> int | None:

@@ -218,6 +218,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
         sup = Supervisor(sim_specs(units, endpoint, ns, args.config))
         wall0 = time.perf_counter()
         twin_started = time.monotonic()
+        cpu0: tuple[dict[str, float], float] | None = None
+        cpu_used: dict[str, float] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -237,6 +239,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
             wall0 = time.perf_counter()
             twin_started = time.monotonic()
+            cpu0 = sup.cpu_seconds(), time.process_time()
             while time.perf_counter() - wall0 < duration and not stop_requested.is_set():
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
@@ -246,11 +249,14 @@ def run_realtime(args: argparse.Namespace) -> dict:
                     break
         finally:
             run_ended = time.monotonic()  # what the stop itself does is no failure
-            exit_codes = await asyncio.to_thread(sup.stop)
+            if cpu0 is not None:
+                cpu_used = _cpu_cores(cpu0, (sup.cpu_seconds(), time.process_time()), time.perf_counter() - wall0)
+            # the twin first: the run's physics ends here, not while the services stop
             for s in local:
                 s.request_stop()
             await asyncio.gather(*tasks, return_exceptions=True)
-        wall = time.perf_counter() - wall0
+            wall = time.perf_counter() - wall0
+            exit_codes = await asyncio.to_thread(sup.stop)
         out = {"scenario": args.scenario, "seed": args.seed, "mode": "realtime", "variant": args.variant,
                "estimator": "kalman", "planner": planner, "controller": "lowlevel", "wall_time_s": round(wall, 3)}
         out.update(twin.summary())
@@ -264,11 +270,24 @@ def run_realtime(args: argparse.Namespace) -> dict:
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
         out["endpoint"] = endpoint
+        # cores each process group used while the twin ran ("sim": this process, the twin's);
+        # a unit restarted meanwhile counts only its last process
+        out["cpu_cores"] = cpu_used
         if stop_signal:
             out["stopped_by"] = signal.Signals(stop_signal[0]).name
         return out
 
     return asyncio.run(main())
+
+
+def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, float], float], wall_s: float) -> dict[str, float]:
+    """Cores used per unit (and by this process, ``sim``) between two CPU-time samples."""
+    if wall_s <= 0:
+        return {}
+    units = {name: max(0.0, after[0][name] - before[0].get(name, 0.0)) / wall_s for name in after[0]}
+    units["sim"] = (after[1] - before[1]) / wall_s
+    units["total"] = sum(units.values())
+    return {name: round(value, 3) for name, value in units.items()}
 
 
 def run_sim(args: argparse.Namespace) -> int:
