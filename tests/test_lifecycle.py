@@ -85,7 +85,7 @@ class RealtimeSim:
     def __init__(self, endpoint: str, ns: str, *extra: str) -> None:
         self.endpoint, self.ns = endpoint, ns
         self.proc = subprocess.Popen(
-            _archer("sim", "--mode", "realtime", "--scenario", "hop-in-place", "--duration", "60", "--quiet", "--json",
+            _archer("sim", "--mode", "realtime", "--scenario", "hop-in-place", "--duration", "60", "--keep-going", "--quiet", "--json",
                     "--endpoint", endpoint, "--namespace", ns, *extra),
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.tree: set[int] = set()
