@@ -159,6 +159,17 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
             assert j.wheel_torque == pytest.approx([0.3, -0.3, 0.2], abs=0.004) and j.foot_sensed is False
             assert j.stamp_ns > 0 and joints[-1].seq > joints[0].seq
 
+            # a forged commander at 1 kHz, armed, asking for 1e9 N m: counted, never applied
+            forged = m.TorqueCommand(wheel_torque=[1e9] * 3, foot_torque=1e9, armed=True, commander="f0rged")
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 0.5:
+                forged.stamp_ns = time.monotonic_ns()
+                client.put(TOPICS["torque_cmd"].key(NS), m.encode(forged))
+                # the real commander's torques, or less where a wheel reached its speed limit
+                assert all(abs(a) <= legit + 0.002 for a, legit in zip(applied(), (0.3, 0.3, 0.2, 1.0 / 3.0)))
+                await asyncio.sleep(0.001)
+            assert service.counters.get("rejected.foreign_commander") > 200
+
             # stale commands: the service's own watchdog zeroes the motors within its bound
             commander.running.clear()
             last = commander.last_put
