@@ -663,7 +663,10 @@ class BezierMpc:
         except np.linalg.LinAlgError:
             singular = True
         if singular:  # dependent active rows
-            nu = np.linalg.lstsq(S, r)[0]
+            try:
+                nu = np.linalg.lstsq(S, r)[0]
+            except np.linalg.LinAlgError:  # "SVD did not converge": no polish this time
+                return None
         x = x_free - W.T @ nu
         return x if np.all(np.isfinite(x)) else None
 

@@ -477,6 +477,8 @@ class PlannerStats:
     refines: int = 0  # MPC solves
     refine_reused: int = 0  # refine calls answered with the last solution (nothing changed)
     refine_failures: int = 0
+    refine_numerical_errors: int = 0  # of the failures: a solver or linear-algebra error (last one in last_refine_error)
+    last_refine_error: str = ""
     edges_free: int = 0
 
 
@@ -840,10 +842,17 @@ class GraphPlanner:
         warm_ctrl = mpc.reach.curve(warm[:-1], warm[1:])
         hs = self.segment_halfspaces(warm_ctrl, self.robot_radius, mpc.max_planes)  # the MPC adds the tube
         self.stats.refines += 1
-        sol = mpc.solve(x, ref, planes=(np.ascontiguousarray(hs[..., :2]), np.ascontiguousarray(hs[..., 2])),
-                        warm_start=warm)
+        try:
+            sol = mpc.solve(x, ref, planes=(np.ascontiguousarray(hs[..., :2]), np.ascontiguousarray(hs[..., 2])),
+                            warm_start=warm)
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+            # a numerical failure is a failed refinement (the graph path below), never a crash
+            # of the loop that called it: the service and the lockstep runner alike
+            sol = None
+            self.stats.refine_numerical_errors += 1
+            self.stats.last_refine_error = f"{type(exc).__name__}: {exc}"
         t_ref_ns = self.path_t0_ns + int(round(j0 * dt * 1e9))
-        if sol.ok:
+        if sol is not None and sol.ok:
             hulls = col.hull_set(sol.control_points)
             blocked, _ = self._blocked(hulls)
             if not blocked.any():

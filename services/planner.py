@@ -201,6 +201,7 @@ class PlannerService(Service):
             "refine_solves": st.refines,
             "refine_reused": st.refine_reused,
             "refine_failures": st.refine_failures,
+            "refine_numerical_errors": st.refine_numerical_errors,
             "tube_m": self.planner.tube,
             "margin_m": self.planner.margin,
             "contract_violations": self.planner.contract_violations,

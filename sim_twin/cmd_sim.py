@@ -291,11 +291,16 @@ def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, fl
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    """Exit code 0; 2 for what the user asked wrong; 1 when the run failed by itself."""
     try:
         metrics = run_realtime(args) if args.mode == "realtime" else run_lockstep(args)
-    except (ValueError, ConfigError, RuntimeError) as exc:
+    except (ValueError, ConfigError) as exc:
         print(f"archer sim: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:  # SimulationError, services that did not start
+        log.error("run failed", exc_info=exc)
+        print(f"archer sim: {exc}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(metrics))
     else:

@@ -213,8 +213,18 @@ class LockstepRunner:
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
 
 
+class SimulationError(RuntimeError):
+    """The run itself failed (a bug or a numerical failure), not its configuration."""
+
+
 def run(cfg: RunConfig, progress: Callable[[float, float], None] | None = None) -> RunResult:
-    return LockstepRunner(cfg).run(progress)
+    """Run ``cfg``; a bad configuration raises as it is (ValueError), a failure while
+    stepping raises :class:`SimulationError` (its cause chained)."""
+    runner = LockstepRunner(cfg)
+    try:
+        return runner.run(progress)
+    except Exception as exc:
+        raise SimulationError(f"internal error during the run: {type(exc).__name__}: {exc}") from exc
 
 
 def config_with(cfg: RunConfig, **changes) -> RunConfig:

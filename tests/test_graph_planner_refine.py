@@ -160,3 +160,19 @@ def test_the_last_solution_is_reused_only_while_nothing_changed(graph):
     assert planner.stats.refines == 3
     planner.refine(start[:2], start[2:], t0 + 100_000_000)  # the next knot: solve again
     assert planner.stats.refines == 4
+
+
+def test_a_linear_algebra_failure_is_a_failed_refinement_not_a_crash(graph, monkeypatch):
+    """numpy's "SVD did not converge" once escaped the MPC's polish and killed a lockstep run."""
+    planner = _planner(graph)
+    start = planner.path.states[0]
+    mpc = planner._ensure_mpc(PARAMS.halfspaces)
+
+    def diverged(*_args, **_kwargs):
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    monkeypatch.setattr(mpc, "solve", diverged)
+    ref = planner.refine(start[:2], start[2:], stamp_ns=1_000_000_000)
+    assert ref is not None and not ref.hold  # the graph path itself: collision free
+    assert planner.stats.refine_failures == 1 and planner.stats.refine_numerical_errors == 1
+    assert "SVD did not converge" in planner.stats.last_refine_error
