@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import mujoco
@@ -145,14 +144,13 @@ def test_truth_estimate_is_the_robot_com() -> None:
     assert msgs.decode(msgs.encode(est), msgs.StateEstimate) == est
 
 
-@pytest.mark.skipif(importlib.util.find_spec("onboard.low_level") is None or importlib.util.find_spec("services.control") is None,
-                    reason="the low level (issue 4) has not landed")
 def test_full_stack_hops_in_place() -> None:
-    estimator = "kalman" if importlib.util.find_spec("onboard.estimator") else "truth"
-    res = run(RunConfig(scenario="hop-in-place", seed=2, duration_s=4.0, estimator=estimator))
+    """The estimator and the low level in the loop. Measured with seeds 0-4: 12 hops in 4 s,
+    final goal error 1-6 mm, wheel speeds at most 25 rad/s; the bounds leave 2-3 times that."""
+    res = run(RunConfig(scenario="hop-in-place", seed=2, duration_s=4.0, estimator="kalman"))
     mt = res.metrics
+    assert mt["estimator"] == "kalman"
     assert mt["falls"] == 0, mt
-    assert mt["hops"] >= 8
-    assert mt["final_goal_error_m"] < 0.3
-    assert mt["max_wheel_speed_rad_s"] < SafetyLimits().wheel_speed_max
-    assert sc.GOAL_TOLERANCE > 0
+    assert mt["hops"] >= 10, mt
+    assert mt["final_goal_error_m"] < 0.02, mt
+    assert mt["max_wheel_speed_rad_s"] < 50.0, mt
