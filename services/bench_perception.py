@@ -4,7 +4,10 @@ Decomposes synthetic maps (rooms, corridors, random clutter; several seeds each)
 convex free cells, from the map's start cell, and prints: ``grid``, ``polytopes``
 (median count), ``ms_p50``, ``ms_p99`` (per decomposition), ``coverage`` (worst map:
 fraction of the free cells reachable from the start whose centre lies in a polygon),
-``overlap_cells`` (occupied cells any polygon overlaps, exact square test: must be 0),
+``overlap_cells`` (occupied cells any returned polygon overlaps, exact square test: 0
+by construction, since the decomposition drops such polygons before returning) beside
+``polygons_dropped_for_overlap`` (how many it dropped, summed over the maps: what the
+fits got wrong, which ``overlap_cells`` cannot show),
 ``cpu_ms_p50`` (CPU time of this process per decomposition, for a busy machine),
 ``connected`` (maps where overlapping polygons chain start to goal), and the obstacle
 mode's time.
@@ -42,6 +45,7 @@ def measure(args: argparse.Namespace) -> dict:
     counts: list[int] = []
     coverage: list[float] = []
     overlap = 0
+    dropped = 0
     connected = 0
     n_maps = 0
     kinds = [k.strip() for k in args.maps.split(",") if k.strip()]
@@ -57,7 +61,7 @@ def measure(args: argparse.Namespace) -> dict:
             goal = tuple(cell_centres(np.array([tm.goal[0]]), np.array([tm.goal[1]]), RESOLUTION_M, ORIGIN_M)[0])
             for _ in range(args.repeat):
                 t0, c0 = time.perf_counter(), time.process_time()
-                polys, _ = decompose_free_space(free, RESOLUTION_M, ORIGIN_M, params, start=start, must_cover=(start, goal))
+                polys, stats = decompose_free_space(free, RESOLUTION_M, ORIGIN_M, params, start=start, must_cover=(start, goal))
                 times.append((time.perf_counter() - t0) * 1e3)
                 cpu_times.append((time.process_time() - c0) * 1e3)
                 t0 = time.perf_counter()
@@ -68,6 +72,7 @@ def measure(args: argparse.Namespace) -> dict:
             target = target_region(free, RESOLUTION_M, ORIGIN_M, start)
             coverage.append(float(covered_mask(polys, free.shape, RESOLUTION_M, ORIGIN_M)[target].mean()))
             overlap += sum(len(overlapping_cells(p, tm.occupied, RESOLUTION_M, ORIGIN_M)) for p in polys)
+            dropped += stats.dropped_for_overlap  # the same seeded fits on every repeat: the last one's
             connected += int(chain_exists(polys, np.array(start), np.array(goal)))
     return {
         "grid": f"{args.size}x{args.size}",
@@ -80,6 +85,7 @@ def measure(args: argparse.Namespace) -> dict:
         "coverage": round(min(coverage), 4),
         "coverage_mean": round(float(np.mean(coverage)), 4),
         "overlap_cells": overlap,
+        "polygons_dropped_for_overlap": dropped,
         "connected": f"{connected}/{n_maps}",
         "obstacles_ms_p50": round(float(np.percentile(obstacle_times, 50)), 2),
     }

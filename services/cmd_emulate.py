@@ -1,7 +1,9 @@
 """``archer emulate drives|teensy``: run an emulated device in this process.
 
 Prints ONE JSON line on stdout telling a client how to connect, then serves until
-SIGINT/SIGTERM. Only loopback TCP or pseudo-terminals, nothing else.
+SIGINT/SIGTERM. Only loopback TCP or pseudo-terminals, nothing else. The counters go
+to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
+``{"counters": ..., "monotonic_s": ...}`` line on every SIGUSR1 (a bench's window).
 
 - ``drives``: ELMO CiA 402 drives behind a socketcand server on 127.0.0.1. The line
   holds ``interface`` and ``channel`` plus ``bus``, the complete keyword arguments of
@@ -29,6 +31,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 
 from drivers.elmo.emulator import SocketcandRunner, make_emulator
 from drivers.elmo.od import drive_dictionary, to_eds
@@ -172,6 +175,12 @@ def run_drives(params: HardwareParams, port: int, channel: str, plant: TwinPlant
     params = dataclasses.replace(params, **per_joint)
     done = _stop_on_signal()
     emulator = make_emulator(params, plant.motors if plant is not None else None)
+
+    def report_counters(*_: object) -> None:  # runs on the main thread, which only waits
+        line = json.dumps({"counters": emulator.summary(), "monotonic_s": time.monotonic()})
+        print(line, file=sys.stderr, flush=True)
+
+    signal.signal(signal.SIGUSR1, report_counters)
     if plant is not None:
         emulator.on_sync = plant.on_sync
     eds_dir = tempfile.mkdtemp(prefix="archer-drives-")

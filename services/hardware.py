@@ -153,7 +153,8 @@ class CanBackend:
             return {}
         out = self.group.summary()
         elapsed = time.monotonic() - self._t0
-        out["bus_load"] = round(self.meter.load(elapsed, self.params.can_bitrate), 4)
+        out["bus_load"] = round(self.meter.load(elapsed, self.params.can_bitrate), 4)  # since the bus opened
+        out["bus_bits"] = round(self.meter.bits)  # for the load over a window of the caller's choosing
         return out
 
     def close(self) -> None:

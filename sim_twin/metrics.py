@@ -3,8 +3,12 @@
 Shared by the lockstep runner and the real-time twin service. Definitions:
 
 - ``hops``: completed flights (lift-off then touchdown of the foot, airborne >= ``MIN_FLIGHT_S``);
-- ``falls``: tilt over ``SafetyLimits.tilt_max``, or any robot geom other than the foot touching the
-  ground (floor or terrain);
+- ``falls``: fall episodes. The robot is down while it tilts over ``SafetyLimits.tilt_max`` or any
+  robot geom other than the foot touches the ground (floor or terrain); an episode begins when it
+  goes down and ends when it has been up again for ``RECOVERY_S``. A run stops at the first fall
+  unless it keeps going (``archer sim --keep-going``), so only then can this exceed 1;
+  ``fall_time_s`` and ``fall_reason`` are the first fall's;
+- ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
 - ``collisions``: contact episodes between the robot and an obstacle;
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
   the same time, at every touchdown (``rms_/max_tracking_error_m``, the issue-4 definition) and over
@@ -32,6 +36,7 @@ from sim_twin.stack import TruthEstimator
 
 NS = 1_000_000_000
 MIN_FLIGHT_S = 0.08  # [s] an airborne spell shorter than this (apex < 8 mm) is a chatter, not a hop
+RECOVERY_S = 0.5  # [s] up this long ends a fall: a fallen robot rocking on its housing is one fall
 TRACE_EVERY = 10  # ticks between trace samples (plots, continuous tracking error)
 
 
@@ -117,8 +122,10 @@ class PhysicsMetrics:
         self.target = scenario.target()
         self.trace = Trace()
         self.ticks = 0
-        self.hops = self.falls = self.collisions = 0
-        self.fell = False
+        self.hops = self.falls = self.recoveries = self.collisions = 0
+        self.fell = False  # at least once: what stops a run and fails its goal
+        self.down = False  # in a fall episode now
+        self._up_since = math.nan  # when a fallen robot was last seen up again
         self.fall_reason = ""
         self.fall_time = math.nan
         self.max_wheel = 0.0
@@ -162,11 +169,22 @@ class PhysicsMetrics:
         qpos = data.qpos.tolist()
         qvel = data.qvel.tolist()
         qx, qy = qpos[self.qp_root + 4], qpos[self.qp_root + 5]
-        if not self.fell and (body_ground or 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max):
-            self.fell = True
-            self.falls += 1
-            self.fall_time = t
-            self.fall_reason = "body on the ground" if body_ground else "tilt"
+        fallen_now = body_ground or 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max
+        if fallen_now:
+            self._up_since = math.nan
+            if not self.down:
+                self.down = True
+                self.falls += 1
+                if not self.fell:
+                    self.fell = True
+                    self.fall_time = t
+                    self.fall_reason = "body on the ground" if body_ground else "tilt"
+        elif self.down:
+            if math.isnan(self._up_since):
+                self._up_since = t
+            elif t - self._up_since >= RECOVERY_S:
+                self.down = False
+                self.recoveries += 1
         mw = self.max_wheel
         for dof in self.wheel_dof:
             s = abs(qvel[dof])
@@ -202,6 +220,7 @@ class PhysicsMetrics:
         return {
             "hops": self.hops,
             "falls": self.falls,
+            "recoveries": self.recoveries,
             "fall_time_s": None if math.isnan(self.fall_time) else round(self.fall_time, 4),
             "fall_reason": self.fall_reason,
             "collisions": self.collisions,

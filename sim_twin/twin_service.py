@@ -202,7 +202,7 @@ class TwinService(Service):
             for key, value in self.loop.recorder.stats().as_dict().items():
                 out[f"loop.{key}"] = float(value)
         mt = self.metrics
-        out.update({"hops": float(mt.hops), "falls": float(mt.falls), "collisions": float(mt.collisions),
+        out.update({"hops": float(mt.hops), "falls": float(mt.falls), "recoveries": float(mt.recoveries), "collisions": float(mt.collisions),
                     "max_wheel_speed_rad_s": mt.max_wheel, "torque_saturation_fraction": self.actuation.saturation_fraction})
         for key, value in self.actuation.counters.items():
             out[f"commands.{key}"] = float(value)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import struct
 import subprocess
 import sys
@@ -73,6 +74,34 @@ def test_drives_print_one_line_a_stock_python_can_client_can_use() -> None:
     finally:
         final = stop(proc)
     assert final["frames_in"] >= 2 and set(final["drives"]) == {"1", "2", "3", "4"}
+
+
+def test_drives_report_their_counters_on_sigusr1_and_keep_serving() -> None:
+    """What ``archer bench hardware`` reads at both ends of its window."""
+    proc, info = start("drives", "--node-ids", "1,2")
+    try:
+        bus = can.Bus(**info["bus"])
+        try:
+            time.sleep(0.15)
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.2)  # the report is out before the frame goes
+            bus.send(can.Message(arbitration_id=0x000, data=[0x82, 0], is_extended_id=False))  # NMT reset communication
+            got = recv_until(bus, lambda m: sum(x.arbitration_id in (0x701, 0x702) for x in m) >= 2, 3.0)
+            assert {m.arbitration_id for m in got} >= {0x701, 0x702}  # still serving after the signal
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.2)
+        finally:
+            bus.shutdown()
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    reports = [json.loads(line) for line in err.splitlines() if line.startswith('{"counters"')]
+    assert len(reports) == 2
+    first, second = reports
+    assert second["monotonic_s"] > first["monotonic_s"]
+    assert second["counters"]["frames_in"] - first["counters"]["frames_in"] == 1  # the one NMT frame
+    assert set(second["counters"]["drives"]) == {"1", "2"}
 
 
 def test_canopen_package_reads_the_drive_over_the_printed_bus() -> None:

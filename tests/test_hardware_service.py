@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import subprocess
 import sys
 import threading
@@ -25,6 +24,7 @@ from drivers.teensy.emulator import TeensyEmulator
 from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
+from services.bench_hardware import budget
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
 from services.runtime import StandInCommander
 from services.zenoh_session import open_session
@@ -263,23 +263,23 @@ def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None
     client = open_session(zenoh_router, "peer")
     commander = Commander(client)
 
-    async def scenario() -> dict:
+    async def scenario() -> tuple[dict, float]:
         task = asyncio.create_task(service.run())
         try:
             await wait_for(lambda: service.state == "running", 20.0)
             commander.running.set()
             await asyncio.sleep(0.3)
-            before = service.backend.summary()
+            t0, before = time.monotonic(), service.backend.summary()
             await asyncio.sleep(2.0)
-            after = service.backend.summary()
-            return {k: after[k] - before.get(k, 0) for k in after}
+            t1, after = time.monotonic(), service.backend.summary()
+            return {k: after[k] - before.get(k, 0) for k in after}, t1 - t0
         finally:
             commander.running.clear()
             service.request_stop()
             await asyncio.wait_for(task, 10)
 
     try:
-        delta = asyncio.run(scenario())
+        delta, window_s = asyncio.run(scenario())
     finally:
         commander.close()
         client.close()
@@ -288,10 +288,17 @@ def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None
     expected = delta["feedback_ok"] + delta["feedback_missed"]
     assert delta["ticks"] > 1000  # at least half the nominal rate on a loaded machine
     assert abs(expected - 4 * delta["ticks"]) <= 8  # snapshots taken while the loop runs
-    # Loose: on a shared 2-core machine the emulator process, the service loop and the
-    # commander compete for CPU and a quarter of the feedback can come late; the 60 s
-    # bench reports the real figure. This checks that feedback flows and is counted.
-    assert delta["feedback_missed"] / expected < 0.5
+    # every drive answers every SYNC on the virtual bus, however loaded the machine: nothing lost
+    assert abs(delta["feedback_received"] - 4 * delta["ticks"]) <= 8, delta
+    # Late feedback is scheduling: the emulator process, the service loop and the commander
+    # share 2 cores. Measured in this test (2 s window, 4 drives): 0-0.3 % quiet (6 runs),
+    # at most 2.7 % with one core kept busy by another process (5 runs), 4.5-50 % with both
+    # (5 runs: a drive whose answer slips past the next tick stays a tick late). 10 % is
+    # well above one busy core and fails when feedback is systematically late.
+    assert delta["feedback_missed"] / expected < 0.10, delta
     assert delta["faults_latched"] == 0
-    load = service.backend.summary()["bus_load"]
-    assert 0.3 < load < 1.0 and not math.isnan(load)
+    # the load of this window's frames, not since the bus opened (start-up included):
+    # 0.906-0.907 measured in 16 runs, between the nominal and the worst-stuffing budget
+    load = delta["bus_bits"] / (window_s * params.can_bitrate)
+    cyclic = budget(params)
+    assert cyclic["budget_total_nominal"] < load < cyclic["budget_total_worst_stuffing"], load

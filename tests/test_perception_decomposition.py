@@ -9,13 +9,15 @@ from hypothesis import strategies as st
 
 from onboard.params import PerceptionParams
 from onboard.perception import maps
-from onboard.perception.decomposition import decompose_free_space, target_region
+from onboard.perception import decomposition
+from onboard.perception.decomposition import clear_of_blocked, decompose_free_space, target_region
 from onboard.perception.geometry import (
     cell_centres,
     chain_exists,
     covered_mask,
     overlap_components,
     overlapping_cells,
+    polygon_from_points,
     polygons_overlap,
 )
 
@@ -79,7 +81,7 @@ def test_test_maps_sound_covering_and_connected(kind, seed):
     assert coverage >= 0.9, f"{kind} {seed}: coverage {coverage:.3f}"
     # The reachable free space is one 4-connected region: one group of overlapping polygons.
     assert len(set(overlap_components(polys).tolist())) == 1
-    assert stats.rejected == 0
+    assert stats.dropped_for_overlap == 0
     # Asked to cover start and goal, the polygons chain one to the other.
     polys2, _ = decompose_free_space(free, RES, ORIGIN, PARAMS, start=start, must_cover=(start, goal))
     assert chain_exists(polys2, np.array(start), np.array(goal))
@@ -167,7 +169,7 @@ def test_random_grids_are_sound(seed, density):
     free = ~occ
     res, origin = 0.07, (1.3, -2.1)
     polys, stats = decompose_free_space(free, res, origin, PARAMS)
-    assert stats.rejected == 0
+    assert stats.dropped_for_overlap == 0
     for p in polys:
         _check_h_form(p)
         assert len(overlapping_cells(p, occ, res, origin)) == 0
@@ -186,3 +188,37 @@ def test_start_outside_free_space_gives_nothing():
     tm = maps.rooms(seed=0)
     assert decompose_free_space(~tm.occupied, RES, ORIGIN, PARAMS, start=(ORIGIN[0] + 0.01, ORIGIN[1] + 0.01))[0] == []
     assert decompose_free_space(~tm.occupied, RES, ORIGIN, PARAMS, start=(100.0, 100.0))[0] == []
+
+
+def _box(x0: float, y0: float, x1: float, y1: float):
+    return polygon_from_points(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]))
+
+
+def test_polygons_overlapping_a_blocked_square_are_dropped_and_counted():
+    blocked = np.zeros((4, 4), dtype=bool)
+    blocked[1, 1] = True  # the square [1, 2] x [1, 2] in cell units
+    over = _box(0.0, 0.0, 1.5, 1.5)  # a quarter of the blocked square
+    touching = _box(2.0, 1.0, 3.0, 2.0)  # shares the blocked square's edge only
+    clear = _box(2.5, 2.5, 3.5, 3.5)
+    kept, dropped = clear_of_blocked([over, touching, clear], blocked)
+    assert kept == [touching, clear] and dropped == 1
+    assert clear_of_blocked([], blocked) == ([], 0)
+
+
+def test_dropped_polygons_are_counted_and_cover_nothing(monkeypatch):
+    """The fits never overlap a blocked square on these maps, so a drop is forced: what a
+    dropped polygon covered must leave the reported coverage."""
+    tm = maps.BUILDERS["rooms"](seed=0)
+    free = ~tm.occupied
+    start = _centre(tm.start)
+    _, honest = decompose_free_space(free, RES, ORIGIN, PARAMS, start=start)
+
+    def drop_every_other(cell_polys, blocked):
+        return cell_polys[::2], len(cell_polys) - len(cell_polys[::2])
+
+    monkeypatch.setattr(decomposition, "clear_of_blocked", drop_every_other)
+    polys, stats = decompose_free_space(free, RES, ORIGIN, PARAMS, start=start)
+    assert stats.dropped_for_overlap == honest.polygons // 2 and stats.polygons == len(polys)
+    target = target_region(free, RES, ORIGIN, start)
+    assert stats.coverage == pytest.approx(covered_mask(polys, free.shape, RES, ORIGIN)[target].mean(), abs=0.01)
+    assert stats.coverage < honest.coverage - 0.05

@@ -11,7 +11,7 @@ from onboard import messages as msgs
 from onboard.topics import TOPICS, namespace
 from services.cli import main
 
-REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_factor", "hops", "falls", "collisions",
+REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_factor", "hops", "falls", "recoveries", "collisions",
             "goal_reached", "final_goal_error_m", "rms_tracking_error_m", "max_tracking_error_m", "max_wheel_speed_rad_s",
             "torque_saturation_fraction", "contract_violations"]
 

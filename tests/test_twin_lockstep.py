@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 
 import mujoco
@@ -14,7 +13,7 @@ from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
 from sim_twin.lockstep import LockstepRunner, RunConfig, run
-from sim_twin.metrics import MIN_FLIGHT_S
+from sim_twin.metrics import MIN_FLIGHT_S, RECOVERY_S, PhysicsMetrics
 
 WALL_FIELDS = {"wall_time_s", "realtime_factor", "tick_us_mean"}
 MS = 1_000_000
@@ -59,6 +58,49 @@ def test_a_tilted_start_is_a_fall_and_stops_the_run() -> None:
     assert mt["falls"] == 1 and mt["fall_reason"] in ("tilt", "body on the ground")
     assert mt["sim_time_s"] == pytest.approx(mt["fall_time_s"]) and mt["sim_time_s"] < 5.0
     assert not mt["goal_reached"]
+
+
+def test_a_robot_lying_down_is_one_fall_when_the_run_keeps_going() -> None:
+    runner = LockstepRunner(RunConfig(scenario="hop-in-place", duration_s=3.0, controller="passive", stop_on_fall=False))
+    half = math.radians(25) / 2
+    runner.data.qpos[3:7] = [math.cos(half), math.sin(half), 0.0, 0.0]
+    mt = runner.run().metrics
+    assert mt["sim_time_s"] == pytest.approx(3.0)  # kept going
+    assert mt["falls"] == 1 and mt["recoveries"] == 0 and mt["fall_time_s"] < 1.0
+
+
+def test_falls_are_counted_per_episode_not_latched() -> None:
+    """In the air (no contacts), only the tilt decides: down, briefly up, down, up for
+    ``RECOVERY_S``, down again is two falls and one recovery."""
+    runner = LockstepRunner(RunConfig(scenario="hop-in-place", controller="passive"))
+    model, data = runner.model, runner.data
+    metrics = PhysicsMetrics(model, runner.scenario, runner.truth, runner.safety)
+    tilted = runner.safety.tilt_max  # a quaternion's half-angle: tilted twice the limit
+    dt = 0.01
+    t = 0.0
+
+    def hold(tilt_half: float, seconds: float) -> None:
+        nonlocal t
+        data.qpos[2] = 3.0
+        data.qpos[3:7] = [math.cos(tilt_half), math.sin(tilt_half), 0.0, 0.0]
+        mujoco.mj_forward(model, data)
+        assert data.ncon == 0
+        for _ in range(round(seconds / dt)):
+            t += dt
+            metrics.update(t, int(t * 1e9), data, None, None, (0.0, 0.0, 0.0, 0.0))
+
+    hold(0.0, 0.1)
+    assert metrics.falls == 0
+    hold(tilted, 0.1)
+    hold(0.0, RECOVERY_S / 2)  # rocking back up briefly: the same fall
+    hold(tilted, 0.1)
+    assert (metrics.falls, metrics.recoveries) == (1, 0)
+    hold(0.0, RECOVERY_S + 0.05)
+    assert (metrics.falls, metrics.recoveries) == (1, 1) and not metrics.down
+    hold(tilted, 0.1)
+    summary = metrics.summary(data, runner.actuation)
+    assert (summary["falls"], summary["recoveries"]) == (2, 1)
+    assert summary["fall_time_s"] == pytest.approx(0.11) and summary["fall_reason"] == "tilt"
 
 
 def test_obstacle_contact_is_a_collision() -> None:
@@ -145,14 +187,13 @@ def test_truth_estimate_is_the_robot_com() -> None:
     assert msgs.decode(msgs.encode(est), msgs.StateEstimate) == est
 
 
-@pytest.mark.skipif(importlib.util.find_spec("onboard.low_level") is None or importlib.util.find_spec("services.control") is None,
-                    reason="the low level (issue 4) has not landed")
 def test_full_stack_hops_in_place() -> None:
-    estimator = "kalman" if importlib.util.find_spec("onboard.estimator") else "truth"
-    res = run(RunConfig(scenario="hop-in-place", seed=2, duration_s=4.0, estimator=estimator))
+    """The estimator and the low level in the loop. Measured with seeds 0-4: 12 hops in 4 s,
+    final goal error 1-6 mm, wheel speeds at most 25 rad/s; the bounds leave 2-3 times that."""
+    res = run(RunConfig(scenario="hop-in-place", seed=2, duration_s=4.0, estimator="kalman"))
     mt = res.metrics
+    assert mt["estimator"] == "kalman"
     assert mt["falls"] == 0, mt
-    assert mt["hops"] >= 8
-    assert mt["final_goal_error_m"] < 0.3
-    assert mt["max_wheel_speed_rad_s"] < SafetyLimits().wheel_speed_max
-    assert sc.GOAL_TOLERANCE > 0
+    assert mt["hops"] >= 10, mt
+    assert mt["final_goal_error_m"] < 0.02, mt
+    assert mt["max_wheel_speed_rad_s"] < 50.0, mt

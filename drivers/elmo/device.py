@@ -218,6 +218,7 @@ class ElmoDrive:
 @dataclass
 class GroupStats:
     ticks: int = 0
+    feedback_received: int = 0  # TPDO1 frames that arrived, in time or not
     feedback_ok: int = 0  # TPDO1 in time for the next tick
     feedback_missed: int = 0  # a drive's TPDO1 absent at the next tick (late or lost)
     feedback_late: int = 0  # a TPDO1 answering an older SYNC
@@ -366,6 +367,7 @@ class DriveGroup(LatchedFaults):
             return
         try:
             if base == c.TPDO_BASE[0]:
+                self.stats.feedback_received += 1
                 if drive.feedback.sync == self.sync_count:
                     self.stats.feedback_late += 1  # a second answer: the first was late
                 drive.on_tpdo1(frame.data, self.sync_count)
@@ -474,6 +476,7 @@ class DriveGroup(LatchedFaults):
         expected = s.feedback_ok + s.feedback_missed
         return {
             "ticks": s.ticks,
+            "feedback_received": s.feedback_received,
             "feedback_ok": s.feedback_ok,
             "feedback_missed": s.feedback_missed,
             "feedback_late": s.feedback_late,

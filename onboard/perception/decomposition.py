@@ -63,7 +63,7 @@ class DecompositionStats:
     coverage_fits: int = 0
     repair_fits: int = 0
     failed_fits: int = 0
-    rejected: int = 0  # failed the final overlap check (a bug if ever non-zero)
+    dropped_for_overlap: int = 0  # fitted, then dropped by the final check for overlapping a blocked square
     groups: int = 0  # groups of overlapping polygons in the result
     coverage: float = 0.0  # of the target free cells, by cell centre strictly inside
 
@@ -389,20 +389,31 @@ def decompose_free_space(
         if dec.repair(radius):
             break
 
-    polys: list[ConvexPolygon] = []
-    kept: list[ConvexPolygon] = []
-    for cell_poly in dec.polys:
-        if K.overlaps_blocked(cell_poly.A, cell_poly.b, cell_poly.vertices, dec.blocked, OVERLAP_TOL_CELLS):
-            stats.rejected += 1
-            continue
-        kept.append(cell_poly)
-        polys.append(_to_world(cell_poly, res, origin))
+    kept, stats.dropped_for_overlap = clear_of_blocked(dec.polys, dec.blocked)
+    polys = [_to_world(cell_poly, res, origin) for cell_poly in kept]
     stats.polygons = len(polys)
     if kept:
         A, b, h_off, V, v_off = _pack(kept)
         stats.groups = len(np.unique(K.overlap_groups(A, b, h_off, V, v_off, OVERLAP_TOL_CELLS)))
-    stats.coverage = float(dec.covered[target].mean())
+    covered = dec.covered
+    if stats.dropped_for_overlap:  # what the dropped polygons covered is not covered
+        covered = np.zeros_like(dec.covered)
+        owner = np.full(covered.shape, -1, dtype=np.int64)
+        for i, q in enumerate(kept):
+            K.mark_interior(q.A, q.b, q.vertices, covered, owner, i, INTERIOR_TOL_CELLS)
+    stats.coverage = float(covered[target].mean())
     return polys, stats
+
+
+def clear_of_blocked(cell_polys: list[ConvexPolygon], blocked: np.ndarray) -> tuple[list[ConvexPolygon], int]:
+    """The polygons [cell units] that overlap no square of ``blocked``, and how many did.
+
+    The fits cut every blocked square away already; this last check keeps that promise
+    whatever a fit got wrong, and the count says how often it had to.
+    """
+    blocked = np.ascontiguousarray(blocked, dtype=bool)
+    kept = [p for p in cell_polys if not K.overlaps_blocked(p.A, p.b, p.vertices, blocked, OVERLAP_TOL_CELLS)]
+    return kept, len(cell_polys) - len(kept)
 
 
 def _to_world(poly: ConvexPolygon, res: float, origin: tuple[float, float]) -> ConvexPolygon:
