@@ -93,13 +93,13 @@ class MeasuredEstimator:
             return msgspec.structs.replace(msg, foot_pos=0.0, foot_vel=0.0, foot_contact=False, foot_sensed=False)
         return msg
 
-    def feed(self, topic: str, msg: object) -> None:
+    def feed(self, topic: str, msg: object, now_ns: int) -> None:
         if topic in self._n:
             msg = self._tamper(topic, msg)
             if msg is None:
                 return
         t0 = time.perf_counter_ns()
-        self.inner.feed(topic, msg)
+        self.inner.feed(topic, msg, now_ns)
         self._tick_ns += time.perf_counter_ns() - t0
 
     def estimate(self, now_ns: int, data: Any) -> m.StateEstimate:
