@@ -172,6 +172,12 @@ class ComFilter:
 
     def _step(self, e: Entry) -> None:
         t = e[_T]
+        pending = self._pending
+        if pending and pending[0][0] <= (self._t_h + t) // 2:
+            # nearer the interval's start: fused there (over an IMU gap the far end is far)
+            mid = (self._t_h + t) // 2
+            while pending and pending[0][0] <= mid:
+                self._fuse_pose(pending.pop(0), self._t_h, *self._last_a, self._last_s)
         ax, ay, az = e[_AX], e[_AY], e[_AZ]
         self._predict(e[_DT], ax, ay, az, self._q_stance if e[_STANCE] else self._q_flight)
         self._t_h = t
@@ -184,7 +190,6 @@ class ComFilter:
         imp = e[_IMP]
         if imp is not None:
             self._impulse(*imp)
-        pending = self._pending
         while pending and pending[0][0] <= t:
             self._fuse_pose(pending.pop(0), t, ax, ay, az, e[_S])
         leg = e[_LEG]

@@ -71,6 +71,7 @@ QUAT_NORM_TOL = 0.1  # a pose quaternion further than this from unit norm is mal
 FOOT_RANGE_MARGIN_M = 0.01  # [m] foot compression reading tolerated outside its travel
 FOOT_EXTENDED_M = 0.001  # [m] below this compression the spring (~12 N) no longer holds the foot down
 ATTITUDE_HISTORY_S = 0.25  # [s] oldest pose whose attitude can still be fused
+GAP_CORRELATION = 0.5  # position-velocity correlation of the covariance an IMU gap adds
 
 
 class RobotGeometry(Protocol):
@@ -194,6 +195,7 @@ class StateEstimator:
         self._foot_sensed = True  # False: contact from the specific force (no foot sensor)
         self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
         self._gap_contact = False  # a contact reading since the newest IMU interval was integrated
+        self._imu_gap = (0, 0)  # the newest interval of more than two IMU periods [ns]
 
     # --- helpers ------------------------------------------------------------------
 
@@ -212,14 +214,34 @@ class StateEstimator:
             return f"{topic}_past"
         return ""
 
+    def _speed_limit(self, vx: float, vy: float, vz: float, ax: float, ay: float, az: float, dt: float) -> float:
+        """The largest ``k`` in [0, 1] for which ``v + k a dt`` stays within the top speed: over an
+        IMU gap the held acceleration must not predict a speed the robot cannot reach (the gap's
+        velocity uncertainty is capped there too)."""
+        dx, dy, dz = ax * dt, ay * dt, az * dt
+        vmax2 = self._max_speed2
+        if (vx + dx) ** 2 + (vy + dy) ** 2 + (vz + dz) ** 2 <= vmax2:
+            return 1.0
+        # |v + k d|^2 = vmax^2: the positive root (0 when already at the top speed)
+        a = dx * dx + dy * dy + dz * dz
+        b = vx * dx + vy * dy + vz * dz
+        c = vx * vx + vy * vy + vz * vz - vmax2
+        if c >= 0.0:
+            return 0.0
+        return (-b + math.sqrt(b * b - a * c)) / a
+
     def _gap_cov(self, g: float, stance: bool) -> tuple[float, float, float]:
         """Per-axis CoM covariance ``(pp, pv, vv)`` that ``g`` [s] without the accelerometer adds:
-        an unknown constant acceleration, the velocity part capped by the robot's top speed."""
+        an unknown constant acceleration, the velocity part capped by the robot's top speed.
+
+        The position and velocity errors are correlated by half, not fully: a constant
+        acceleration would correlate them fully, but it is a bound, not the truth, and a fully
+        correlated term would let the first pose after the gap "measure" the velocity too."""
         if not stance or g <= 0.0:
             return 0.0, 0.0, 0.0
         vv = min(self._gap_accel_var * g * g, self._max_speed2)
         pp = min(0.25 * self._gap_accel_var * g * g * g * g, self._max_speed2 * g * g)
-        return pp, math.sqrt(pp * vv), vv
+        return pp, GAP_CORRELATION * math.sqrt(pp * vv), vv
 
     def _count(self, name: str) -> None:
         self._counters[name] = self._counters.get(name, 0) + 1
@@ -255,6 +277,8 @@ class StateEstimator:
             self._step_com()
         dt = (t - self._t_imu) / NS
         gap = (t - self._t_imu - self._period_ns) / NS
+        if t - self._t_imu > 2 * self._period_ns:
+            self._imu_gap = (self._t_imu, t)
         self._t_imu = t
         att.propagate(t, gx, gy, gz, dt, 0.25 * self._gap_alpha_var * gap ** 4 if gap > 0.0 else 0.0)
         # gravity as the direction of up, only after a quasi-static spell
@@ -308,7 +332,8 @@ class StateEstimator:
         px, py, pz = self._sf_prev
         self._sf_prev = (sx, sy, sz)
         g = self._g
-        if self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed):
+        stance = self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed)
+        if stance:
             # foot pinned: the CoM accelerates with the sprung mass's share of the body's. The
             # interval's mean from two samples each describing accel_delay_s before its stamp:
             # the trapezoid shifted by the delay.
@@ -316,11 +341,14 @@ class StateEstimator:
             self._accel = (m * sx, m * sy, m * (sz - g))
             w1 = 0.5 + min(self._accel_delay / dt, 0.5)
             w0 = 1.0 - w1
-            self.com.push(t, dt, m * (w0 * px + w1 * sx), m * (w0 * py + w1 * sy), m * (w0 * pz + w1 * sz - g), True,
-                          self.foot_pos, gap_cov)
+            ax, ay, az = m * (w0 * px + w1 * sx), m * (w0 * py + w1 * sy), m * (w0 * pz + w1 * sz - g)
         else:
-            self._accel = (0.0, 0.0, -g)  # projectile
-            self.com.push(t, dt, 0.0, 0.0, -g, False, self.foot_pos, gap_cov)
+            self._accel = ax, ay, az = (0.0, 0.0, -g)  # projectile
+        if gap > 0.0:  # two samples a gap apart: their mean is held only up to the top speed
+            vx, vy, vz = self.com.velocity
+            k = self._speed_limit(vx, vy, vz, ax, ay, az, dt)
+            ax, ay, az = k * ax, k * ay, k * az
+        self.com.push(t, dt, ax, ay, az, stance, self.foot_pos, gap_cov)
 
     def _start(self, msg: ImuSample) -> bool:
         """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
@@ -371,7 +399,11 @@ class StateEstimator:
             # lift-off is being debounced: in both the foot is not pinned; nor in an IMU gap,
             # where attitude and rate are predictions and the CoM filter has no sample at t
             vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
-            self.com.add_leg_velocity(vx, vy, vz, self._leg_var)
+            # the attitude's own uncertainty turns the lever arm: (|w| |r| + |r'|)^2 var(theta)
+            wx, wy, wz = self.att.omega
+            bx, by, bz = self._r_cf0
+            lever = (wx * wx + wy * wy + wz * wz) * (bx * bx + by * by + bz * bz) + (self._mu_sprung * sd) ** 2
+            self.com.add_leg_velocity(vx, vy, vz, self._leg_var + lever * max(self.att.variances()))
         return True
 
     def _contact_reading(self, reading: bool, t: int) -> None:
@@ -470,6 +502,9 @@ class StateEstimator:
             return self._reject("pose_out_of_order")
         if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
             return self._reject("pose_future")
+        if self._imu_gap[0] < t < self._imu_gap[1]:
+            # neither the attitude nor the CoM at that time is known well enough to compare
+            return self._reject("pose_in_imu_gap")
         qm = (qw / n, qx / n, qy / n, qz / n)
         if self._pending is not None:
             self._step_com()
@@ -510,6 +545,9 @@ class StateEstimator:
         px, py, pz = com.position
         vx, vy, vz = com.velocity
         ax, ay, az = self._accel
+        if tau > 0.0:
+            k = self._speed_limit(vx, vy, vz, ax, ay, az, tau)
+            ax, ay, az = k * ax, k * ay, k * az
         h = 0.5 * tau * tau
         att = self.att
         q = att.q
