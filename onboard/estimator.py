@@ -260,11 +260,11 @@ class StateEstimator:
         isf = math.isfinite
         if not (isf(gx) and isf(gy) and isf(gz) and isf(fx) and isf(fy) and isf(fz)):
             return self._reject("imu_nonfinite")
+        if t <= self._t_imu:
+            return self._reject("imu_out_of_order")
         refused = self._stamp_refused("imu", t, arrival_ns)
         if refused:
             return self._reject(refused)
-        if t <= self._t_imu:
-            return self._reject("imu_out_of_order")
         p = self.params
         wr = gx * gx + gy * gy + gz * gz
         fn2 = fx * fx + fy * fy + fz * fz
@@ -372,11 +372,11 @@ class StateEstimator:
         isf = math.isfinite
         if not (isf(wv[0]) and isf(wv[1]) and isf(wv[2]) and isf(s) and isf(sd)):
             return self._reject("joints_nonfinite")
+        if t <= self._t_joints:
+            return self._reject("joints_out_of_order")
         refused = self._stamp_refused("joints", t, arrival_ns)
         if refused:
             return self._reject(refused)
-        if t <= self._t_joints:
-            return self._reject("joints_out_of_order")
         if not -FOOT_RANGE_MARGIN_M <= s <= self._foot_travel + FOOT_RANGE_MARGIN_M:
             return self._reject("joints_out_of_range")
         self._t_joints = t
