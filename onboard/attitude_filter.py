@@ -28,6 +28,12 @@ rotation mixes its world components; the per-axis covariance ignores that mixing
 (exact when the horizontal and vertical bias variances agree, which they do until a
 long quasi-static spell has let gravity refine the horizontal ones).
 
+IMU gaps: between two gyro samples the rate is interpolated; over an interval longer
+than the IMU's period the body may have accelerated unseen, so the caller adds that
+variance (``propagate``'s ``gap_var``), and :meth:`AttitudeFilter.predicted_variances`
+predicts past the newest sample with it. An attitude error cannot exceed pi: the
+variance stops there.
+
 Gravity is used only when the robot is quasi-static (the caller decides: specific
 force close to ``g`` and small body rate); on a hopping robot the accelerometer
 reads the spring, not gravity, for most of a hop.
@@ -41,6 +47,7 @@ from collections import deque
 from onboard import quaternion as quat
 
 NS = 1_000_000_000
+MAX_ANGLE_VAR = math.pi * math.pi  # [rad^2] an attitude error is at most half a turn
 
 
 class AttitudeFilter:
@@ -90,33 +97,41 @@ class AttitudeFilter:
         self._pv = [self._init_att_var, 0.0, self._init_bias_var]
         self.initialized = True
 
-    def reset_attitude(self, q: quat.Quat, att_var: float) -> None:
-        """Jump to ``q`` (after the gate refused a consistent pose stream), keeping the bias."""
-        q = quat.normalize(q)
-        self._c = quat.normalize(quat.mul(quat.mul(q, quat.conj(self.q)), self._c))
-        self.q = q
-        for p in (self._ph, self._pv):
-            p[0] = att_var
-            p[1] = 0.0
-
     def variances(self) -> tuple[float, float]:
         """Attitude error variance [rad^2] about world x (= y) and world z."""
         return self._ph[0], self._pv[0]
 
-    def body_variances(self) -> tuple[float, float, float]:
-        """Attitude error variance [rad^2] about the body axes (diagonal of R^T P R)."""
-        w, x, y, z = self.q
+    def bias_variances(self) -> tuple[float, float]:
+        """Gyro bias error variance [(rad/s)^2] about world x (= y) and world z."""
+        return self._ph[2], self._pv[2]
+
+    def predicted_variances(self, tau: float, extra_var: float) -> tuple[float, float]:
+        """:meth:`variances` ``tau`` [s] past the newest sample, with no gyro sample since:
+        process noise and bias drift over ``tau``, plus ``extra_var`` [rad^2] (what the
+        caller's model of the unseen rate change adds)."""
+        qa = self._q_angle * tau + extra_var
+        a, c, d = self._ph
+        h = a + tau * (tau * d - 2.0 * c) + qa
+        a, c, d = self._pv
+        v = a + tau * (tau * d - 2.0 * c) + qa
+        return min(h, MAX_ANGLE_VAR), min(v, MAX_ANGLE_VAR)
+
+    def body_variances(self, q: quat.Quat | None = None, world: tuple[float, float] | None = None) -> tuple[float, float, float]:
+        """Attitude error variance [rad^2] about the body axes (diagonal of R^T P R); ``q`` and
+        ``world`` (:meth:`variances`-like) default to the filter's own."""
+        w, x, y, z = self.q if q is None else q
         # third row of R: world z components of the body axes
         r20 = 2.0 * (x * z - w * y)
         r21 = 2.0 * (y * z + w * x)
         r22 = 1.0 - 2.0 * (x * x + y * y)
-        h, v = self._ph[0], self._pv[0]
+        h, v = (self._ph[0], self._pv[0]) if world is None else world
         return (h + (v - h) * r20 * r20, h + (v - h) * r21 * r21, h + (v - h) * r22 * r22)
 
     # --- propagation -------------------------------------------------------------
 
-    def propagate(self, t_ns: int, gx: float, gy: float, gz: float, dt: float) -> None:
-        """Integrate up to the gyro sample [rad/s, body] at ``t_ns``, ``dt`` [s] after the previous."""
+    def propagate(self, t_ns: int, gx: float, gy: float, gz: float, dt: float, gap_var: float = 0.0) -> None:
+        """Integrate up to the gyro sample [rad/s, body] at ``t_ns``, ``dt`` [s] after the previous;
+        ``gap_var`` [rad^2]: what an interval longer than the IMU's period adds (see the module)."""
         bx, by, bz = self.bias
         wx = gx - bx
         wy = gy - by
@@ -148,12 +163,12 @@ class AttitudeFilter:
         q = self.q = (w * n, x * n, y * n, z * n)
         self._hist.append((t_ns, q, self._c))
         self.t_ns = t_ns
-        qa = self._q_angle * dt
+        qa = self._q_angle * dt + gap_var
         qb = self._q_bias * dt
         a, cr, d = self._ph
-        self._ph = [a + dt * (dt * d - 2.0 * cr) + qa, cr - dt * d, d + qb]
+        self._ph = [min(a + dt * (dt * d - 2.0 * cr) + qa, MAX_ANGLE_VAR), cr - dt * d, d + qb]
         a, cr, d = self._pv
-        self._pv = [a + dt * (dt * d - 2.0 * cr) + qa, cr - dt * d, d + qb]
+        self._pv = [min(a + dt * (dt * d - 2.0 * cr) + qa, MAX_ANGLE_VAR), cr - dt * d, d + qb]
 
     # --- corrections ---------------------------------------------------------------
 

@@ -10,7 +10,18 @@ a known acceleration per IMU sample:
   (the pinned foot does not accelerate, so the CoM's acceleration is the sprung
   mass's share), and leg kinematics measure the CoM velocity about the foot;
 - touchdown: the impact stops the foot, an impulse ``-m_foot v_foot / m`` on the CoM
-  velocity, with added uncertainty.
+  velocity, with added uncertainty;
+- IMU gaps: an interval longer than the IMU's period integrates an acceleration the
+  accelerometer did not see in between; the caller passes the variance that adds
+  (:meth:`ComFilter.push` ``gap_cov``), and :meth:`ComFilter.output_p2` includes it
+  from the moment it is pushed, not only once the horizon reaches it.
+
+Gating: every pose is tested against the state at its capture time before it is used
+at all (:meth:`ComFilter.admits_pose`), and again when the horizon fuses it. There is
+no reset after a run of rejections: the covariance grows while no pose is fused, so a
+real pose that the gate refuses today is admitted once the uncertainty has grown to
+admit it, while a stream of gross outliers (a foreign publisher, a wrong frame) stays
+refused as long as the real poses keep the covariance small.
 
 Latency compensation (buffer and replay, as PX4's EKF2 does it): the filter runs
 ``delay`` behind the newest IMU sample. Each sample is buffered with its input and
@@ -30,15 +41,19 @@ the reference the lean arithmetic is tested against, and ~10x slower.
 
 from __future__ import annotations
 
+from bisect import insort
 from collections import deque
 from collections.abc import Sequence
+from operator import itemgetter
 
 import numpy as np
 
 NS = 1_000_000_000
+_stamp = itemgetter(0)
 
-Entry = list  # [t_ns, dt, ax, ay, az, stance, foot_s, impulse | None, leg | None]
-_T, _DT, _AX, _AY, _AZ, _STANCE, _S, _IMP, _LEG = range(9)
+Entry = list  # [t_ns, dt, ax, ay, az, stance, foot_s, impulse | None, leg | None, gap_cov | None]
+_T, _DT, _AX, _AY, _AZ, _STANCE, _S, _IMP, _LEG, _GAP = range(10)
+Cov2 = tuple[float, float, float]  # (P_pp, P_pv, P_vv) of one axis
 
 
 class ComFilter:
@@ -54,7 +69,6 @@ class ComFilter:
         init_pos_std: float,
         init_vel_std: float,
         gate_chi2: float,
-        gate_reset_after: int,
         com_offset_body: Sequence[float],
         com_per_compression: Sequence[float],
     ) -> None:
@@ -66,13 +80,13 @@ class ComFilter:
         self._q_flight = accel_psd_flight
         self._q_stance = accel_psd_stance
         self._gate = gate_chi2
-        self._reset_after = gate_reset_after
         self._c0 = tuple(float(v) for v in com_offset_body)
         self._ck = tuple(float(v) for v in com_per_compression)
         self._init_pos_var = init_pos_std * init_pos_std
         self._init_vel_var = init_vel_std * init_vel_std
         self._entries: deque[Entry] = deque()
-        self._pending: deque[tuple] = deque()  # poses waiting for the horizon, by stamp
+        self._pending: list[tuple] = []  # poses waiting for the horizon, sorted by stamp
+        self._gaps: deque[tuple[int, float, float, float]] = deque()  # gap covariances pushed, not yet at the horizon
         self._x = [0.0] * 6  # horizon mean
         self._p = [self._init_pos_var, 0.0, self._init_vel_var]  # horizon P2
         self._out = [0.0] * 6  # output mean at t_out
@@ -81,17 +95,18 @@ class ComFilter:
         self._q_out = accel_psd_flight
         self._last_a = (0.0, 0.0, 0.0)  # input and foot compression at the horizon
         self._last_s = 0.0
-        self.rejected_in_row = 0
         self.last_fused_stamp = -1  # capture stamp of the newest fused pose [ns]
-        self.counters = {"pose_fused": 0, "pose_outliers": 0, "pose_late": 0, "pose_resets": 0, "leg_fused": 0, "leg_outliers": 0}
+        self.counters = {"pose_fused": 0, "pose_outliers": 0, "pose_late": 0, "leg_fused": 0, "leg_outliers": 0}
 
     # --- inputs ------------------------------------------------------------------
 
     def start(self, t_ns: int) -> None:
         self.t_out = self._t_h = t_ns
 
-    def push(self, t_ns: int, dt: float, ax: float, ay: float, az: float, stance: bool, foot_s: float) -> None:
-        """One IMU sample: the CoM acceleration [m/s^2, world] over the ``dt`` [s] ending at ``t_ns``."""
+    def push(self, t_ns: int, dt: float, ax: float, ay: float, az: float, stance: bool, foot_s: float,
+             gap_cov: Cov2 | None = None) -> None:
+        """One IMU sample: the CoM acceleration [m/s^2, world] over the ``dt`` [s] ending at ``t_ns``;
+        ``gap_cov``: per-axis covariance the interval adds beyond the process noise (an IMU gap)."""
         out = self._out
         vx, vy, vz = out[3], out[4], out[5]
         h = 0.5 * dt * dt
@@ -103,7 +118,9 @@ class ComFilter:
         out[5] = vz + az * dt
         self.t_out = t_ns
         self._q_out = self._q_stance if stance else self._q_flight
-        self._entries.append([t_ns, dt, ax, ay, az, stance, foot_s, None, None])
+        self._entries.append([t_ns, dt, ax, ay, az, stance, foot_s, None, None, gap_cov])
+        if gap_cov is not None:
+            self._gaps.append((t_ns, *gap_cov))
         limit = t_ns - self._delay_ns
         entries = self._entries
         while entries and entries[0][_T] <= limit:
@@ -149,36 +166,95 @@ class ComFilter:
             self.counters["pose_late"] += 1
             self._fuse_pose(pose, self._t_h, *self._last_a, self._last_s)
         else:
-            self._pending.append(pose)
+            insort(self._pending, pose, key=_stamp)
 
     # --- the horizon ----------------------------------------------------------------
 
     def _step(self, e: Entry) -> None:
         t = e[_T]
+        pending = self._pending
+        if pending and pending[0][0] <= (self._t_h + t) // 2:
+            # nearer the interval's start: fused there (over an IMU gap the far end is far)
+            mid = (self._t_h + t) // 2
+            while pending and pending[0][0] <= mid:
+                self._fuse_pose(pending.pop(0), self._t_h, *self._last_a, self._last_s)
         ax, ay, az = e[_AX], e[_AY], e[_AZ]
         self._predict(e[_DT], ax, ay, az, self._q_stance if e[_STANCE] else self._q_flight)
         self._t_h = t
         self._last_a = (ax, ay, az)
         self._last_s = e[_S]
+        gap = e[_GAP]
+        if gap is not None:
+            self._add_cov(*gap)
+            self._gaps.popleft()
         imp = e[_IMP]
         if imp is not None:
             self._impulse(*imp)
-        pending = self._pending
         while pending and pending[0][0] <= t:
-            self._fuse_pose(pending.popleft(), t, ax, ay, az, e[_S])
+            self._fuse_pose(pending.pop(0), t, ax, ay, az, e[_S])
         leg = e[_LEG]
         if leg is not None:
             self._fuse_leg(leg)
 
-    def _fuse_pose(self, pose: tuple, t_ns: int, ax: float, ay: float, az: float, foot_s: float, as_current: bool = False) -> None:
-        stamp, ox, oy, oz, r, var = pose
+    def _com_point(self, pose: tuple, foot_s: float) -> tuple[float, float, float]:
+        """The CoM [m, world] a pose (sensor point and attitude) puts at foot compression ``foot_s``."""
+        _, ox, oy, oz, r, _ = pose
         c0, ck = self._c0, self._ck
         cx = c0[0] + ck[0] * foot_s
         cy = c0[1] + ck[1] * foot_s
         cz = c0[2] + ck[2] * foot_s
-        zx = ox + r[0] * cx + r[1] * cy + r[2] * cz
-        zy = oy + r[3] * cx + r[4] * cy + r[5] * cz
-        zz = oz + r[6] * cx + r[7] * cy + r[8] * cz
+        return (ox + r[0] * cx + r[1] * cy + r[2] * cz, oy + r[3] * cx + r[4] * cy + r[5] * cz,
+                oz + r[6] * cx + r[7] * cy + r[8] * cz)
+
+    def admits_pose(self, stamp_ns: int, origin: Sequence[float], rot: Sequence[float], var: float) -> bool:
+        """The gate, before the pose is used at all: its CoM point against the state predicted
+        to its capture time (the horizon stepped through the buffered samples, without their
+        leg measurements, so the covariance errs large). A refusal is counted as an outlier."""
+        x = list(self.horizon_state())
+        p00, p01, p11 = self.horizon_p2()
+        t = self._t_h
+        s = self._last_s
+        for e in self._entries:
+            if e[_T] > stamp_ns:
+                break
+            dt, ax, ay, az = e[_DT], e[_AX], e[_AY], e[_AZ]
+            h = 0.5 * dt * dt
+            x[0] += x[3] * dt + ax * h
+            x[1] += x[4] * dt + ay * h
+            x[2] += x[5] * dt + az * h
+            x[3] += ax * dt
+            x[4] += ay * dt
+            x[5] += az * dt
+            q = self._q_stance if e[_STANCE] else self._q_flight
+            p00, p01, p11 = (p00 + dt * (2.0 * p01 + dt * p11) + q * dt * dt * dt / 3.0, p01 + dt * p11 + q * h, p11 + q * dt)
+            gap = e[_GAP]
+            if gap is not None:
+                p00, p01, p11 = p00 + gap[0], p01 + gap[1], p11 + gap[2]
+            imp = e[_IMP]
+            if imp is not None:
+                x[3] += imp[0]
+                x[4] += imp[1]
+                x[5] += imp[2]
+                p11 += imp[3]
+            t, s = e[_T], e[_S]
+        # the rest of the way (or back, for a pose older than the horizon): constant velocity,
+        # the unmodelled acceleration in the variance
+        tau = (stamp_ns - t) / NS
+        zx, zy, zz = self._com_point((stamp_ns, origin[0], origin[1], origin[2], rot, var), s)
+        q = max(self._q_stance, self._q_flight)
+        a = abs(tau)
+        sv = p00 + tau * (2.0 * p01 + tau * p11) + q * a * a * a / 3.0 + var
+        yx = zx - x[0] - tau * x[3]
+        yy = zy - x[1] - tau * x[4]
+        yz = zz - x[2] - tau * x[5]
+        if (yx * yx + yy * yy + yz * yz) / sv > self._gate:
+            self.counters["pose_outliers"] += 1
+            return False
+        return True
+
+    def _fuse_pose(self, pose: tuple, t_ns: int, ax: float, ay: float, az: float, foot_s: float, as_current: bool = False) -> None:
+        stamp, _, _, _, _, var = pose
+        zx, zy, zz = self._com_point(pose, foot_s)
         tau = 0.0 if as_current else (t_ns - stamp) / NS
         if tau > 0.0:  # p(t - tau) = p(t) - v tau + a tau^2 / 2
             k = 0.5 * tau * tau
@@ -187,16 +263,9 @@ class ComFilter:
             zz -= az * k
         if self._update_position(zx, zy, zz, var, -tau):
             self.counters["pose_fused"] += 1
-            self.last_fused_stamp = stamp
-            self.rejected_in_row = 0
-            return
-        self.counters["pose_outliers"] += 1
-        self.rejected_in_row += 1
-        if self.rejected_in_row >= self._reset_after:
-            # A consistent stream the gate refuses: the filter is wrong, not the sensor.
-            self.counters["pose_resets"] += 1
-            self.rejected_in_row = 0
-            self._reset_position(zx, zy, zz, var)
+            self.last_fused_stamp = max(self.last_fused_stamp, stamp)
+        else:
+            self.counters["pose_outliers"] += 1
 
     def _fuse_leg(self, leg: tuple) -> None:
         if self._update_velocity(*leg):
@@ -233,6 +302,10 @@ class ComFilter:
             p01 + dt * p11 + q * h,
             p11 + q * dt,
         ]
+
+    def _add_cov(self, pp: float, pv: float, vv: float) -> None:
+        p = self._p
+        self._p = [p[0] + pp, p[1] + pv, p[2] + vv]
 
     def _impulse(self, dvx: float, dvy: float, dvz: float, var: float) -> None:
         x = self._x
@@ -285,12 +358,6 @@ class ComFilter:
         self._p = p_new
         self._shift_output(dpx, dpy, dpz, dvx, dvy, dvz)
 
-    def _reset_position(self, zx: float, zy: float, zz: float, var: float) -> None:
-        x = self._x
-        self._shift_output(zx - x[0], zy - x[1], zz - x[2], 0.0, 0.0, 0.0)
-        x[0], x[1], x[2] = zx, zy, zz
-        self._p = [var, 0.0, max(self._p[2], self._init_vel_var)]
-
     def horizon_p2(self) -> tuple[float, float, float]:
         """``(P_pp, P_pv, P_vv)`` of one axis at the horizon."""
         p00, p01, p11 = self._p
@@ -323,11 +390,18 @@ class ComFilter:
         p00, p01, p11 = self.horizon_p2()
         lag = (self.t_out - self._t_h) / NS + extra_s
         q = self._q_out
-        return (
+        p00, p01, p11 = (
             p00 + lag * (2.0 * p01 + lag * p11) + q * lag * lag * lag / 3.0,
             p01 + lag * p11 + 0.5 * q * lag * lag,
             p11 + q * lag,
         )
+        t_end = self.t_out + int(extra_s * NS)
+        for t, gpp, gpv, gvv in self._gaps:  # pushed but not yet at the horizon (rare: IMU gaps)
+            lag = (t_end - t) / NS
+            p00 += gpp + lag * (2.0 * gpv + lag * gvv)
+            p01 += gpv + lag * gvv
+            p11 += gvv
+        return p00, p01, p11
 
 
 class FilterpyComFilter(ComFilter):
@@ -363,6 +437,9 @@ class FilterpyComFilter(ComFilter):
         f, b, qm = self._matrices(dt, q)
         self._kf.predict(u=np.array([[ax], [ay], [az]]), B=b, F=f, Q=qm)
 
+    def _add_cov(self, pp: float, pv: float, vv: float) -> None:
+        self._kf.P += np.kron(np.array([[pp, pv], [pv, vv]]), np.eye(3))
+
     def _impulse(self, dvx: float, dvy: float, dvz: float, var: float) -> None:
         kf = self._kf
         kf.x[3:6, 0] += (dvx, dvy, dvz)
@@ -387,14 +464,6 @@ class FilterpyComFilter(ComFilter):
 
     def _update_velocity(self, zx: float, zy: float, zz: float, var: float) -> bool:
         return self._gated_update(np.array([[zx], [zy], [zz]]), self._h_vel, var)
-
-    def _reset_position(self, zx: float, zy: float, zz: float, var: float) -> None:
-        kf = self._kf
-        x = kf.x[:, 0]
-        self._shift_output(zx - x[0], zy - x[1], zz - x[2], 0.0, 0.0, 0.0)
-        kf.x[0:3, 0] = (zx, zy, zz)
-        pvv = max(float(kf.P[3, 3]), self._init_vel_var)
-        kf.P = np.kron(np.array([[var, 0.0], [0.0, pvv]]), np.eye(3))
 
     def horizon_p2(self) -> tuple[float, float, float]:
         p = self._kf.P

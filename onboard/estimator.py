@@ -6,16 +6,30 @@ lockstep runner drive the same class with messages and their stamps.
 Usage (lockstep or service)::
 
     est = StateEstimator(EstimatorParams(), robot_params("indoor"))
-    est.update_imu(imu)          # ImuSample, 1 kHz: propagates attitude and CoM
-    est.update_joints(joints)    # JointSensors, 1 kHz: wheels, foot, contact, leg kinematics
-    est.update_pose(pose)        # PoseMeasurement, whenever one arrives (stamp = capture time)
-    msg = est.estimate(now_ns)   # StateEstimate at now_ns (at most max_extrapolation_s past the IMU)
+    est.update_imu(imu, t_arrival)        # ImuSample, 1 kHz: propagates attitude and CoM
+    est.update_joints(joints, t_arrival)  # JointSensors, 1 kHz: wheels, foot, contact, leg kinematics
+    est.update_pose(pose, t_arrival)      # PoseMeasurement, whenever one arrives (stamp = capture time)
+    msg = est.estimate(now_ns)            # StateEstimate predicted to now_ns
 
-Each ``update_*`` returns True if the sample was used and False if it was rejected;
-rejections are counted in :attr:`StateEstimator.counters` by reason (non-finite,
-out of order, out of range, stale, gated outlier). :meth:`StateEstimator.status`
-summarizes health: ``mode`` is ``"init"`` until the first pose is fused,
-``"pose_outage"`` while no pose has been fused for ``pose_timeout_s``, else ``"ok"``.
+``t_arrival`` is when the caller received the sample, on the clock its stamps use (the
+service reads it when the message arrives; lockstep passes the tick's time): a sample
+stamped more than ``input_future_tolerance_s`` after it, or ``input_max_age_s`` before
+it, is refused. Each ``update_*`` returns True if the sample was used and False if it
+was rejected; rejections are counted by reason (non-finite, future, past, out of order,
+out of range, stale, gated outlier) in :meth:`StateEstimator.rejections` and
+:attr:`StateEstimator.counters`. :meth:`StateEstimator.status` summarizes health:
+``mode`` is ``"init"`` until the first pose is fused, ``"pose_outage"`` while no pose
+has been fused for ``pose_timeout_s``, else ``"ok"``.
+
+Honest covariance: every uncertainty grows with the time since its input was last
+fused, and ``valid`` is the covariance's verdict (position, velocity, attitude and body
+rate standard deviations under the ``valid_*`` limits), never a timer. Between IMU
+samples, and past the newest one, the estimate is predicted with the rate and the CoM
+acceleration held; what the IMU did not see is an unknown constant acceleration
+(``gap_accel_std_m_s2``, ``gap_angular_accel_std_rad_s2``; none for the CoM while the
+foot switch shows the robot in flight throughout), the velocity uncertainty capped by
+``max_speed_m_s``. Without poses the CoM and attitude uncertainty grow with the process
+noise and the gyro bias; leg kinematics are fused only while the IMU is current.
 
 Model (thesis line 2751 and :mod:`onboard.com_filter`, :mod:`onboard.attitude_filter`):
 
@@ -57,7 +71,7 @@ QUAT_NORM_TOL = 0.1  # a pose quaternion further than this from unit norm is mal
 FOOT_RANGE_MARGIN_M = 0.01  # [m] foot compression reading tolerated outside its travel
 FOOT_EXTENDED_M = 0.001  # [m] below this compression the spring (~12 N) no longer holds the foot down
 ATTITUDE_HISTORY_S = 0.25  # [s] oldest pose whose attitude can still be fused
-NOMINAL_IMU_HZ = 1000.0  # sizes the attitude history only
+GAP_CORRELATION = 0.5  # position-velocity correlation of the covariance an IMU gap adds
 
 
 class RobotGeometry(Protocol):
@@ -76,9 +90,11 @@ def _check(p: EstimatorParams) -> None:
     """Refuse parameters the filter cannot work with (a clear error, not a silent NaN)."""
     positive = ("rate_hz", "pose_pos_std_m", "pose_att_std_rad", "leg_vel_std_m_s", "gyro_noise_density",
                 "tilt_std_rad", "init_pos_std_m", "init_vel_std_m_s", "init_att_std_rad", "init_bias_std_rad_s",
-                "accel_psd_flight", "accel_psd_stance", "imu_timeout_s", "valid_pos_std_m", "valid_att_std_rad")
+                "accel_psd_flight", "accel_psd_stance", "valid_pos_std_m", "valid_vel_std_m_s", "valid_att_std_rad",
+                "valid_rate_std_rad_s", "imu_rate_hz", "max_speed_m_s", "input_max_age_s")
     non_negative = ("pose_delay_s", "accel_delay_s", "leg_settle_s", "impact_vel_std_m_s", "liftoff_vel_std_m_s",
-                    "gyro_bias_walk", "max_extrapolation_s", "static_hold_s", "pose_future_tolerance_s")
+                    "gyro_bias_walk", "static_hold_s", "pose_future_tolerance_s", "gap_accel_std_m_s2",
+                    "gap_angular_accel_std_rad_s2", "input_future_tolerance_s")
     for name in positive:
         if not getattr(p, name) > 0.0:
             raise ValueError(f"estimator.{name} must be positive, got {getattr(p, name)}")
@@ -89,8 +105,8 @@ def _check(p: EstimatorParams) -> None:
         raise ValueError(f"estimator.gate_probability must be in (0, 1), got {p.gate_probability}")
     if p.pose_delay_s > ATTITUDE_HISTORY_S:
         raise ValueError(f"estimator.pose_delay_s beyond the {ATTITUDE_HISTORY_S} s attitude history")
-    if p.contact_on_samples < 1 or p.contact_off_samples < 1 or p.gate_reset_after < 1:
-        raise ValueError("estimator contact debounce and gate reset counts must be at least 1")
+    if p.contact_on_samples < 1 or p.contact_off_samples < 1:
+        raise ValueError("estimator contact debounce counts must be at least 1")
 
 
 class StateEstimator:
@@ -117,7 +133,7 @@ class StateEstimator:
             gyro_bias_walk=p.gyro_bias_walk,
             init_att_std=p.init_att_std_rad,
             init_bias_std=p.init_bias_std_rad_s,
-            history_len=int(ATTITUDE_HISTORY_S * NOMINAL_IMU_HZ),
+            history_len=int(ATTITUDE_HISTORY_S * p.imu_rate_hz),
         )
         self.com: ComFilter = make_com_filter(
             p.kf_backend,
@@ -128,7 +144,6 @@ class StateEstimator:
             init_pos_std=p.init_pos_std_m,
             init_vel_std=p.init_vel_std_m_s,
             gate_chi2=self._gate3,
-            gate_reset_after=p.gate_reset_after,
             com_offset_body=c0,
             com_per_compression=(0.0, 0.0, mu),
         )
@@ -145,10 +160,19 @@ class StateEstimator:
         self._gyro_range2 = p.gyro_range_rad_s ** 2
         self._accel_range2 = p.accel_range_m_s2 ** 2
         self._valid_pos_var = p.valid_pos_std_m ** 2
+        self._valid_vel_var = p.valid_vel_std_m_s ** 2
         self._valid_att_var = p.valid_att_std_rad ** 2
-        self._max_extrapolation_ns = int(p.max_extrapolation_s * NS)
-        self._imu_timeout_ns = p.imu_timeout_s * NS  # a float, compared as before
-        self._counters: dict[str, int] = {}
+        self._valid_rate_var = p.valid_rate_std_rad_s ** 2
+        self._period_ns = int(round(NS / p.imu_rate_hz))
+        self._gap_accel_var = p.gap_accel_std_m_s2 ** 2
+        self._gap_alpha_var = p.gap_angular_accel_std_rad_s2 ** 2
+        self._max_speed2 = p.max_speed_m_s ** 2
+        self._gyro_sample_var = p.gyro_noise_density ** 2 * p.imu_rate_hz  # one sample's white noise
+        self._future_ns = int(p.input_future_tolerance_s * NS)
+        self._max_age_ns = int(p.input_max_age_s * NS)
+        self._counters: dict[str, int] = {}  # events: touchdowns, bounces
+        self._rejections: dict[str, int] = {}  # refused inputs by reason
+        self._rejected = 0  # their total (cheap to compare)
         # inputs
         self._t_imu = -1
         self._t_joints = -1
@@ -170,20 +194,61 @@ class StateEstimator:
         self._impact: tuple[float, float, float] | None = None  # applied, not yet confirmed
         self._foot_sensed = True  # False: contact from the specific force (no foot sensor)
         self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
-        self._att_rejected_in_row = 0
+        self._gap_contact = False  # a contact reading since the newest IMU interval was integrated
+        self._imu_gap = (0, 0)  # the newest interval of more than two IMU periods [ns]
 
     # --- helpers ------------------------------------------------------------------
 
     def _reject(self, reason: str) -> bool:
-        self._counters[reason] = self._counters.get(reason, 0) + 1
+        self._rejections[reason] = self._rejections.get(reason, 0) + 1
+        self._rejected += 1
         return False
+
+    def _stamp_refused(self, topic: str, t: int, arrival_ns: int | None) -> str:
+        """The reason a stamp is refused against its arrival time ('' when it is not)."""
+        if arrival_ns is None:
+            return ""
+        if t > arrival_ns + self._future_ns:
+            return f"{topic}_future"
+        if t < arrival_ns - self._max_age_ns:
+            return f"{topic}_past"
+        return ""
+
+    def _speed_limit(self, vx: float, vy: float, vz: float, ax: float, ay: float, az: float, dt: float) -> float:
+        """The largest ``k`` in [0, 1] for which ``v + k a dt`` stays within the top speed: over an
+        IMU gap the held acceleration must not predict a speed the robot cannot reach (the gap's
+        velocity uncertainty is capped there too)."""
+        dx, dy, dz = ax * dt, ay * dt, az * dt
+        vmax2 = self._max_speed2
+        if (vx + dx) ** 2 + (vy + dy) ** 2 + (vz + dz) ** 2 <= vmax2:
+            return 1.0
+        # |v + k d|^2 = vmax^2: the positive root (0 when already at the top speed)
+        a = dx * dx + dy * dy + dz * dz
+        b = vx * dx + vy * dy + vz * dz
+        c = vx * vx + vy * vy + vz * vz - vmax2
+        if c >= 0.0:
+            return 0.0
+        return (-b + math.sqrt(b * b - a * c)) / a
+
+    def _gap_cov(self, g: float, stance: bool) -> tuple[float, float, float]:
+        """Per-axis CoM covariance ``(pp, pv, vv)`` that ``g`` [s] without the accelerometer adds:
+        an unknown constant acceleration, the velocity part capped by the robot's top speed.
+
+        The position and velocity errors are correlated by half, not fully: a constant
+        acceleration would correlate them fully, but it is a bound, not the truth, and a fully
+        correlated term would let the first pose after the gap "measure" the velocity too."""
+        if not stance or g <= 0.0:
+            return 0.0, 0.0, 0.0
+        vv = min(self._gap_accel_var * g * g, self._max_speed2)
+        pp = min(0.25 * self._gap_accel_var * g * g * g * g, self._max_speed2 * g * g)
+        return pp, GAP_CORRELATION * math.sqrt(pp * vv), vv
 
     def _count(self, name: str) -> None:
         self._counters[name] = self._counters.get(name, 0) + 1
 
     # --- IMU --------------------------------------------------------------------------
 
-    def update_imu(self, msg: ImuSample) -> bool:
+    def update_imu(self, msg: ImuSample, arrival_ns: int | None = None) -> bool:
         """Propagate attitude and CoM to ``msg.stamp_ns``. Gyro [rad/s] and specific
         force [m/s^2] in the body frame."""
         t = msg.stamp_ns
@@ -197,6 +262,9 @@ class StateEstimator:
             return self._reject("imu_nonfinite")
         if t <= self._t_imu:
             return self._reject("imu_out_of_order")
+        refused = self._stamp_refused("imu", t, arrival_ns)
+        if refused:
+            return self._reject(refused)
         p = self.params
         wr = gx * gx + gy * gy + gz * gz
         fn2 = fx * fx + fy * fy + fz * fz
@@ -208,8 +276,11 @@ class StateEstimator:
         if self._pending is not None:
             self._step_com()
         dt = (t - self._t_imu) / NS
+        gap = (t - self._t_imu - self._period_ns) / NS
+        if t - self._t_imu > 2 * self._period_ns:
+            self._imu_gap = (self._t_imu, t)
         self._t_imu = t
-        att.propagate(t, gx, gy, gz, dt)
+        att.propagate(t, gx, gy, gz, dt, 0.25 * self._gap_alpha_var * gap ** 4 if gap > 0.0 else 0.0)
         # gravity as the direction of up, only after a quasi-static spell
         wx, wy, wz = att.omega
         if abs(math.sqrt(fn2) - self._g) < p.static_accel_tol_m_s2 and wx * wx + wy * wy + wz * wz < self._static_gyro2:
@@ -217,7 +288,7 @@ class StateEstimator:
                 self._static_since = t
             elif t - self._static_since >= self._static_hold_ns:
                 if not att.correct_gravity(fx, fy, fz, self._tilt_var, self._gate2):
-                    self._count("gravity_outliers")
+                    self._reject("gravity_outliers")
         else:
             self._static_since = -1
         w, x, y, z = att.q
@@ -255,10 +326,14 @@ class StateEstimator:
         """
         t, dt, sx, sy, sz = self._pending
         self._pending = None
+        gap = dt - self._period_ns / NS
+        gap_cov = self._gap_cov(gap, self._gap_contact or self._switch) if gap > 0.0 else None
+        self._gap_contact = self._switch
         px, py, pz = self._sf_prev
         self._sf_prev = (sx, sy, sz)
         g = self._g
-        if self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed):
+        stance = self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed)
+        if stance:
             # foot pinned: the CoM accelerates with the sprung mass's share of the body's. The
             # interval's mean from two samples each describing accel_delay_s before its stamp:
             # the trapezoid shifted by the delay.
@@ -266,10 +341,14 @@ class StateEstimator:
             self._accel = (m * sx, m * sy, m * (sz - g))
             w1 = 0.5 + min(self._accel_delay / dt, 0.5)
             w0 = 1.0 - w1
-            self.com.push(t, dt, m * (w0 * px + w1 * sx), m * (w0 * py + w1 * sy), m * (w0 * pz + w1 * sz - g), True, self.foot_pos)
+            ax, ay, az = m * (w0 * px + w1 * sx), m * (w0 * py + w1 * sy), m * (w0 * pz + w1 * sz - g)
         else:
-            self._accel = (0.0, 0.0, -g)  # projectile
-            self.com.push(t, dt, 0.0, 0.0, -g, False, self.foot_pos)
+            self._accel = ax, ay, az = (0.0, 0.0, -g)  # projectile
+        if gap > 0.0:  # two samples a gap apart: their mean is held only up to the top speed
+            vx, vy, vz = self.com.velocity
+            k = self._speed_limit(vx, vy, vz, ax, ay, az, dt)
+            ax, ay, az = k * ax, k * ay, k * az
+        self.com.push(t, dt, ax, ay, az, stance, self.foot_pos, gap_cov)
 
     def _start(self, msg: ImuSample) -> bool:
         """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
@@ -285,7 +364,7 @@ class StateEstimator:
 
     # --- joints -----------------------------------------------------------------------
 
-    def update_joints(self, msg: JointSensors) -> bool:
+    def update_joints(self, msg: JointSensors, arrival_ns: int | None = None) -> bool:
         """Wheel speeds, foot compression and rate, contact; leg kinematics in stance."""
         t = msg.stamp_ns
         wv = msg.wheel_vel
@@ -295,6 +374,9 @@ class StateEstimator:
             return self._reject("joints_nonfinite")
         if t <= self._t_joints:
             return self._reject("joints_out_of_order")
+        refused = self._stamp_refused("joints", t, arrival_ns)
+        if refused:
+            return self._reject(refused)
         if not -FOOT_RANGE_MARGIN_M <= s <= self._foot_travel + FOOT_RANGE_MARGIN_M:
             return self._reject("joints_out_of_range")
         self._t_joints = t
@@ -309,12 +391,19 @@ class StateEstimator:
         self._foot_sensed = True
         self.foot_pos = s
         self.foot_vel = sd
+        self._gap_contact = self._gap_contact or msg.foot_contact
         self._contact_reading(msg.foot_contact, t)
-        if self.contact and msg.foot_contact and t - self._switch_on_ns >= self._leg_settle_ns and self.att.initialized:
+        if (self.contact and msg.foot_contact and t - self._switch_on_ns >= self._leg_settle_ns and self.att.initialized
+                and t - self._t_imu <= self._period_ns):
             # not while the foot still bounces off the ground after the impact, nor while
-            # lift-off is being debounced: in both the foot is not pinned
+            # lift-off is being debounced: in both the foot is not pinned; nor in an IMU gap,
+            # where attitude and rate are predictions and the CoM filter has no sample at t
             vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
-            self.com.add_leg_velocity(vx, vy, vz, self._leg_var)
+            # the attitude's own uncertainty turns the lever arm: (|w| |r| + |r'|)^2 var(theta)
+            wx, wy, wz = self.att.omega
+            bx, by, bz = self._r_cf0
+            lever = (wx * wx + wy * wy + wz * wz) * (bx * bx + by * by + bz * bz) + (self._mu_sprung * sd) ** 2
+            self.com.add_leg_velocity(vx, vy, vz, self._leg_var + lever * max(self.att.variances()))
         return True
 
     def _contact_reading(self, reading: bool, t: int) -> None:
@@ -389,8 +478,12 @@ class StateEstimator:
 
     # --- pose -------------------------------------------------------------------------
 
-    def update_pose(self, msg: PoseMeasurement) -> bool:
-        """Fuse a pose captured at ``msg.stamp_ns`` (torso origin [m, world], attitude)."""
+    def update_pose(self, msg: PoseMeasurement, arrival_ns: int | None = None) -> bool:
+        """Fuse a pose captured at ``msg.stamp_ns`` (torso origin [m, world], attitude).
+
+        The position is gated against the state at the capture time first: a refused pose
+        is not used at all (its attitude neither) and does not move the order check, so a
+        stream of outliers cannot push the real poses out as out of order."""
         t = msg.stamp_ns
         pos, q = msg.position, msg.quat
         px, py, pz = float(pos[0]), float(pos[1]), float(pos[2])
@@ -400,15 +493,25 @@ class StateEstimator:
             return self._reject("pose_nonfinite")
         if abs(n - 1.0) > QUAT_NORM_TOL:
             return self._reject("pose_bad_quat")
+        refused = self._stamp_refused("pose", t, arrival_ns)
+        if refused:
+            return self._reject(refused)
         if self._t_imu < 0:
             return self._reject("pose_before_imu")
         if t <= self._t_pose:
             return self._reject("pose_out_of_order")
         if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
             return self._reject("pose_future")
+        if self._imu_gap[0] < t < self._imu_gap[1]:
+            # neither the attitude nor the CoM at that time is known well enough to compare
+            return self._reject("pose_in_imu_gap")
         qm = (qw / n, qx / n, qy / n, qz / n)
         if self._pending is not None:
             self._step_com()
+        r0, r1, r2 = quat.to_matrix(qm)
+        rot = r0 + r1 + r2
+        if not self.com.admits_pose(t, (px, py, pz), rot, self._pose_pos_var):
+            return False  # counted by the CoM filter as an outlier
         if self.params.compensate_latency:
             fused = self.att.correct_pose(qm, t, self._pose_att_var, self._gate3)
         else:  # as if captured now
@@ -417,18 +520,10 @@ class StateEstimator:
             return self._reject("pose_stale")
         self._t_pose = t
         if fused:
-            self._att_rejected_in_row = 0
-        else:
-            self._count("att_outliers")
-            self._att_rejected_in_row += 1
-            if self._att_rejected_in_row >= self.params.gate_reset_after:
-                self._count("att_resets")
-                self._att_rejected_in_row = 0
-                self.att.reset_attitude(qm, self._pose_att_var)
-        if fused:
             self._t_pose_fused = t
-        r0, r1, r2 = quat.to_matrix(qm)
-        self.com.add_pose(t, (px, py, pz), r0 + r1 + r2, self._pose_pos_var)
+        else:
+            self._reject("att_outliers")
+        self.com.add_pose(t, (px, py, pz), rot, self._pose_pos_var)
         return True
 
     # --- output -------------------------------------------------------------------------
@@ -439,17 +534,20 @@ class StateEstimator:
         return self._t_imu >= 0
 
     def estimate(self, now_ns: int) -> StateEstimate:
-        """The state at ``now_ns``, predicted from the newest IMU sample by at most
-        ``max_extrapolation_s``; ``stamp_ns`` says the time it is valid at."""
+        """The state at ``now_ns``, predicted from the newest IMU sample (its covariance grown
+        by the time since); ``stamp_ns`` says the time it is valid at."""
         if self._pending is not None:
             self._step_com()
         t_imu = self._t_imu
-        lag_ns = min(max(now_ns - t_imu, 0), self._max_extrapolation_ns) if t_imu >= 0 else 0
+        lag_ns = max(now_ns - t_imu, 0) if t_imu >= 0 else 0
         tau = lag_ns / NS
         com = self.com
         px, py, pz = com.position
         vx, vy, vz = com.velocity
         ax, ay, az = self._accel
+        if tau > 0.0:
+            k = self._speed_limit(vx, vy, vz, ax, ay, az, tau)
+            ax, ay, az = k * ax, k * ay, k * az
         h = 0.5 * tau * tau
         att = self.att
         q = att.q
@@ -463,6 +561,16 @@ class StateEstimator:
             vz += az * tau
             q = quat.mul(q, quat.exp((wx * tau, wy * tau, wz * tau)))
         ppp, ppv, pvv = com.output_p2(tau)
+        av = att.body_variances()
+        bias_var = max(att.bias_variances())
+        rate_var = self._gyro_sample_var + bias_var
+        if tau > 0.0:
+            # the phase over the gap is known only while joint frames show the switch open throughout
+            flight = not (self._gap_contact or self._switch) and now_ns - self._t_joints <= self._period_ns
+            gpp, gpv, gvv = self._gap_cov(tau, not flight)
+            ppp, ppv, pvv = ppp + gpp, ppv + gpv, pvv + gvv
+            av = att.body_variances(q, att.predicted_variances(tau, 0.25 * self._gap_alpha_var * tau ** 4))
+            rate_var += self._gap_alpha_var * tau * tau
         z = 0.0
         cov = [
             ppp, z, z, ppv, z, z,
@@ -472,12 +580,12 @@ class StateEstimator:
             z, ppv, z, z, pvv, z,
             z, z, ppv, z, z, pvv,
         ]
-        av = att.body_variances()
         valid = (
             max(self._t_pose_fused, com.last_fused_stamp) >= 0
-            and now_ns - t_imu <= self._imu_timeout_ns
             and ppp <= self._valid_pos_var
+            and pvv <= self._valid_vel_var
             and max(av) <= self._valid_att_var
+            and rate_var <= self._valid_rate_var
         )
         return StateEstimate(
             stamp_ns=t_imu + lag_ns,
@@ -517,8 +625,24 @@ class StateEstimator:
         }
 
     @property
+    def rejected_total(self) -> int:
+        """How many inputs were refused so far, all reasons together (cheap: for change detection)."""
+        c = self.com.counters
+        return self._rejected + c["pose_outliers"] + c["leg_outliers"]
+
+    def rejections(self) -> dict[str, int]:
+        """Refused inputs by reason: malformed, future or past stamps, out of order or range,
+        gated outliers (pose, attitude, gravity, leg kinematics)."""
+        out = dict(self._rejections)
+        c = self.com.counters
+        out["pose_outliers"] = c["pose_outliers"]
+        out["leg_outliers"] = c["leg_outliers"]
+        return out
+
+    @property
     def counters(self) -> dict[str, int]:
         """Rejections by reason, gated outliers, fused measurements, touchdowns (a copy)."""
         out = dict(self._counters)
+        out.update(self._rejections)
         out.update(self.com.counters)
         return out

@@ -3,7 +3,9 @@
 Subscribes: ``imu`` and ``joints`` (1 kHz), ``pose`` (motion capture / tracking camera,
 stamped with its capture time). Every message is kept, in arrival order: a Zenoh
 callback decodes it (malformed payloads are rejected and counted by the runtime) and
-appends it to a bounded queue, never blocking. Latest-value slots would not do here:
+appends it with its arrival time on the stack clock to a bounded queue, never
+blocking; the estimator refuses stamps too far from their arrival (the future, or
+the distant past). Latest-value slots would not do here:
 the filter integrates every IMU interval.
 
 Computes: :class:`onboard.estimator.StateEstimator` (robot parameters from the MJCF
@@ -12,8 +14,9 @@ variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
 publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
 
 Status: the estimator's mode (``degraded`` while it has no pose, ``running`` otherwise),
-pose age, standard deviations, gyro bias, loop timing and every rejection counter
-(``est.<reason>``). A parameter change rebuilds the estimator (it re-converges from
+pose age, standard deviations, gyro bias, loop timing and every estimator counter
+(``est.<reason>`` in its figures); the refused inputs (future / past stamps, gated pose
+outliers, out of order...) are also status counters, ``est.<reason>``. A parameter change rebuilds the estimator (it re-converges from
 the next pose).
 """
 
@@ -44,7 +47,7 @@ class EstimatorService(Service):
             raise ValueError(f"estimator rate must be positive, got {p.rate_hz}")
         self._lock = threading.Lock()  # the loop vs. a parameter change or a status query
         self._build(p)
-        self._queue: deque[tuple[str, Any]] = deque()
+        self._queue: deque[tuple[str, Any, int]] = deque()
         self._queue_max = max(1, p.input_queue)
         for topic in INPUTS:
             self._subscribe_queued(topic)
@@ -54,18 +57,21 @@ class EstimatorService(Service):
 
     def _build(self, p: EstimatorParams) -> None:
         self.est = StateEstimator(p, robot_params(p.robot))
-        self._dispatch: dict[str, Callable[[Any], bool]] = {
+        self._rejected_seen = 0  # the estimator's rejections already added to the status counters
+        self._rejections_seen: dict[str, int] = {}
+        self._dispatch: dict[str, Callable[[Any, int], bool]] = {
             "imu": self.est.update_imu, "joints": self.est.update_joints, "pose": self.est.update_pose,
         }
 
     def _subscribe_queued(self, topic_name: str) -> None:
         queue = self._queue
+        now_ns = self.clock.now_ns
 
         def deliver(msg: Any) -> None:  # a Zenoh thread: append and return
             if len(queue) >= self._queue_max:
                 queue.popleft()
                 self.count("dropped.queue_full")
-            queue.append((topic_name, msg))
+            queue.append((topic_name, msg, now_ns()))
 
         self.on_message(topic_name, deliver)
 
@@ -74,14 +80,26 @@ class EstimatorService(Service):
         with self._lock:
             dispatch = self._dispatch
             while queue:
-                topic, msg = queue.popleft()
-                dispatch[topic](msg)
+                topic, msg, arrival_ns = queue.popleft()
+                dispatch[topic](msg, arrival_ns)
+            if self.est.rejected_total != self._rejected_seen:
+                self._count_rejections()
             if not self.est.has_imu:  # nothing to stamp an estimate with yet
                 self.count("ticks_without_imu")
                 return
             state = self.est.estimate(self.clock.now_ns())
         self._state_pub.put(state)
         self._ticks.tick()
+
+    def _count_rejections(self) -> None:
+        """Carry the estimator's new rejections into the status counters (under the lock)."""
+        seen = self._rejections_seen
+        for reason, n in self.est.rejections().items():
+            new = n - seen.get(reason, 0)
+            if new > 0:
+                self.count(f"est.{reason}", new)
+                seen[reason] = n
+        self._rejected_seen = self.est.rejected_total
 
     async def main(self) -> None:
         self._loop.start()

@@ -37,7 +37,7 @@ from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.actuation import Actuation
 from sim_twin.metrics import PhysicsMetrics, Trace
-from sim_twin.sensors import SensorSuite
+from sim_twin.sensors import SensorOutage, SensorSuite
 
 NS = 1_000_000_000
 PROGRESS_EVERY_S = 0.5  # [s of sim] between progress callbacks
@@ -62,6 +62,7 @@ class RunConfig:
     perception_params: object | None = None
     stop_on_fall: bool = True
     record: bool = False  # keep every message for --record
+    sensor_outages: tuple[SensorOutage, ...] = ()  # windows in which a sensor's samples are lost
 
 
 @dataclass
@@ -97,7 +98,7 @@ class LockstepRunner:
         self.duration_s = cfg.duration_s if cfg.duration_s is not None else self.scenario.default_duration_s
         if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
             raise ValueError(f"duration must be positive, got {self.duration_s}")
-        self.sensors = SensorSuite(self.model, cfg.twin, cfg.seed)
+        self.sensors = SensorSuite(self.model, cfg.twin, cfg.seed, cfg.sensor_outages)
         self.actuation = Actuation(self.model, self.robot, safety)
         self.truth = st.TruthEstimator(self.model, self.robot)
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
@@ -147,7 +148,7 @@ class LockstepRunner:
 
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
-                estimator.feed(topic, msg)
+                estimator.feed(topic, msg, now_ns)
                 if planner_feed is not None:
                     planner_feed(topic, msg)
                 if topic == "joints":

@@ -21,14 +21,16 @@ Sensors (all from :class:`onboard.params.TwinParams`):
   growing with depth squared; 0 = no return.
 
 With ``noise=False`` every sensor reads the true state (no noise, bias, quantization or dropouts);
-latencies still apply.
+latencies still apply. Outages (:class:`SensorOutage`, a schedule for the run) lose every sample a
+sensor captures in a window, noise or not: a stalled sensor, as opposed to random dropouts.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -93,15 +95,34 @@ def _qmul_small(q: list[float], dx: float, dy: float, dz: float) -> list[float]:
     return [rw * n, rx * n, ry * n, rz * n]
 
 
+@dataclass(frozen=True)
+class SensorOutage:
+    """Every sample ``sensor`` captures in ``[start_s, end_s)`` of sim time is lost."""
+
+    sensor: str  # "imu", "joints", "pose" or "depth"
+    start_s: float
+    end_s: float
+
+
 @dataclass
 class _Stream:
-    """One sensor's schedule, latency queue and dropout."""
+    """One sensor's schedule, latency queue, dropout and outages."""
 
     period_ns: int
     latency_ns: int
     dropout: _Dropout
     next_ns: int = 0
     seq: int = 0
+    outages: list[tuple[int, int]] = field(default_factory=list)  # [start, end) in ns
+
+    def lost(self, now_ns: int) -> bool:
+        """Whether the sample captured now is lost (a dropout or an outage)."""
+        if self.dropout.p > 0.0 and self.dropout.lost():
+            return True
+        for start, end in self.outages:
+            if start <= now_ns < end:
+                return True
+        return False
 
     def __post_init__(self) -> None:
         self.queue: deque[tuple[int, object]] = deque()
@@ -138,7 +159,8 @@ def _latency_ns(latency_s: float) -> int:
 class SensorSuite:
     """All the twin's sensors for one run, seeded by ``seed``."""
 
-    def __init__(self, model: mujoco.MjModel, params: TwinParams | None = None, seed: int = 0) -> None:
+    def __init__(self, model: mujoco.MjModel, params: TwinParams | None = None, seed: int = 0,
+                 outages: Sequence[SensorOutage] = ()) -> None:
         p = params or TwinParams()
         self.params = p
         self.model = model
@@ -155,6 +177,13 @@ class SensorSuite:
         self.joints = _Stream(_period_ns(p.control_rate_hz), _latency_ns(p.joints_latency_s), drop(rngs[1], p.joints_dropout))
         self.pose = _Stream(_period_ns(p.pose_rate_hz), _latency_ns(p.pose_latency_s), drop(rngs[2], p.pose_dropout))
         self.depth = _Stream(_period_ns(p.depth_rate_hz), _latency_ns(p.depth_latency_s), drop(rngs[3], p.depth_dropout))
+        streams_by_name = {"imu": self.imu, "joints": self.joints, "pose": self.pose, "depth": self.depth}
+        for o in outages:
+            if o.sensor not in streams_by_name:
+                raise ValueError(f"unknown sensor {o.sensor!r} in an outage; known: {', '.join(streams_by_name)}")
+            if not (math.isfinite(o.start_s) and math.isfinite(o.end_s) and 0.0 <= o.start_s < o.end_s):
+                raise ValueError(f"an outage needs 0 <= start < end, got {o.start_s} .. {o.end_s} s")
+            streams_by_name[o.sensor].outages.append((int(round(o.start_s * NS)), int(round(o.end_s * NS))))
 
         scale = 1.0 if noisy else 0.0
         self._gyro_std = scale * p.gyro_noise_density * math.sqrt(p.imu_rate_hz)
@@ -218,14 +247,15 @@ class SensorSuite:
         qpos, qvel, sd = data.qpos.tolist(), data.qvel.tolist(), data.sensordata.tolist()
         # the schedule and queue tests inline (four streams a tick; most are not due)
         imu, joints, pose, depth = self.imu, self.joints, self.pose, self.depth
-        if now_ns >= imu.next_ns and imu.due(now_ns) and not (imu.dropout.p > 0.0 and imu.dropout.lost()):
+        if now_ns >= imu.next_ns and imu.due(now_ns) and not ((imu.dropout.p > 0.0 or imu.outages) and imu.lost(now_ns)):
             imu.push(now_ns, self._imu(sd, qpos, qvel, now_ns))
-        if now_ns >= joints.next_ns and joints.due(now_ns) and not (joints.dropout.p > 0.0 and joints.dropout.lost()):
+        if (now_ns >= joints.next_ns and joints.due(now_ns)
+                and not ((joints.dropout.p > 0.0 or joints.outages) and joints.lost(now_ns))):
             joints.push(now_ns, self._joints(data, sd, qpos, qvel, now_ns))
-        if now_ns >= pose.next_ns and pose.due(now_ns) and not (pose.dropout.p > 0.0 and pose.dropout.lost()):
+        if now_ns >= pose.next_ns and pose.due(now_ns) and not ((pose.dropout.p > 0.0 or pose.outages) and pose.lost(now_ns)):
             pose.push(now_ns, self._pose(qpos, now_ns))
         if (self.capture_depth and now_ns >= depth.next_ns and depth.due(now_ns)
-                and not (depth.dropout.p > 0.0 and depth.dropout.lost())):
+                and not ((depth.dropout.p > 0.0 or depth.outages) and depth.lost(now_ns))):
             depth.push(now_ns, self.depth_image(data, now_ns))
         if imu.queue and imu.queue[0][0] <= now_ns:
             imu.pop_ready(now_ns, out, "imu")

@@ -14,7 +14,7 @@ lockstep run exercises the same code as the robot:
   :func:`services.control.build_controller` builds it; ``passive`` = no torque at all (the
   physics alone, for checks of the model).
 
-Adapters expose ``feed(topic, msg)`` / ``estimate(now_ns, data)``, ``update(now_ns, state)`` and
+Adapters expose ``feed(topic, msg, now_ns)`` (``now_ns``: when the message arrived) / ``estimate(now_ns, data)``, ``update(now_ns, state)`` and
 ``step(now_ns, state, reference, joints)``; the runner knows nothing else about them.
 """
 
@@ -42,7 +42,7 @@ _ZERO_COV36 = [0.0] * 36
 class Estimator(Protocol):
     name: str
 
-    def feed(self, topic: str, msg: object) -> None: ...
+    def feed(self, topic: str, msg: object, now_ns: int) -> None: ...
 
     def estimate(self, now_ns: int, data: mujoco.MjData) -> m.StateEstimate: ...
 
@@ -70,7 +70,7 @@ class TruthEstimator:
         self._foot_share = robot.foot_mass / robot.total_mass
         self._seq = 0
 
-    def feed(self, topic: str, msg: object) -> None:
+    def feed(self, topic: str, msg: object, now_ns: int) -> None:
         """Sensor messages are not needed: the truth is read from the physics."""
 
     def counters(self) -> dict[str, int]:
@@ -138,10 +138,10 @@ class KalmanEstimator:
         self.est = StateEstimator(params or EstimatorParams(), robot)
         self._dispatch = {"imu": self.est.update_imu, "joints": self.est.update_joints, "pose": self.est.update_pose}
 
-    def feed(self, topic: str, msg: object) -> None:
+    def feed(self, topic: str, msg: object, now_ns: int) -> None:
         update = self._dispatch.get(topic)
         if update is not None:
-            update(msg)
+            update(msg, now_ns)
 
     def estimate(self, now_ns: int, data: mujoco.MjData) -> m.StateEstimate:
         return self.est.estimate(now_ns)

@@ -125,3 +125,122 @@ def test_service_publishes_the_estimate_at_rate(zenoh_router):
         assert status.rates_hz["loop"] > 300
 
     asyncio.run(asyncio.wait_for(scenario(), 90))
+
+
+def _run_with_attacker(zenoh_router, attack) -> tuple[list[m.StateEstimate], dict, object, int]:
+    """Replay 2 s of synthetic hops while ``attack(client, t0, stop)`` runs on its own thread;
+    returns the published estimates, the truth by stamp, the final status and t0."""
+    track = synthetic_hops(2.0)
+    params = dataclasses.replace(EstimatorParams(), accel_delay_s=0.0)
+
+    async def scenario():
+        service = EstimatorService(ns=NS_KEY, endpoint=zenoh_router, params={"estimator": params}, clock=WallClock())
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        states: list[m.StateEstimate] = []
+        sub = client.declare_subscriber(TOPICS["state"].key(NS_KEY),
+                                        lambda s: states.append(m.decode(s.payload.to_bytes(), m.StateEstimate)))
+        stop = threading.Event()
+        try:
+            await wait_for(lambda: service.state in ("running", "degraded"))
+            t0 = time.monotonic_ns() + 300_000_000
+            payloads, truth = _payloads(track, t0)
+            threads = [threading.Thread(target=_replay, args=(client, payloads, stop), daemon=True),
+                       threading.Thread(target=attack, args=(client, t0, stop), daemon=True)]
+            for th in threads:
+                th.start()
+            await asyncio.to_thread(threads[0].join, 30.0)
+            stop.set()
+            await asyncio.to_thread(threads[1].join, 5.0)
+            await asyncio.sleep(0.1)
+            status = await asyncio.to_thread(query_status, client, NS_KEY, "estimator")
+        finally:
+            stop.set()
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+        return states, truth, status, t0
+
+    return asyncio.run(asyncio.wait_for(scenario(), 90))
+
+
+def _median_error(states: list[m.StateEstimate], truth: dict, t0: int) -> float:
+    during = [s for s in states if t0 + 500_000_000 <= s.stamp_ns <= t0 + 1_990_000_000]
+    assert len(during) > 0.5 * 1490, len(during)
+    stamps = np.array(sorted(truth))
+    path = np.array([truth[t] for t in stamps])
+    return float(np.median([math.dist(s.position, [np.interp(s.stamp_ns, stamps, path[:, i]) for i in range(3)])
+                            for s in during]))
+
+
+def test_a_foreign_pose_stream_never_captures_the_estimate(zenoh_router):
+    """Poses 100 m away at 100 Hz, stamped fresh, beside the real ones: each is refused by the
+    gate and counted in the status counters; the real poses keep being fused (the old
+    estimator re-initialized on the foreign stream after 20 refusals)."""
+    sent = []
+
+    def foreign(client, t0: int, stop: threading.Event) -> None:
+        key = TOPICS["pose"].key(NS_KEY)
+        time.sleep(max(0.0, (t0 + 200_000_000 - time.monotonic_ns()) / 1e9))
+        while not stop.is_set() and time.monotonic_ns() < t0 + 1_900_000_000:
+            now = time.monotonic_ns()
+            client.put(key, m.encode(m.PoseMeasurement(stamp_ns=now, position=[100.0, 0.0, 0.5], quat=[1.0, 0, 0, 0])))
+            sent.append(now)
+            time.sleep(0.01)
+
+    states, truth, status, t0 = _run_with_attacker(zenoh_router, foreign)
+    assert len(sent) > 100
+    assert _median_error(states, truth, t0) < 0.01
+    stamps = np.array(sorted(truth))
+    xs = np.array([truth[t][0] for t in stamps])
+    during = [s for s in states if t0 + 500_000_000 <= s.stamp_ns <= t0 + 1_990_000_000]
+    assert max(abs(s.position[0] - np.interp(s.stamp_ns, stamps, xs)) for s in during) < 0.05
+    assert all(s.valid for s in during)
+    # after the replay the IMU is gone: the predictions drift, and say so
+    assert not states[-1].valid
+    refused = status.counters.get("est.pose_outliers", 0) + status.counters.get("est.pose_future", 0)
+    assert refused >= 0.95 * len(sent), (refused, len(sent), status.counters)
+    assert status.counters.get("est.pose_outliers", 0) > 0.5 * len(sent)
+    assert status.extra["est.pose_fused"] >= 150  # the real poses: 200 sent, the last few still pending
+
+
+def test_imu_samples_stamped_an_hour_away_are_refused_and_counted(zenoh_router):
+    """IMU samples stamped 1 h in the past (before the first real one) or 1 h in the future
+    (amid the real ones), and poses 1 h ahead, are refused against their arrival time and
+    counted; the estimate goes on undisturbed (the old estimator took the future IMU sample
+    and refused every real one after it as out of order)."""
+    hour = 3600 * 1_000_000_000
+    sent = {"future": 0, "past": 0, "pose": 0}
+
+    def wrong_clock(client, t0: int, stop: threading.Event) -> None:
+        imu_key, pose_key = TOPICS["imu"].key(NS_KEY), TOPICS["pose"].key(NS_KEY)
+
+        def imu(stamp: int) -> bytes:
+            return m.encode(m.ImuSample(stamp_ns=stamp, quat=[1.0, 0, 0, 0], gyro=[3.0, 0.0, 0.0], accel=[0.0, 50.0, 9.8]))
+
+        # before the first real sample: an hour-old one would start the filter an hour back
+        for _ in range(20):
+            client.put(imu_key, imu(max(time.monotonic_ns() - hour, 1)))  # the clock may be younger than an hour
+            sent["past"] += 1
+            time.sleep(0.005)
+        time.sleep(max(0.0, (t0 + 400_000_000 - time.monotonic_ns()) / 1e9))
+        for k in range(20):
+            if stop.is_set():
+                return
+            now = time.monotonic_ns()
+            client.put(imu_key, imu(now + hour))
+            sent["future"] += 1
+            if k % 5 == 0:
+                client.put(pose_key, m.encode(m.PoseMeasurement(stamp_ns=now + hour, position=[5.0, 0.0, 0.5],
+                                                                 quat=[1.0, 0, 0, 0])))
+                sent["pose"] += 1
+            time.sleep(0.04)
+
+    states, truth, status, t0 = _run_with_attacker(zenoh_router, wrong_clock)
+    assert sent["future"] == sent["past"] == 20
+    assert status.counters.get("est.imu_future") == sent["future"], status.counters
+    assert status.counters.get("est.imu_past") == sent["past"], status.counters
+    assert status.counters.get("est.pose_future") == sent["pose"], status.counters
+    assert _median_error(states, truth, t0) < 0.01
+    assert all(s.stamp_ns < t0 + 3 * 1_000_000_000 for s in states)  # never stamped an hour ahead
