@@ -63,7 +63,8 @@ DEFAULT_SCHEDULE = CONFIG_DIR / "soak_default.toml"
 SERVICES = "estimator,control,planner,recorder"
 DURATION_S = 600.0
 GOAL_RESEND_S = 1.0
-STATUS_HOT_S = 0.5  # status polls from a fault's start until HOT_AFTER_S after its action
+STATUS_HOT_S = 0.5  # status polls from BASELINE_S before a fault until HOT_AFTER_S after its action
+BASELINE_S = 1.5  # (the last poll before the fault is the counters' baseline)
 HOT_AFTER_S = 5.0
 STATUS_COLD_S = 10.0
 TWIN_STATUS_S = 2.0
@@ -72,6 +73,8 @@ HELPER_GRACE_S = 5.0  # a hog or flood past its duration by this much is killed
 KILL_WATCH_S = 5.0  # how long a killed process's exit and reaping are watched
 PUT_BACK_SETTLE_S = 1.5  # after the put back (and again after the estimator rebuild) before arming
 SIM_STOP_TIMEOUT_S = 30.0
+OBSERVE_END_S = 1.0  # observation ends this long before the run does (then the stack is stopped)
+CONTROL_LOOP_RUNNING_S = 0.2  # commands this recent: a control loop is there to take over after a put back
 
 
 class _Armed(msgspec.Struct):
@@ -163,6 +166,7 @@ class StatusPoller:
         self.session, self.ns, self.observer = session, ns, observer
         self.hot_until = 0.0  # time.monotonic() until which polls are frequent
         self.twin_falls = 0.0
+        self._next_all = 0.0
         self._log = open(log_path, "w")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="status-poller", daemon=True)
@@ -183,15 +187,20 @@ class StatusPoller:
                 self.twin_falls = values.get("falls", self.twin_falls)
             self._log.write(json.dumps({"t_ns": t, "service": name, "state": st.state, "values": values}) + "\n")
 
+    def heat(self, until: float) -> None:
+        """Poll every ``STATUS_HOT_S`` from now until ``until`` (``time.monotonic()``)."""
+        self.hot_until = until
+        self._next_all = min(self._next_all, time.monotonic())
+
     def _run(self) -> None:
-        next_twin = next_all = 0.0
+        next_twin = 0.0
         while not self._stop.wait(0.05):
             now = time.monotonic()
             if now >= next_twin:
                 next_twin = now + TWIN_STATUS_S
                 self.poll([TWIN] if TWIN in self.observer.live else [])
-            if now >= next_all:
-                next_all = now + (STATUS_HOT_S if now < self.hot_until else STATUS_COLD_S)
+            if now >= self._next_all:
+                self._next_all = now + (STATUS_HOT_S if now < self.hot_until else STATUS_COLD_S)
                 self.poll(sorted(self.observer.live - {TWIN}))
 
     def stop(self) -> None:
@@ -269,14 +278,19 @@ class Soak:
             run_end = t0 + int(self.duration_s * 1e9)
             for k, fault in enumerate(faults):
                 start = t0 + int(fault.at_s * 1e9)
-                self._wait_until(start, sim, session, poller)
-                window_end = t0 + int(faults[k + 1].at_s * 1e9) if k + 1 < len(faults) else run_end
-                poller.hot_until = time.monotonic() + fault.duration_s + HOT_AFTER_S
+                self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
+                poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
+                self._wait_until(start, sim, session, poller, observer)
+                window_end = t0 + int(faults[k + 1].at_s * 1e9) if k + 1 < len(faults) else run_end - int(OBSERVE_END_S * 1e9)
                 inj = self._inject(fault, sim.pid, session, window_end)
                 self.injections.append(inj)
                 self._print_progress(inj, t0)
-            self._wait_until(run_end - int(1e9), sim, session, poller)
+            self._wait_until(run_end - int(OBSERVE_END_S * 1e9), sim, session, poller, observer)
             t_end = time.monotonic_ns()
+            try:  # the sim ends by itself and prints its metrics
+                sim.wait(OBSERVE_END_S + SIM_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                pass
         finally:
             t_end = t_end or time.monotonic_ns()
             self._cleanup(sim, session, observer, poller, stdout, stderr)
@@ -290,15 +304,22 @@ class Soak:
         if time.monotonic() > deadline:
             raise RuntimeError(f"the stack did not start in {SIM_START_TIMEOUT_S:g} s: see {self.out / 'sim.stderr'}")
 
-    def _wait_until(self, t_ns: int, sim: subprocess.Popen, session: zenoh.Session, poller: StatusPoller) -> None:
+    def _wait_until(self, t_ns: int, sim: subprocess.Popen, session: zenoh.Session, poller: StatusPoller,
+                    observer: Observer) -> None:
         """Sleep until ``t_ns``, putting a fallen robot back meanwhile."""
         while (left := t_ns - time.monotonic_ns()) > 0:
             if sim.poll() is not None:
                 raise RuntimeError(f"the sim exited with {sim.returncode} during the soak: see {self.out / 'sim.stderr'}")
-            if not self.args.no_put_back and poller.twin_falls > self.falls_handled:
+            if not self.args.no_put_back and poller.twin_falls > self.falls_handled and self._can_take_over(observer):
                 self.falls_handled = poller.twin_falls
                 self._put_back(session)
             time.sleep(min(left / 1e9, 0.05))
+
+    def _can_take_over(self, observer: Observer) -> bool:
+        """A robot put back falls again unless an estimator and a control loop run."""
+        rx = observer.streams.torque_rx
+        return ("estimator" in observer.live or "estimator" not in self.services) and bool(rx) and \
+            time.monotonic_ns() - rx[-1] < CONTROL_LOOP_RUNNING_S * 1e9
 
     # --- faults ---
 

@@ -54,7 +54,7 @@ SIGNALS = {
     "stall": ("safety", "liveliness", "noticed_exit", "counter"),
     "router_restart": ("safety", "liveliness", "noticed_exit"),
     "cpu_hog": ("safety", "counter"),
-    "malformed_flood": ("counter",),
+    "malformed_flood": ("safety", "counter"),
     "bad_stamps": ("safety", "counter"),
 }
 _STAMP_SIGNS = re.compile(r"future|late|stale|outlier|reject|reset|bad_stamp|invalid")
@@ -165,7 +165,7 @@ def zero_torque(s: Streams, inj: Injection) -> tuple[int | None, str]:
             disarmed = s.torque_rx[i]
             break
         i += 1
-    candidates = [(t, f"twin {trip}") for t, trip in [twin] if twin is not None]
+    candidates = [(twin[0], f"twin {twin[1]}")] if twin is not None else []
     if disarmed is not None:
         candidates.append((disarmed, "torque_cmd armed=false"))
     return min(candidates) if candidates else (None, "")

@@ -193,19 +193,23 @@ def malformed_payloads(topic_name: str) -> list[bytes]:
         candidates = garbage + [b"\x00" * 24, os.urandom(64)]
     else:
         base = example(msgspec.inspect.type_info(topic.msg_type))
+
+        def dumps(obj: dict[str, Any]) -> bytes:  # compact, as msgspec writes; inf as a number literal
+            return json.dumps(obj, separators=(",", ":")).replace("Infinity", "1e999").encode()
+
         candidates = garbage + [
-            json.dumps({**base, "unknown_field": 1}).encode(),
-            json.dumps({**base, "version": 99}).encode(),
-            json.dumps({**base, "stamp_ns": "now"}).encode(),
+            dumps({**base, "unknown_field": 1}),
+            dumps({**base, "version": 99}),
+            dumps({**base, "stamp_ns": "now"}),
         ]
         for key, value in base.items():
-            candidates.append(json.dumps({k: v for k, v in base.items() if k != key}).encode())  # a field missing
+            candidates.append(dumps({k: v for k, v in base.items() if k != key}))  # a field missing
             if isinstance(value, list):
-                candidates.append(json.dumps({**base, key: value + [0.0]}).encode())  # one element too many
+                candidates.append(dumps({**base, key: value + [0.0]}))  # one element too many
             if isinstance(value, list) and value and isinstance(value[0], float):
-                candidates.append(json.dumps({**base, key: [1e999] + value[1:]}).encode().replace(b"Infinity", b"1e999"))
+                candidates.append(dumps({**base, key: [float("inf")] + value[1:]}))
             if isinstance(value, float):
-                candidates.append(json.dumps({**base, key: 1e999}).encode().replace(b"Infinity", b"1e999"))
+                candidates.append(dumps({**base, key: float("inf")}))
         msg_type = topic.msg_type
 
         def decode(payload: bytes) -> Any:
