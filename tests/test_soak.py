@@ -329,7 +329,10 @@ def test_a_short_soak_detects_a_stall_and_a_flood_and_leaves_no_process(tmp_path
     assert stall["zero_torque_ms"] is not None and 5.0 <= stall["zero_torque_ms"] <= 100.0, stall
     assert stall["fell"] is False and stall["recovered"] and 0.0 < stall["recovery_s"] < 5.0, stall
 
-    assert flood["detected"] and "rejected" in flood["detected_by"] and "imu" in flood["detected_by"], flood
+    # the rejection counter rises (a status poll's time); a safety trip may come first (estimates late under the flood)
+    rejections = [ms for name, ms in flood["signals_ms"].items() if name.startswith("counter:") and "rejected" in name and "imu" in name]
+    assert flood["detected"] and rejections and 0.0 <= min(rejections) <= 3000.0, flood
+    assert flood["detection_ms"] <= min(rejections)
     assert flood["helper"]["sent"]["imu"] >= 2500 and flood["fell"] is False
     for fault in (stall, flood):
         assert set(fault["lost"]) >= {"imu", "joints", "torque_cmd", "state"} and all(n >= 0 for n in fault["lost"].values())
