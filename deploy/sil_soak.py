@@ -89,7 +89,8 @@ class Observer:
     def __init__(self, session: zenoh.Session, ns: str, goals: list[tuple[float, float]], period_s: float) -> None:
         self.session, self.ns, self.goals, self.period_s = session, ns, goals, period_s
         self.streams = Streams(torque_rx=array("q"), torque_armed=bytearray())
-        self.live: set[str] = set()
+        self._live: set[str] = set()
+        self._live_lock = threading.Lock()  # written by a Zenoh thread, read by the soak's
         self._armed_decoder = msgspec.json.Decoder(_Armed)
         self._stop = threading.Event()
         self._subs = [
@@ -131,8 +132,15 @@ class Observer:
     def _on_token(self, sample: zenoh.Sample) -> None:
         service = str(sample.key_expr).removeprefix(liveliness_key(self.ns, ""))
         alive = sample.kind == zenoh.SampleKind.PUT
-        (self.live.add if alive else self.live.discard)(service)
-        self.streams.liveliness.append((time.monotonic_ns(), service, alive))
+        with self._live_lock:
+            (self._live.add if alive else self._live.discard)(service)
+            self.streams.liveliness.append((time.monotonic_ns(), service, alive))
+
+    @property
+    def live(self) -> frozenset[str]:
+        """The services whose liveliness token is declared now."""
+        with self._live_lock:
+            return frozenset(self._live)
 
     def start(self) -> None:
         self.t0 = time.monotonic()
