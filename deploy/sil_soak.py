@@ -383,7 +383,10 @@ class Soak:
         except subprocess.TimeoutExpired:
             proc.kill()
             out, err = proc.communicate()
-        finally:
+        finally:  # also when the soak itself is being stopped
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
             self.helpers.remove(proc)
         inj = Injection(f, start, time.monotonic_ns(), window_end, pid=proc.pid)
         lines = out.decode(errors="replace").strip().splitlines()
