@@ -1,23 +1,31 @@
-"""Software-in-the-loop soak run: the real-time stack for minutes, with faults injected.
+"""Chaos soak: the real-time stack for minutes on the twin, with a schedule of faults injected.
 
-    .venv/bin/python -m deploy.sil_soak --duration 600 --kill planner@300 --kill control@570 --out /tmp/soak
+    python -m deploy.sil_soak --schedule deploy/config/soak_default.toml --out /tmp/soak
+    archer soak --duration 90 --fault stall@30:target=control/child,duration=0.2 --out /tmp/soak
 
-Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every service
-its own process under :mod:`services.supervisor`) on a free loopback endpoint and its
-own namespace, with the flight recorder. An operator thread sends a tour of goals
-(re-sent every second, as an operator console would, so that a restarted planner
-picks the current one up). At the given times it ``kill -9``s a service's main
-process and measures:
+Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every service its own
+process under :mod:`services.supervisor`) on a free loopback endpoint and its own namespace,
+with the flight recorder. An operator thread re-sends a tour of goals every second (so that a
+restarted planner picks the current one up). At the schedule's times (seconds after the twin
+started; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
+of a service or its loop child, SIGSTOP stalls, a router restart, a CPU hog, floods of malformed
+or badly stamped messages.
 
-- for ``control``: how long after the kill torque commands stop arriving, and how
-  long until the twin stops applying torque (its ``safety`` event ``command_stale``,
-  on the same monotonic clock as the kill; only when control was armed then);
-- for ``planner``: how long until a reference flows again, and whether the robot
-  kept hopping (no fall) meanwhile.
+What the stack does is observed from outside, as an operator would: ``safety`` events,
+``torque_cmd`` (armed or not), ``reference`` and touchdown ``phase`` events, liveliness tokens,
+status queries (polled every ``STATUS_HOT_S`` around a fault, else every ``STATUS_COLD_S``; the
+twin's every ``TWIN_STATUS_S``: its status costs its loop a percentile of 65k ticks), the exit
+of a killed process; afterwards the flight recording gives messages lost per topic. When the
+twin's physics reports a fall, the soak puts the robot back (``twin.seed``, see
+:mod:`sim_twin.twin_service`), rebuilds the estimator and asks control to arm once the
+estimate has settled, so that one fault's fall does not spoil the rest of the run (``--no-put-back``:
+leave it lying).
 
-Afterwards it reads the recording (messages lost per topic from ``seq``), plots it
-with ``archer plot`` and prints one JSON summary (also ``OUT/summary.json``).
-This is a measurement for reports, not a test: CI does not run it.
+Output: one JSON line per fault on stdout (the fields are defined in :mod:`deploy.soak_analysis`),
+then one line of totals; everything in ``OUT/summary.json``, with the sim's own metrics, the
+recorder's whole-run counts and the status polls in ``OUT/status.jsonl``. Every process the soak
+starts (the sim, hogs, flooders) is stopped whatever happens and dies with the soak.
+This is a measurement for reports, not a test: CI runs only a short one (tests/test_soak.py).
 """
 
 from __future__ import annotations
@@ -31,23 +39,183 @@ import sys
 import threading
 import time
 import tomllib
+from array import array
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import zenoh
 
+from deploy import soak_faults as sf
+from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losses
+from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard import messages as m
-from onboard.topics import TOPICS
-from services.cmd_introspect import live_services, query_status
-from services.recorder import file_metadata, recording_files
+from onboard.topics import TOPICS, liveliness_key, params_key, topic_for_key
+from services.cmd_introspect import query_status
+from services.realtime import die_with_parent
+from services.recorder import envelope, file_metadata, read_recording, recording_files
 from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
 
 NS_DEFAULT = "archer/soak"
-GOAL_RESEND_S = 1.0
-STATUS_PERIOD_S = 30.0  # status queries cost the services CPU: few
-RESTART_GAP_NS = 500_000_000  # a pause in torque commands this long: the old control is gone
+CONFIG_DIR = Path(__file__).resolve().parent / "config"
+SIL_CONFIG = CONFIG_DIR / "sil.toml"
+DEFAULT_SCHEDULE = CONFIG_DIR / "soak_default.toml"
 SERVICES = "estimator,control,planner,recorder"
-SIL_CONFIG = Path(__file__).resolve().parent / "config" / "sil.toml"
+DURATION_S = 600.0
+GOAL_RESEND_S = 1.0
+STATUS_HOT_S = 0.5  # status polls from BASELINE_S before a fault until HOT_AFTER_S after its action
+BASELINE_S = 1.5  # (the last poll before the fault is the counters' baseline)
+HOT_AFTER_S = 5.0
+STATUS_COLD_S = 10.0
+TWIN_STATUS_S = 2.0
+SIM_START_TIMEOUT_S = 180.0  # the planner compiles its kernels on a cold cache
+HELPER_GRACE_S = 5.0  # a hog or flood past its duration by this much is killed
+KILL_WATCH_S = 5.0  # how long a killed process's exit and reaping are watched
+PUT_BACK_SETTLE_S = 1.5  # after the put back (and again after the estimator rebuild) before arming
+SIM_STOP_TIMEOUT_S = 30.0
+OBSERVE_END_S = 1.0  # observation ends this long before the run does (then the stack is stopped)
+CONTROL_LOOP_RUNNING_S = 0.2  # commands this recent: a control loop is there to take over after a put back
+
+
+class _Armed(msgspec.Struct):
+    """The one field of a torque command the soak reads (the rest is skipped unparsed)."""
+
+    armed: bool = False
+
+
+class Observer:
+    """Subscribes what shows how the stack is doing; sends the operator's goals."""
+
+    def __init__(self, session: zenoh.Session, ns: str, goals: list[tuple[float, float]], period_s: float) -> None:
+        self.session, self.ns, self.goals, self.period_s = session, ns, goals, period_s
+        self.streams = Streams(torque_rx=array("q"), torque_armed=bytearray())
+        self._live: set[str] = set()
+        self._live_lock = threading.Lock()  # written by a Zenoh thread, read by the soak's
+        self._armed_decoder = msgspec.json.Decoder(_Armed)
+        self._stop = threading.Event()
+        self._subs = [
+            session.declare_subscriber(TOPICS["safety"].key(ns), self._on_safety),
+            session.declare_subscriber(TOPICS["torque_cmd"].key(ns), self._on_torque),
+            session.declare_subscriber(TOPICS["reference"].key(ns), lambda s: self.streams.reference_rx.append(time.monotonic_ns())),
+            session.declare_subscriber(TOPICS["phase"].key(ns), self._on_phase),
+            session.liveliness().declare_subscriber(liveliness_key(ns, "*"), self._on_token, history=True),
+        ]
+        self._pub = session.declare_publisher(TOPICS["goal"].key(ns), reliability=zenoh.Reliability.RELIABLE)
+        self._thread = threading.Thread(target=self._send_goals, name="operator", daemon=True)
+        self.t0 = time.monotonic()
+
+    def _on_safety(self, sample: zenoh.Sample) -> None:
+        try:
+            ev = m.decode(sample.payload.to_bytes(), m.SafetyEvent)
+        except m.MessageError:
+            return  # a flood on the topic: not the stack's event
+        self.streams.safety.append((ev.stamp_ns, ev.trip))
+
+    def _on_torque(self, sample: zenoh.Sample) -> None:
+        rx = time.monotonic_ns()
+        try:
+            armed = self._armed_decoder.decode(sample.payload.to_bytes()).armed
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return
+        self.streams.torque_rx.append(rx)  # type: ignore[attr-defined]
+        self.streams.torque_armed.append(1 if armed else 0)  # type: ignore[attr-defined]
+
+    def _on_phase(self, sample: zenoh.Sample) -> None:
+        rx = time.monotonic_ns()
+        try:
+            ev = m.decode(sample.payload.to_bytes(), m.PhaseEvent)
+        except m.MessageError:
+            return
+        if ev.event == "touchdown":
+            self.streams.touchdowns.append(rx)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        service = str(sample.key_expr).removeprefix(liveliness_key(self.ns, ""))
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._live_lock:
+            (self._live.add if alive else self._live.discard)(service)
+            self.streams.liveliness.append((time.monotonic_ns(), service, alive))
+
+    @property
+    def live(self) -> frozenset[str]:
+        """The services whose liveliness token is declared now."""
+        with self._live_lock:
+            return frozenset(self._live)
+
+    def start(self) -> None:
+        self.t0 = time.monotonic()
+        self._thread.start()
+
+    def current_goal(self) -> tuple[float, float]:
+        k = int((time.monotonic() - self.t0) / self.period_s)
+        return self.goals[k % len(self.goals)]
+
+    def _send_goals(self) -> None:
+        seq = 0
+        while not self._stop.wait(GOAL_RESEND_S):
+            seq += 1
+            x, y = self.current_goal()
+            self._pub.put(m.encode(m.Goal(stamp_ns=time.monotonic_ns(), seq=seq, position=[x, y], tolerance=0.15)))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        for s in self._subs:
+            s.undeclare()
+        self._pub.undeclare()
+
+
+class StatusPoller:
+    """Polls the live services' status into the streams (and ``status.jsonl``) on its own thread:
+    a stalled service makes a query wait for its timeout."""
+
+    def __init__(self, session: zenoh.Session, ns: str, observer: Observer, log_path: Path) -> None:
+        self.session, self.ns, self.observer = session, ns, observer
+        self.hot_until = 0.0  # time.monotonic() until which polls are frequent
+        self.twin_falls = 0.0
+        self._next_all = 0.0
+        self._log = open(log_path, "w")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="status-poller", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def poll(self, services: list[str]) -> None:
+        for name in services:
+            st = query_status(self.session, self.ns, name)
+            if st is None:
+                continue
+            t = time.monotonic_ns()
+            values = {f"counters.{k}": float(v) for k, v in st.counters.items()}
+            values.update({k: float(v) for k, v in st.extra.items()})
+            self.observer.streams.statuses.append((t, name, values))
+            if name == TWIN:
+                self.twin_falls = values.get("falls", self.twin_falls)
+            self._log.write(json.dumps({"t_ns": t, "service": name, "state": st.state, "values": values}) + "\n")
+
+    def heat(self, until: float) -> None:
+        """Poll every ``STATUS_HOT_S`` from now until ``until`` (``time.monotonic()``)."""
+        self.hot_until = until
+        self._next_all = min(self._next_all, time.monotonic())
+
+    def _run(self) -> None:
+        next_twin = 0.0
+        while not self._stop.wait(0.05):
+            now = time.monotonic()
+            if now >= next_twin:
+                next_twin = now + TWIN_STATUS_S
+                self.poll([TWIN] if TWIN in self.observer.live else [])
+            if now >= self._next_all:
+                self._next_all = now + (STATUS_HOT_S if now < self.hot_until else STATUS_COLD_S)
+                self.poll(sorted(self.observer.live - {TWIN}))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        self._log.close()
 
 
 def _sil_config(base: Path, rec_dir: Path) -> str:
@@ -60,173 +228,369 @@ def _sil_config(base: Path, rec_dir: Path) -> str:
     )
 
 
-def _children(pid: int) -> list[tuple[int, list[bytes]]]:
-    """``(pid, argv)`` of the processes whose parent is ``pid``."""
+def _params(session: zenoh.Session, ns: str, service: str, changes: dict[str, Any] | None = None) -> m.ParamReply | None:
+    body = msgspec.json.encode(m.ParamRequest(set=changes)) if changes else None
+    for reply in session.get(params_key(ns, service), payload=body, timeout=2.0):
+        if reply.ok is not None:
+            return msgspec.json.decode(reply.ok.payload.to_bytes(), type=m.ParamReply)
+    return None
+
+
+class Soak:
+    """One run: the sim, the observers, the faults, and the cleanup of every process."""
+
+    def __init__(self, args: argparse.Namespace, schedule: Schedule, services: list[str], duration_s: float) -> None:
+        self.args, self.schedule, self.services, self.duration_s = args, schedule, services, duration_s
+        self.out = Path(args.out).resolve()
+        self.endpoint = free_endpoint()
+        self.ns = args.namespace
+        self.helpers: list[subprocess.Popen] = []
+        self.stopped: list[tuple[int, bool]] = []  # (pid, whole unit) under SIGSTOP right now
+        self.injections: list[Injection] = []
+        self.put_backs: list[int] = []
+        self.falls_handled = 0.0
+
+    # --- the run ---
+
+    def run(self) -> dict[str, Any]:
+        self.out.mkdir(parents=True, exist_ok=True)
+        rec_dir = self.out / "rec"
+        config = self.out / "sil.toml"
+        config.write_text(_sil_config(Path(self.args.config), rec_dir))
+        wall_minus_mono = time.time_ns() - time.monotonic_ns()  # the recorder stamps receipt on the wall clock
+        cmd = [sys.executable, "-m", "services.cli", "sim", "--mode", "realtime", "--scenario", self.args.scenario,
+               "--planner", "graph", "--services", ",".join(self.services), "--duration", str(self.duration_s),
+               "--keep-going", "--json", "--quiet", "--config", str(config), "--endpoint", self.endpoint, "--namespace", self.ns]
+        parent = os.getpid()
+        stdout, stderr = open(self.out / "sim.stdout", "wb"), open(self.out / "sim.stderr", "wb")
+        # started before any thread of ours exists: preexec_fn is safe here
+        sim = subprocess.Popen(cmd, stdout=stdout, stderr=stderr, preexec_fn=lambda: die_with_parent(parent))
+        session = observer = poller = None
+        t_end = 0
+        try:
+            deadline = time.monotonic() + SIM_START_TIMEOUT_S
+            while not endpoint_in_use(self.endpoint):
+                self._check_sim(sim, deadline)
+                time.sleep(0.1)
+            session = open_session(self.endpoint, "peer")  # a peer, as the services: a router restart does not blind it
+            goals = [tuple(float(v) for v in g.split(",")) for g in self.args.goals.split(";")]
+            observer = Observer(session, self.ns, goals, self.args.goal_period)  # type: ignore[arg-type]
+            while TWIN not in observer.live:  # the physics starts with the twin
+                self._check_sim(sim, deadline)
+                time.sleep(0.05)
+            t0 = time.monotonic_ns()
+            observer.start()
+            poller = StatusPoller(session, self.ns, observer, self.out / "status.jsonl")
+            poller.start()
+            faults = list(self.schedule.faults)
+            run_end = t0 + int(self.duration_s * 1e9)
+            for k, fault in enumerate(faults):
+                start = t0 + int(fault.at_s * 1e9)
+                self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
+                poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
+                self._wait_until(start, sim, session, poller, observer)
+                window_end = t0 + int(faults[k + 1].at_s * 1e9) if k + 1 < len(faults) else run_end - int(OBSERVE_END_S * 1e9)
+                inj = self._inject(fault, sim.pid, session, window_end)
+                self.injections.append(inj)
+                self._print_progress(inj, t0)
+            self._wait_until(run_end - int(OBSERVE_END_S * 1e9), sim, session, poller, observer)
+            t_end = time.monotonic_ns()
+            try:  # the sim ends by itself and prints its metrics
+                sim.wait(OBSERVE_END_S + SIM_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                pass
+        finally:
+            t_end = t_end or time.monotonic_ns()
+            self._cleanup(sim, session, observer, poller, stdout, stderr)
+        for inj in self.injections:
+            inj.window_end_ns = min(inj.window_end_ns, t_end)
+        return self._summarize(observer.streams, t0, rec_dir, wall_minus_mono)
+
+    def _check_sim(self, sim: subprocess.Popen, deadline: float) -> None:
+        if sim.poll() is not None:
+            raise RuntimeError(f"the sim exited with {sim.returncode}: see {self.out / 'sim.stderr'}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the stack did not start in {SIM_START_TIMEOUT_S:g} s: see {self.out / 'sim.stderr'}")
+
+    def _wait_until(self, t_ns: int, sim: subprocess.Popen, session: zenoh.Session, poller: StatusPoller,
+                    observer: Observer) -> None:
+        """Sleep until ``t_ns``, putting a fallen robot back meanwhile."""
+        while (left := t_ns - time.monotonic_ns()) > 0:
+            if sim.poll() is not None:
+                raise RuntimeError(f"the sim exited with {sim.returncode} during the soak: see {self.out / 'sim.stderr'}")
+            if not self.args.no_put_back and poller.twin_falls > self.falls_handled and self._can_take_over(observer):
+                self.falls_handled = poller.twin_falls
+                self._put_back(session)
+            time.sleep(min(left / 1e9, 0.05))
+
+    def _can_take_over(self, observer: Observer) -> bool:
+        """A robot put back falls again unless an estimator and a control loop run."""
+        rx = observer.streams.torque_rx
+        return ("estimator" in observer.live or "estimator" not in self.services) and bool(rx) and \
+            time.monotonic_ns() - rx[-1] < CONTROL_LOOP_RUNNING_S * 1e9
+
+    # --- faults ---
+
+    def _inject(self, f: Fault, sim_pid: int, session: zenoh.Session, window_end: int) -> Injection:
+        if f.kind in ("kill", "router_restart"):
+            pid = sf.target_pid(sim_pid, ROUTER if f.kind == "router_restart" else f.target)
+            start = time.monotonic_ns()
+            if pid is None:
+                return Injection(f, start, start, window_end, error=f"no process for {f.service!r} found")
+            watch = sf.ExitWatch(pid)
+            watch_thread = watch.start(KILL_WATCH_S)
+            os.kill(pid, signal.SIGKILL)
+            start = time.monotonic_ns()
+            inj = Injection(f, start, start, window_end, pid=pid)
+            self._watch_exit(inj, watch, watch_thread)
+            return inj
+        if f.kind == "stall":
+            pid = sf.target_pid(sim_pid, f.target)
+            start = time.monotonic_ns()
+            if pid is None:
+                return Injection(f, start, start, window_end, error=f"no process for {f.target!r} found")
+            whole_unit = "/" not in f.target
+            sf.signal_unit(pid, signal.SIGSTOP, whole_unit)
+            start = time.monotonic_ns()
+            self.stopped.append((pid, whole_unit))
+            try:
+                time.sleep(f.duration_s)
+            finally:
+                sf.signal_unit(pid, signal.SIGCONT, whole_unit)
+                self.stopped.remove((pid, whole_unit))
+            return Injection(f, start, time.monotonic_ns(), window_end, pid=pid)
+        if f.kind == "cpu_hog":
+            if f.cpu >= (os.cpu_count() or 1):
+                now = time.monotonic_ns()
+                return Injection(f, now, now, window_end, error=f"cpu {f.cpu} does not exist here")
+            argv = sf.helper_argv("hog", "--cpu", str(f.cpu), "--duration", str(f.duration_s))
+        else:
+            argv = sf.helper_argv("flood", "--endpoint", self.endpoint, "--namespace", self.ns, "--topics", ",".join(f.topics),
+                                  "--kind", "malformed" if f.kind == "malformed_flood" else "stamps",
+                                  "--rate", str(f.rate_hz), "--offset", str(f.offset_s), "--duration", str(f.duration_s))
+        return self._run_helper(f, argv, window_end)
+
+    def _watch_exit(self, inj: Injection, watch: sf.ExitWatch, thread: threading.Thread) -> None:
+        thread.join(KILL_WATCH_S + 1.0)
+        inj.exited_ns, inj.reaped_ns = watch.exited_ns, watch.reaped_ns
+
+    def _run_helper(self, f: Fault, argv: list[str], window_end: int) -> Injection:
+        start = time.monotonic_ns()
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
+        self.helpers.append(proc)
+        try:
+            out, err = proc.communicate(timeout=f.duration_s + HELPER_GRACE_S + (sf.LIVE_COPY_WAIT_S if f.kind == "bad_stamps" else 0.0))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+        finally:  # also when the soak itself is being stopped
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            self.helpers.remove(proc)
+        inj = Injection(f, start, time.monotonic_ns(), window_end, pid=proc.pid)
+        lines = out.decode(errors="replace").strip().splitlines()
+        try:
+            inj.helper = json.loads(lines[-1]) if lines else None
+        except json.JSONDecodeError:
+            inj.helper = None
+        if proc.returncode != 0:
+            inj.error = f"helper exited with {proc.returncode}: {err.decode(errors='replace')[-500:]}"
+        return inj
+
+    def _put_back(self, session: zenoh.Session) -> None:
+        """The twin reports a fall: put the robot back, rebuild the estimate, arm."""
+        t = time.monotonic_ns()
+        twin = _params(session, self.ns, TWIN)
+        if twin is None or "twin.seed" not in twin.params:
+            return
+        reply = _params(session, self.ns, TWIN, {"twin.seed": twin.params["twin.seed"]})
+        if reply is None or reply.error:
+            return
+        self.put_backs.append(t)
+        for inj in self.injections:
+            if inj.start_ns <= t < inj.window_end_ns and inj.put_back_ns is None:
+                inj.put_back_ns = t
+        time.sleep(PUT_BACK_SETTLE_S)
+        est = _params(session, self.ns, "estimator")
+        if est is not None and "estimator.rate_hz" in est.params:  # re-converge from the next pose
+            _params(session, self.ns, "estimator", {"estimator.rate_hz": est.params["estimator.rate_hz"]})
+            time.sleep(PUT_BACK_SETTLE_S)
+        ctl = _params(session, self.ns, "control")
+        if ctl is not None and "control.arm_request" in ctl.params:
+            _params(session, self.ns, "control", {"control.arm_request": int(ctl.params["control.arm_request"]) + 1})
+
+    def _print_progress(self, inj: Injection, t0: int) -> None:
+        where = f"{inj.fault.kind}@{inj.fault.at_s:g}"
+        print(f"soak: injected {where} at {(inj.start_ns - t0) / 1e9:.2f} s{' (' + inj.error + ')' if inj.error else ''}",
+              file=sys.stderr, flush=True)
+
+    # --- the end ---
+
+    def _cleanup(self, sim: subprocess.Popen, session: zenoh.Session | None, observer: Observer | None,
+                 poller: StatusPoller | None, *files: Any) -> None:
+        for pid, whole_unit in list(self.stopped):
+            sf.signal_unit(pid, signal.SIGCONT, whole_unit)
+        for proc in list(self.helpers):
+            proc.kill()
+            proc.wait()
+        if poller is not None:
+            poller.stop()
+        if observer is not None:
+            observer.stop()
+        if sim.poll() is None:
+            sim.send_signal(signal.SIGTERM)
+            try:
+                sim.wait(SIM_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+                sim.wait()
+        # Units that outlived their sim (a sim killed hard leaves its supervisor's children): they
+        # carry this run's endpoint, which no one else uses.
+        for pid in _processes_with(self.endpoint.encode()):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        if session is not None:
+            session.close()
+        for f in files:
+            f.close()
+
+    def _summarize(self, streams: Streams, t0: int, rec_dir: Path, wall_minus_mono: int) -> dict[str, Any]:
+        lines = (self.out / "sim.stdout").read_text().strip().splitlines()
+        try:
+            metrics = json.loads(lines[-1]) if lines else {}
+        except json.JSONDecodeError:
+            metrics = {"unparsed": lines[-1][-2000:]}
+        files = recording_files([rec_dir]) if rec_dir.is_dir() else []
+        windows = [(inj.start_ns, inj.window_end_ns) for inj in self.injections]
+        losses = window_losses(_recorded_seqs(files, self.ns, wall_minus_mono), windows) if files else [None] * len(windows)
+        faults = [analyze(streams, inj, t0, loss) for inj, loss in zip(self.injections, losses)]
+        finished = [p for p in files if p.suffix == ".mcap"]
+        summary = {
+            "run": {"duration_s": self.duration_s, "services": self.services, "endpoint": self.endpoint, "namespace": self.ns,
+                    "schedule": [f.describe() for f in self.schedule.faults], "put_backs_s": [round((t - t0) / 1e9, 3) for t in self.put_backs]},
+            "faults": faults,
+            "totals": _totals(faults),
+            "metrics": metrics,
+            "recorder": file_metadata(finished[-1]) if finished else {},
+            "recording_files": len(files),
+        }
+        if files and not self.args.no_plot:
+            plot = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec_dir), "--out", str(self.out / "plots")],
+                                  capture_output=True, text=True)
+            summary["plot"] = json.loads(plot.stdout.strip().splitlines()[-1]) if plot.returncode == 0 else plot.stderr[-2000:]
+        return summary
+
+
+def _processes_with(needle: bytes) -> list[int]:
+    """Pids of the processes whose command line contains ``needle``."""
     out = []
     for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-            ppid = int(stat.rsplit(")", 1)[1].split()[1])
-            cmd = (entry / "cmdline").read_bytes().split(b"\0")
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == pid:
-            out.append((int(entry.name), cmd))
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if needle in (entry / "cmdline").read_bytes():
+                    out.append(int(entry.name))
+            except OSError:
+                pass
     return out
 
 
-def _pid_of(sim_pid: int, target: str) -> int | None:
-    """``SERVICE``: the main process of ``archer run SERVICE`` started by our sim;
-    ``SERVICE/child``: that process's child (the control loop process)."""
-    service, _, child = target.partition("/")
-    main_pid = next((pid for pid, cmd in _children(sim_pid) if b"run" in cmd and service.encode() in cmd), None)
-    if main_pid is None or not child:
-        return main_pid
-    # the multiprocessing child that runs the loop, not its resource tracker
-    return next((pid for pid, cmd in _children(main_pid) if any(b"spawn_main" in part for part in cmd)), None)
+def _recorded_seqs(files: list[Path], ns: str, wall_minus_mono: int):
+    """``(receipt on the monotonic clock, topic, seq)`` of every recorded message."""
+    for rec in read_recording(files):
+        topic = topic_for_key(ns, rec.key)
+        if topic is None:
+            continue  # service statuses
+        _, seq = envelope(topic, rec.data)
+        yield rec.log_ns - wall_minus_mono, topic.name, seq
 
 
-class Operator:
-    """Sends the current goal every second; collects safety events and references."""
+def _totals(faults: list[dict[str, Any]]) -> dict[str, Any]:
+    zero = [f["zero_torque_ms"] for f in faults if f.get("zero_torque_ms") is not None]
+    recovery = [f["recovery_s"] for f in faults if f.get("recovery_s") is not None]
+    return {
+        "faults": len(faults),
+        "detected": sum(1 for f in faults if f["detected"]),
+        "undetected": [f"{f['kind']}@{f['at']:g}" for f in faults if not f["detected"]],
+        "falls": sum(1 for f in faults if f.get("fell")),
+        "fell_on": [f"{f['kind']}@{f['at']:g}" for f in faults if f.get("fell")],
+        "not_recovered": [f"{f['kind']}@{f['at']:g}" for f in faults if not f["recovered"]],
+        "zero_torque_ms_max": max(zero) if zero else None,
+        "recovery_s_max": max(recovery) if recovery else None,
+        "lost": {t: n for t, n in _sum_lost(faults).items() if n},
+    }
 
-    def __init__(self, session: zenoh.Session, ns: str, goals: list[tuple[float, float]], period_s: float) -> None:
-        self.session, self.ns, self.goals, self.period_s = session, ns, goals, period_s
-        self.safety: list[m.SafetyEvent] = []
-        self.reference_rx_ns: list[int] = []
-        self.torque_rx_ns: list[int] = []
-        self._stop = threading.Event()
-        self._subs = [
-            session.declare_subscriber(TOPICS["safety"].key(ns), lambda s: self.safety.append(m.decode(s.payload.to_bytes(), m.SafetyEvent))),
-            session.declare_subscriber(TOPICS["reference"].key(ns), lambda s: self.reference_rx_ns.append(time.monotonic_ns())),
-            session.declare_subscriber(TOPICS["torque_cmd"].key(ns), lambda s: self.torque_rx_ns.append(time.monotonic_ns())),
-        ]
-        self._pub = session.declare_publisher(TOPICS["goal"].key(ns), reliability=zenoh.Reliability.RELIABLE)
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self.t0 = time.monotonic()
 
-    def start(self) -> None:
-        self.t0 = time.monotonic()
-        self._thread.start()
+def _sum_lost(faults: list[dict[str, Any]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for f in faults:
+        for topic, n in f.get("lost", {}).items():
+            out[topic] = out.get(topic, 0) + n
+    return out
 
-    def current_goal(self) -> tuple[float, float]:
-        k = int((time.monotonic() - self.t0) / self.period_s)
-        return self.goals[k % len(self.goals)]
 
-    def _run(self) -> None:
-        seq = 0
-        while not self._stop.wait(GOAL_RESEND_S):
-            seq += 1
-            x, y = self.current_goal()
-            self._pub.put(m.encode(m.Goal(stamp_ns=time.monotonic_ns(), seq=seq, position=[x, y], tolerance=0.15)))
+# --- the command line ---
 
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        for s in self._subs:
-            s.undeclare()
-        self._pub.undeclare()
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--schedule", default=None, help=f"fault schedule, TOML or JSON (default: {DEFAULT_SCHEDULE.name} unless faults are given below)")
+    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE (SERVICE/child: its loop process) T s after the twin started")
+    ap.add_argument("--fault", action="append", default=[], metavar="KIND@T[:k=v,...]", help="any fault, e.g. stall@40:target=control/child,duration=0.2 (see deploy/soak_schedule.py)")
+    ap.add_argument("--duration", type=float, default=None, help=f"[s] wall time (default: the schedule's, else {DURATION_S:g})")
+    ap.add_argument("--scenario", default=None, help="twin scenario (default: the schedule's, else hop-in-place)")
+    ap.add_argument("--goals", default="1.5,0;1.5,1.5;0,1.5;0,0", help="tour of goals 'x,y;x,y;...' [m]")
+    ap.add_argument("--goal-period", type=float, default=75.0, help="[s] per goal")
+    ap.add_argument("--services", default=None, help=f"units besides the router (default: the schedule's, else {SERVICES})")
+    ap.add_argument("--out", default="soak", help="output directory")
+    ap.add_argument("--namespace", default=NS_DEFAULT)
+    ap.add_argument("--config", default=str(SIL_CONFIG), help="the SIL profile the run starts from")
+    ap.add_argument("--no-put-back", action="store_true", help="leave a fallen robot lying")
+    ap.add_argument("--no-plot", action="store_true", help="skip the plots of the recording")
+
+
+def build_schedule(args: argparse.Namespace) -> tuple[Schedule, list[str], float]:
+    """The schedule of the file and the shorthand, checked against the run it will get."""
+    extra = [parse_kill(k) for k in args.kill] + [parse_shorthand(f) for f in args.fault]
+    path = args.schedule or (None if extra else DEFAULT_SCHEDULE)
+    schedule = load_schedule(path) if path else Schedule(())
+    schedule = schedule.merged(extra)
+    settings = schedule.settings
+    unknown = set(settings) - {"duration_s", "services", "scenario"}
+    if unknown:
+        raise ScheduleError(f"[soak]: unknown keys {sorted(unknown)} (duration_s, services, scenario)")
+    duration = float(args.duration if args.duration is not None else settings.get("duration_s", DURATION_S))
+    services = [s for s in str(args.services or settings.get("services", SERVICES)).split(",") if s]
+    args.scenario = args.scenario or settings.get("scenario", "hop-in-place")
+    check_schedule(schedule, duration, services)
+    return schedule, services, duration
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        schedule, services, duration = build_schedule(args)
+    except ScheduleError as exc:
+        print(f"archer soak: {exc}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwind through the cleanup
+    soak = Soak(args, schedule, services, duration)
+    try:
+        summary = soak.run()
+    except RuntimeError as exc:
+        print(f"archer soak: {exc}", file=sys.stderr)
+        return 1
+    (soak.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    for fault in summary["faults"]:
+        print(json.dumps(fault), flush=True)
+    print(json.dumps({"totals": summary["totals"], "summary": str(soak.out / "summary.json")}), flush=True)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--duration", type=float, default=600.0, help="[s] wall time")
-    ap.add_argument("--scenario", default="hop-in-place", help="twin scenario (hop-in-place: no goal of its own)")
-    ap.add_argument("--goals", default="1.5,0;1.5,1.5;0,1.5;0,0", help="tour of goals 'x,y;x,y;...' [m]")
-    ap.add_argument("--goal-period", type=float, default=75.0, help="[s] per goal")
-    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE (SERVICE/child: its child process) T seconds after the twin started")
-    ap.add_argument("--services", default=SERVICES)
-    ap.add_argument("--out", default="soak", help="output directory")
-    ap.add_argument("--namespace", default=NS_DEFAULT)
-    ap.add_argument("--config", default=str(SIL_CONFIG), help="the SIL profile the run starts from")
-    args = ap.parse_args(argv)
-
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    rec_dir = out / "rec"
-    config = out / "sil.toml"
-    config.write_text(_sil_config(Path(args.config), rec_dir))
-    endpoint = free_endpoint()
-    goals = [tuple(float(v) for v in g.split(",")) for g in args.goals.split(";")]
-    kills = sorted((float(k.split("@")[1]), k.split("@")[0]) for k in args.kill)
-
-    cmd = [sys.executable, "-m", "services.cli", "sim", "--mode", "realtime", "--scenario", args.scenario, "--planner", "graph",
-           "--services", args.services, "--duration", str(args.duration), "--keep-going", "--json", "--quiet",
-           "--config", str(config), "--endpoint", endpoint, "--namespace", args.namespace]
-    stdout, stderr = open(out / "sim.stdout", "wb"), open(out / "sim.stderr", "wb")
-    sim = subprocess.Popen(cmd, stdout=stdout, stderr=stderr)
-    while not endpoint_in_use(endpoint):
-        if sim.poll() is not None:
-            raise SystemExit(f"sim exited early: see {out / 'sim.stderr'}")
-        time.sleep(0.1)
-    session = open_session(endpoint, "client")
-    while "twin" not in live_services(session, args.namespace):  # the physics starts with the twin
-        if sim.poll() is not None:
-            raise SystemExit(f"sim exited early: see {out / 'sim.stderr'}")
-        time.sleep(0.2)
-    operator = Operator(session, args.namespace, goals, args.goal_period)
-    operator.start()
-    t0 = time.monotonic()
-    statuses = open(out / "status.jsonl", "w")
-    injected: list[dict[str, Any]] = []
-    next_status = 0.0
-    try:
-        while sim.poll() is None:
-            el = time.monotonic() - t0
-            if kills and el >= kills[0][0]:
-                _, service = kills.pop(0)
-                pid = _pid_of(sim.pid, service)
-                t_kill = time.monotonic_ns()
-                if pid is not None:
-                    os.kill(pid, signal.SIGKILL)
-                injected.append({"service": service, "at_s": round(el, 1), "pid": pid, "t_kill_ns": t_kill, "goal": operator.current_goal()})
-            if el >= next_status:
-                next_status = el + STATUS_PERIOD_S
-                snap: dict[str, Any] = {"t": round(el, 1)}
-                for name in live_services(session, args.namespace):
-                    st = query_status(session, args.namespace, name)
-                    if st is not None:
-                        snap[name] = {"state": st.state, "extra": st.extra, "counters": st.counters}
-                statuses.write(json.dumps(snap) + "\n")
-                statuses.flush()
-            time.sleep(0.05)
-    finally:
-        operator.stop()
-        session.close()
-        statuses.close()
-        if sim.poll() is None:
-            sim.send_signal(signal.SIGTERM)
-        sim.wait()
-        stdout.close()
-        stderr.close()
-
-    lines = (out / "sim.stdout").read_text().strip().splitlines()
-    metrics = json.loads(lines[-1]) if lines else {}
-    for inj in injected:
-        after = [e for e in operator.safety if e.stamp_ns >= inj["t_kill_ns"]]
-        if inj["service"].startswith("control"):
-            # the last command before the restarted control's first (a gap of a second at least)
-            rx = [t for t in operator.torque_rx_ns if t >= inj["t_kill_ns"]]
-            last = next((a for a, b in zip(rx, rx[1:]) if b - a > RESTART_GAP_NS), rx[-1] if rx else None)
-            if last is not None:
-                inj["commands_stopped_after_kill_ms"] = round((last - inj["t_kill_ns"]) / 1e6, 2)
-            stale = [e for e in after if e.trip == "command_stale"]
-            if stale:
-                inj["zero_torque_after_kill_ms"] = round((stale[0].stamp_ns - inj["t_kill_ns"]) / 1e6, 2)
-                inj["last_command_age_ms"] = round(stale[0].value * 1e3, 2)
-        refs = [t for t in operator.reference_rx_ns if t > inj["t_kill_ns"]]
-        gaps = [b - a for a, b in zip([inj["t_kill_ns"]] + refs, refs)]
-        if gaps:
-            inj["longest_reference_gap_after_kill_s"] = round(max(gaps[:2000]) / 1e9, 3)
-    files = recording_files([rec_dir], include_partial=False) if rec_dir.is_dir() else []
-    lost = file_metadata(files[-1]) if files else {}
-    plot = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec_dir), "--out", str(out / "plots")], capture_output=True, text=True) if files else None
-    summary = {"metrics": metrics, "injected": injected, "recorder": lost, "recording_files": len(files),
-               "plot": (json.loads(plot.stdout.strip().splitlines()[-1]) if plot.returncode == 0 else plot.stderr[-2000:]) if plot else None}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary))
-    return 0
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
     "plan": ("services.cmd_plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
     "goal": ("services.cmd_plan", "send the robot a goal position X Y [m]"),
+    "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),
 }
 
 

@@ -14,6 +14,12 @@ tick it:
    the capture time on the stack's clock, exactly as the hardware service would.
 
 It also publishes the scenario's ``goal`` and ground-truth ``polytopes`` (``publish_world``).
+
+Setting ``twin.seed`` on the running twin (its parameter query) puts the robot back, as a person
+picks up a fallen robot in a long test: between two ticks the physics restarts from the
+scenario's initial state (upright, at rest, over the start) and the sensors' noise is drawn anew
+from that seed; simulated time goes on, the world stays as built and ``falls`` counts every fall.
+The other ``twin`` parameters fix the model and the world at start: changing them is refused.
 Simulated time advances one tick per loop tick; an overrun (a tick later than the next deadline)
 skips deadlines, so the real-time factor (simulated / wall seconds) drops below 1 and is reported
 with the overruns in the status (``archer status``), together with the physics metrics.
@@ -45,6 +51,7 @@ from sim_twin.stack import TruthEstimator
 NS = 1_000_000_000
 STATUS_POLL_S = 0.2  # how often main() checks the loop and republishes the world
 REFERENCE_PERIOD_S = 0.1  # [s] the scenario reference is republished this often (fresh for the low level)
+LIVE_TWIN_PARAMS = ("seed",)  # what a running twin takes (and restarts its scenario for)
 
 
 def make_scenario(tp: TwinParams) -> sc.Scenario:
@@ -68,6 +75,7 @@ class TwinService(Service):
         self.sim_ns = 0
         self._wall0 = 0.0
         self._applying = False
+        self._put_back_requested = False
         self.contract_violations = 0
 
     # --- what it subscribes and builds ------------------------------------------------------
@@ -107,6 +115,9 @@ class TwinService(Service):
     # --- every tick: command in, physics, sensors out ---------------------------------------------
 
     def _tick(self, deadline: float) -> None:
+        if self._put_back_requested:
+            self._put_back_requested = False
+            self._put_back()
         now_ns = self.clock.now_ns()
         data = self.data
         slot = self.torque_slot.get()
@@ -134,6 +145,25 @@ class TwinService(Service):
         self.metrics.update(self.sim_ns / NS, now_ns, data, ref[0] if ref else None, state[0] if state else None,
                             act.last_applied)
         self.rate("tick").tick()
+
+    def _put_back(self) -> None:
+        """On the loop thread, between ticks: the scenario's initial state, new sensor noise."""
+        tp: TwinParams = self.params["twin"]
+        self.scenario.initialize(self.model, self.data, self.robot)
+        self.sensors = SensorSuite(self.model, tp, tp.seed)
+        self.metrics.fell = False  # the next fall counts again
+        self.count("put_back")
+        self.log.warning("robot put back", extra={"fields": {"seed": tp.seed, "falls": self.metrics.falls}})
+
+    def set_params(self, changes: dict[str, Any]) -> None:
+        fixed = sorted(k for k in changes if k.startswith("twin.") and k.removeprefix("twin.") not in LIVE_TWIN_PARAMS)
+        if fixed:
+            raise ValueError(f"{fixed} are fixed while the twin runs; only {['twin.' + k for k in LIVE_TWIN_PARAMS]} can change")
+        super().set_params(changes)
+
+    def on_params_changed(self, section: str) -> None:
+        if section == "twin":
+            self._put_back_requested = True
 
     async def _on_contract(self, report: msgs.ContractReport) -> None:
         if report.violated:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 
+import msgspec
 import pytest
 
 from onboard import messages as m
@@ -81,5 +82,53 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
         assert got["reference"][0].segments[0].control_points[0] == pytest.approx([0.0, 0.0])
         summary = twin.summary()
         assert summary["sim_time_s"] > 0.5 and summary["falls"] == 0
+
+    asyncio.run(scenario())
+
+
+def test_setting_the_seed_puts_a_fallen_robot_back_and_other_twin_parameters_are_refused(zenoh_router) -> None:
+    from onboard.topics import params_key
+    from sim_twin import model as tm
+
+    async def scenario() -> None:
+        twin = TwinService(ns=NS, endpoint=zenoh_router, params={"twin": TwinParams(noise=False), "safety": SafetyLimits()})
+        task = asyncio.create_task(twin.run())
+        client = open_session(zenoh_router, "peer")
+        cmd_key = TOPICS["torque_cmd"].key(NS)
+
+        def set_params(changes: dict) -> m.ParamReply:
+            body = msgspec.json.encode(m.ParamRequest(set=changes))
+            reply = next(r.ok for r in client.get(params_key(NS, "twin"), payload=body, timeout=5.0) if r.ok is not None)
+            return msgspec.json.decode(reply.payload.to_bytes(), type=m.ParamReply)
+
+        try:
+            await wait_for(lambda: twin.state == "running" and twin.sim_ns > 0)
+            deadline = time.monotonic() + 10.0
+            while not twin.metrics.fell:  # full torque on one wheel: the body spins the other way and falls
+                assert time.monotonic() < deadline, "the robot did not fall"
+                client.put(cmd_key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[1.5, 0.0, 0.0],
+                                                             foot_torque=0.0, armed=True)))
+                await asyncio.sleep(0.002)
+            assert twin.metrics.falls == 1
+
+            refused = await asyncio.to_thread(set_params, {"twin.variant": "sim15nm"})
+            assert "fixed while the twin runs" in refused.error and refused.params["twin.variant"] == "indoor"
+            await asyncio.sleep(0.2)
+            assert twin.metrics.fell and twin.counters.get("put_back") == 0
+
+            reply = await asyncio.to_thread(set_params, {"twin.seed": 3})
+            assert reply.error == "" and reply.params["twin.seed"] == 3
+            await wait_for(lambda: twin.counters.get("put_back") == 1, timeout_s=5.0)
+            await asyncio.sleep(0.05)  # a few ticks of no command: at rest over the start
+            root = twin.model.joint(tm.ROOT_JOINT).qposadr[0]
+            qpos = twin.data.qpos[root:root + 7]
+            assert abs(qpos[0]) < 0.01 and abs(qpos[1]) < 0.01 and qpos[3] > 0.999  # upright over the start
+            assert not twin.metrics.fell and twin.metrics.falls == 1 and twin.sensors is not None
+            status = await asyncio.to_thread(query_status, client, NS, "twin")
+            assert status.counters["put_back"] == 1 and status.extra["falls"] == 1.0
+        finally:
+            client.close()
+            twin.request_stop()
+            await asyncio.wait_for(task, TIMEOUT_S)
 
     asyncio.run(scenario())

@@ -1,0 +1,349 @@
+"""The chaos soak: schedule parsing, the per-fault analysis on synthetic event streams, the
+malformed payloads, and one short soak of the real stack (marked ``soak``)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+from array import array
+from collections import Counter
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from deploy import soak_faults as sf
+from deploy.sil_soak import DEFAULT_SCHEDULE
+from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, window_losses
+from deploy.soak_schedule import (
+    FLOOD_RATE_HZ, KINDS, Fault, ScheduleError, check_schedule, load_schedule, parse_kill, parse_schedule, parse_shorthand,
+)
+from onboard import messages as m
+from onboard.topics import TOPICS
+from services.zenoh_session import free_endpoint
+
+NS = 1_000_000_000
+MS = 1_000_000
+REPO = Path(__file__).resolve().parent.parent
+
+SCHEDULE_TOML = """
+[soak]
+duration_s = 120
+
+[[fault]]
+kind = "malformed_flood"
+at = 50
+topics = ["imu", "pose"]
+duration = 5
+
+[[fault]]
+kind = "stall"
+at = 20
+target = "control/child"
+duration = 0.2
+
+[[fault]]
+kind = "bad_stamps"
+at = 60
+topics = "pose"
+offset = -10
+duration = 2
+rate_hz = 100
+
+[[fault]]
+kind = "router_restart"
+at = 70
+
+[[fault]]
+kind = "cpu_hog"
+at = 80
+cpu = 1
+duration = 10
+
+[[fault]]
+kind = "kill"
+at = 100
+target = "planner"
+"""
+
+
+# --- schedules ---------------------------------------------------------------------------------------
+
+
+def test_a_toml_schedule_parses_sorted_with_defaults_and_json_says_the_same() -> None:
+    schedule = parse_schedule(SCHEDULE_TOML, "toml")
+    assert [f.kind for f in schedule.faults] == ["stall", "malformed_flood", "bad_stamps", "router_restart", "cpu_hog", "kill"]
+    stall, flood, stamps, router, hog, kill = schedule.faults
+    assert stall == Fault("stall", 20.0, target="control/child", duration_s=0.2)
+    assert stall.service == "control" and stall.end_s == pytest.approx(20.2)
+    assert flood.rate_hz == FLOOD_RATE_HZ and flood.topics == ("imu", "pose")
+    assert stamps.topics == ("pose",) and stamps.offset_s == -10.0 and stamps.rate_hz == 100.0
+    assert router.service == "router" and hog.cpu == 1 and kill.target == "planner"
+    assert schedule.settings == {"duration_s": 120}
+    as_json = json.dumps({"soak": schedule.settings, "fault": [f.describe() for f in schedule.faults]})
+    assert parse_schedule(as_json, "json") == schedule
+
+
+def test_the_shorthand_makes_the_same_faults_as_a_file() -> None:
+    assert parse_shorthand("stall@20:target=control/child,duration=0.2") == Fault("stall", 20.0, target="control/child", duration_s=0.2)
+    assert parse_shorthand("malformed_flood@50:topics=imu+pose,duration=5") == parse_schedule(SCHEDULE_TOML, "toml").faults[1]
+    assert parse_shorthand("router_restart@70") == Fault("router_restart", 70.0)
+    assert parse_kill("control/child@300") == Fault("kill", 300.0, target="control/child")
+
+
+@pytest.mark.parametrize("spec, complaint", [
+    ("explode@10", "fault kind 'explode'"),
+    ("stall@10:target=control,duration=0.01", "a stall lasts"),
+    ("stall@10:target=control,duration=3", "a stall lasts"),
+    ("stall@10:target=control", "needs a duration"),
+    ("kill@10:target=control/loop", "target must be SERVICE or SERVICE/child"),
+    ("kill@10", "target must be"),
+    ("kill@-1:target=control", "'at' must be a time >= 0"),
+    ("kill@10:target=control,duration=2", "unknown parameters ['duration']"),
+    ("malformed_flood@10:topics=imu+bogus,duration=1", "unknown topics ['bogus']"),
+    ("malformed_flood@10:duration=1", "needs topics"),
+    ("bad_stamps@10:topics=depth,offset=5,duration=1", "binary layout"),
+    ("bad_stamps@10:topics=pose,duration=1", "needs an offset"),
+    ("cpu_hog@10:duration=5,cpu=-1", "cpu must be >= 0"),
+    ("cpu_hog@10:duration=ten", "duration = 'ten' is not valid"),
+    ("stall:target=control", "expected KIND@T"),
+])
+def test_a_fault_that_cannot_run_as_written_is_refused_naming_why(spec: str, complaint: str) -> None:
+    with pytest.raises(ScheduleError, match=complaint.replace("[", r"\[").replace("]", r"\]").replace("(", r"\(")):
+        parse_shorthand(spec)
+
+
+def test_a_schedule_must_fit_its_run() -> None:
+    services = ["estimator", "control", "planner"]
+    check_schedule(parse_schedule(SCHEDULE_TOML, "toml"), 120.0, services)
+    with pytest.raises(ScheduleError, match="after the run"):
+        check_schedule(parse_schedule(SCHEDULE_TOML, "toml"), 90.0, services)
+    with pytest.raises(ScheduleError, match="'recorder' is not a unit of this run"):
+        check_schedule(parse_schedule(SCHEDULE_TOML, "toml").merged([parse_kill("recorder@30")]), 120.0, services)
+    overlapping = parse_schedule(SCHEDULE_TOML, "toml").merged([parse_shorthand("router_restart@52")])
+    with pytest.raises(ScheduleError, match="starts before malformed_flood@50 ended"):
+        check_schedule(overlapping, 120.0, services)
+    with pytest.raises(ScheduleError, match="not valid toml"):
+        parse_schedule("[[fault]\nkind=", "toml")
+    with pytest.raises(ScheduleError, match="unknown top-level keys"):
+        parse_schedule('{"faults": []}', "json")
+
+
+def test_the_default_schedule_runs_ten_minutes_with_every_fault_twice_and_room_to_recover() -> None:
+    schedule = load_schedule(DEFAULT_SCHEDULE)
+    settings = schedule.settings
+    assert settings["duration_s"] == 600
+    check_schedule(schedule, settings["duration_s"], settings["services"].split(","))
+    kinds = Counter(f.kind for f in schedule.faults)
+    assert set(kinds) == set(KINDS) and min(kinds.values()) >= 2
+    gaps = [b.at_s - a.end_s for a, b in zip(schedule.faults, schedule.faults[1:])]
+    assert min(gaps) >= 20.0
+    assert tomllib.loads(DEFAULT_SCHEDULE.read_text())["soak"]["services"] == settings["services"]
+
+
+# --- helper payloads ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("topic", list(TOPICS))
+def test_every_malformed_payload_is_refused_and_every_kind_of_flaw_is_there(topic: str) -> None:
+    payloads = sf.malformed_payloads(topic)
+    assert len(payloads) >= 8
+    if TOPICS[topic].msg_type is None:
+        return
+    for payload in payloads:
+        with pytest.raises(m.MessageError):
+            m.decode(payload, TOPICS[topic].msg_type)
+    text = b"\n".join(payloads)
+    for flaw in (b"unknown_field", b'"version":99', b'"stamp_ns":"now"'):
+        assert flaw in text
+    # the schema example they are made from is itself well formed
+    m.decode(msgspec.json.encode(sf.example(msgspec.inspect.type_info(TOPICS[topic].msg_type))), TOPICS[topic].msg_type)
+
+
+def test_imu_floods_hold_wrong_lengths_and_non_finite_numbers() -> None:
+    text = b"\n".join(sf.malformed_payloads("imu"))
+    assert b"1e999" in text  # non-finite
+    assert b'"gyro":[0.0,0.0,0.0,0.0]' in text.replace(b" ", b"")  # one element too many
+
+
+# --- analysis on synthetic streams --------------------------------------------------------------------
+
+
+def _torque(streams: Streams, t0_s: float, t1_s: float, armed: bool) -> None:
+    t = int(t0_s * NS)
+    while t < int(t1_s * NS):
+        streams.torque_rx.append(t)  # type: ignore[attr-defined]
+        streams.torque_armed.append(1 if armed else 0)  # type: ignore[attr-defined]
+        t += MS
+
+
+def _every(t0_s: float, t1_s: float, period_s: float) -> list[int]:
+    return [int((t0_s + k * period_s) * NS) for k in range(int((t1_s - t0_s) / period_s))]
+
+
+def _nominal(until_s: float = 40.0) -> Streams:
+    """Armed and hopping, the reference at 10 Hz, every token up, the twin upright."""
+    s = Streams(torque_rx=array("q"), torque_armed=bytearray())
+    s.reference_rx = _every(0.0, until_s, 0.1)
+    s.touchdowns = _every(0.2, until_s, 0.4)
+    s.liveliness = [(0, name, True) for name in ("twin", "estimator", "control", "planner", "router")]
+    s.statuses = [(t, "twin", {"falls": 0.0}) for t in _every(1.0, until_s, 2.0)]
+    return s
+
+
+def test_a_control_kill_is_seen_by_the_twin_first_and_recovered_when_armed_and_hopping_again() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 10.0, armed=True)  # killed at 10 s: no command until the restart at 14 s
+    _torque(s, 14.0, 15.0, armed=False)  # the new control waits for an upright estimate
+    _torque(s, 15.0, 15.5, armed=True)
+    _torque(s, 15.5, 15.6, armed=False)  # one more glitch: armed only counts when it holds
+    _torque(s, 15.6, 40.0, armed=True)
+    s.safety = [(int(10.011 * NS), "command_stale"), (int(10.6 * NS), "tilt"), (int(15.0 * NS), "arm")]
+    s.liveliness += [(int(10.014 * NS), "control", False), (int(14.0 * NS), "control", True)]
+    s.touchdowns = [t for t in s.touchdowns if not 10 * NS < t < 16 * NS]
+    s.statuses = [(t, "twin", {"falls": 0.0 if t < 11 * NS else 1.0}) for t in _every(1.0, 40.0, 2.0)]
+    inj = Injection(Fault("kill", 10.0, target="control"), 10 * NS, 10 * NS, 30 * NS, pid=1234,
+                    exited_ns=int(10.012 * NS), reaped_ns=int(10.013 * NS), put_back_ns=12 * NS)
+
+    out = analyze(s, inj, t0_ns=0)
+
+    assert out["kind"] == "kill" and out["target"] == "control" and out["injected_at_s"] == 10.0
+    assert out["detected"] and out["detected_by"] == "safety:command_stale" and out["detection_ms"] == pytest.approx(11.0)
+    assert out["signals_ms"] == {"safety:command_stale": 11.0, "noticed_exit:control": 13.0, "liveliness_lost:control": 14.0,
+                                 "safety:tilt": 600.0}  # the routine "arm" trip is no sign of a fault
+    assert out["exited_ms"] == 12.0 and out["exit_noticed_ms"] == 13.0
+    assert out["armed_at_injection"] and out["zero_torque_ms"] == pytest.approx(11.0) and out["zero_torque_by"] == "twin command_stale"
+    assert out["fell"] is True and out["tilt_trip_s"] == 0.6 and out["put_back_s"] == 2.0
+    assert out["recovery"]["unit:control"] == 4.0
+    assert out["recovery"]["armed"] == pytest.approx(5.6)  # the run that held ARMED_HOLD_S, not the glitched one
+    first_touchdown = min(t for t in s.touchdowns if t >= 15.6 * NS) / NS - 10.0
+    assert out["recovery"]["hopping"] == pytest.approx(first_touchdown, abs=1e-3)
+    assert out["degraded"] and out["recovered"] and out["recovery_s"] == pytest.approx(first_touchdown, abs=1e-3)
+    assert "lost" not in out  # no recording given
+
+
+def test_a_fault_nobody_noticed_is_reported_undetected_and_undisturbed() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)
+    s.statuses += [(int(9.9 * NS), "recorder", {"counters.errors": 0.0}), (int(10.5 * NS), "recorder", {"counters.errors": 0.0})]
+    s.statuses.sort(key=lambda r: r[0])
+    out = analyze(s, Injection(Fault("stall", 10.0, target="recorder", duration_s=0.1), 10 * NS, int(10.1 * NS), 30 * NS), t0_ns=0)
+    assert not out["detected"] and out["detection_ms"] is None and out["signals_ms"] == {}
+    assert out["armed_at_injection"] and out["zero_torque_ms"] is None
+    assert out["fell"] is False and not out["degraded"] and out["recovered"] and out["recovery_s"] == 0.0
+
+
+def test_a_flood_is_detected_by_the_rejection_counter_of_its_topic_only() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)
+    s.statuses += [
+        (int(9.5 * NS), "estimator", {"counters.rejected.imu": 3.0, "counters.rejected.joints": 0.0, "loop_overruns": 5.0}),
+        (int(10.2 * NS), "estimator", {"counters.rejected.imu": 3.0, "counters.rejected.joints": 1.0, "loop_overruns": 9.0}),
+        (int(10.7 * NS), "estimator", {"counters.rejected.imu": 2503.0, "counters.rejected.joints": 1.0, "loop_overruns": 9.0}),
+        (int(10.8 * NS), "control", {"rejected_imu": 0.0}),
+    ]
+    s.statuses.sort(key=lambda r: r[0])
+    flood = Fault("malformed_flood", 10.0, topics=("imu",), duration_s=1.0, rate_hz=5000.0)
+    out = analyze(s, Injection(flood, 10 * NS, 11 * NS, 30 * NS, helper={"sent": {"imu": 5000}}), t0_ns=0)
+    assert out["detected_by"] == "counter:estimator.counters.rejected.imu" and out["detection_ms"] == pytest.approx(700.0)
+    assert list(out["signals_ms"]) == ["counter:estimator.counters.rejected.imu"]  # not joints, not overruns
+    assert out["helper"] == {"sent": {"imu": 5000}} and out["recovery_s"] == 0.0
+    # a CPU hog's sign is the overrun counter instead
+    hog = analyze(s, Injection(Fault("cpu_hog", 10.0, duration_s=1.0), 10 * NS, 11 * NS, 30 * NS), t0_ns=0)
+    assert hog["detected_by"] == "counter:estimator.loop_overruns" and hog["detection_ms"] == pytest.approx(200.0)
+
+
+def test_a_planner_kill_is_recovered_when_the_reference_flows_again() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)
+    s.reference_rx = [t for t in s.reference_rx if not 10 * NS < t < 16 * NS]
+    s.liveliness += [(int(10.02 * NS), "planner", False), (int(15.0 * NS), "planner", True)]
+    out = analyze(s, Injection(Fault("kill", 10.0, target="planner"), 10 * NS, 10 * NS, 30 * NS), t0_ns=0)
+    assert out["detected_by"] == "liveliness_lost:planner"
+    assert out["zero_torque_ms"] is None and out["fell"] is False
+    assert out["recovery"] == {"unit:planner": 5.0, "reference": pytest.approx(6.0, abs=0.11)}
+    assert out["recovery_s"] == out["recovery"]["reference"]
+    # never back inside the window: not recovered
+    s.reference_rx = [t for t in s.reference_rx if t < 10 * NS]
+    late = analyze(s, Injection(Fault("kill", 10.0, target="planner"), 10 * NS, 10 * NS, 30 * NS), t0_ns=0)
+    assert late["recovery"]["reference"] is None and not late["recovered"] and late["recovery_s"] is None
+
+
+def test_disarmed_commands_count_as_zero_torque_only_when_the_robot_was_armed() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 10.3, armed=True)
+    _torque(s, 10.3, 10.5, armed=False)
+    _torque(s, 10.5, 40.0, armed=True)
+    out = analyze(s, Injection(Fault("bad_stamps", 10.0, topics=("imu",), duration_s=1.0, offset_s=-10.0), 10 * NS, 11 * NS, 30 * NS), t0_ns=0)
+    assert out["zero_torque_ms"] == pytest.approx(300.0) and out["zero_torque_by"] == "torque_cmd armed=false"
+    assert out["recovery"]["armed"] == pytest.approx(0.5) and out["recovered"]
+    assert ARMED_HOLD_S < 20.0  # the window held it
+    disarmed = _nominal()
+    _torque(disarmed, 0.0, 40.0, armed=False)
+    out = analyze(disarmed, Injection(Fault("kill", 10.0, target="control"), 10 * NS, 10 * NS, 30 * NS), t0_ns=0)
+    assert not out["armed_at_injection"] and out["zero_torque_ms"] is None
+
+
+def test_losses_per_window_come_from_sequence_gaps_and_a_restart_is_no_loss() -> None:
+    msgs: list[tuple[int, str, int]] = []
+    for k in range(1, 301):  # imu at 100 Hz; seq 151..155 lost (inside window 0), 201..210 lost (spans window 1's start)
+        if not (151 <= k <= 155 or 201 <= k <= 210):
+            msgs.append((k * 10 * MS, "imu", k))
+    for k in range(1, 101):  # torque_cmd at 50 Hz: the commander restarts at 1.52 s
+        msgs.append((k * 20 * MS + 1, "torque_cmd", k if k <= 75 else k - 75))
+    for k, pub_seq in enumerate([1, 1, 2, 2, 3, 3]):  # safety from control and the twin, interleaved
+        msgs.append((k * 400 * MS + 2, "safety", pub_seq))
+    msgs.append((1500 * MS + 3, "imu", 0))  # a flood's message: no sequence to check
+    msgs.sort()
+    windows = [(1400 * MS, 1800 * MS), (2055 * MS, 2500 * MS), (2800 * MS, 2900 * MS)]
+    w0, w1, w2 = window_losses(msgs, windows)
+    assert w0["imu"] == {"received": 36, "lost": 5, "restarts": 0}
+    assert w0["torque_cmd"]["lost"] == 0 and w0["torque_cmd"]["restarts"] == 1
+    assert w0["safety"]["lost"] == 0
+    assert w1["imu"]["lost"] == 10 and w1["torque_cmd"]["restarts"] == 0
+    assert w2["imu"] == {"received": 10, "lost": 0, "restarts": 0}
+
+
+# --- a real soak ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.soak
+def test_a_short_soak_detects_a_stall_and_a_flood_and_leaves_no_process(tmp_path: Path) -> None:
+    out = tmp_path / "soak"
+    argv = [sys.executable, "-m", "deploy.sil_soak", "--duration", "17", "--services", "estimator,control,recorder",
+            "--fault", "stall@7:target=control/child,duration=0.2",
+            "--fault", "malformed_flood@11:topics=imu,duration=1.5,rate_hz=2000",
+            "--no-plot", "--out", str(out), "--namespace", f"archer/soaktest{free_endpoint().rsplit(':', 1)[1]}"]
+    proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [json.loads(line) for line in proc.stdout.strip().splitlines()]
+    stall, flood, totals = lines
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["faults"] == [stall, flood] and summary["totals"] == totals["totals"]
+
+    assert stall["kind"] == "stall" and stall["detected"] and stall["armed_at_injection"], stall
+    assert stall["detected_by"].startswith("safety:")  # the twin's watchdog, or control's stale estimate
+    assert 0.19 <= stall["action_s"] <= 0.5
+    assert stall["zero_torque_ms"] is not None and 5.0 <= stall["zero_torque_ms"] <= 100.0, stall
+    assert stall["fell"] is False and stall["recovered"] and 0.0 < stall["recovery_s"] < 5.0, stall
+
+    # the rejection counter rises (a status poll's time); a safety trip may come first (estimates late under the flood)
+    rejections = [ms for name, ms in flood["signals_ms"].items() if name.startswith("counter:") and "rejected" in name and "imu" in name]
+    assert flood["detected"] and rejections and 0.0 <= min(rejections) <= 3000.0, flood
+    assert flood["detection_ms"] <= min(rejections)
+    assert flood["helper"]["sent"]["imu"] >= 2500 and flood["fell"] is False
+    for fault in (stall, flood):
+        assert set(fault["lost"]) >= {"imu", "joints", "torque_cmd", "state"} and all(n >= 0 for n in fault["lost"].values())
+    assert totals["totals"]["detected"] == 2 and totals["totals"]["falls"] == 0
+    assert summary["metrics"]["mode"] == "realtime" and summary["metrics"]["sim_time_s"] > 15.0
+    assert summary["recorder"]["imu"]["received"] > 10_000
+    # nothing of the run is left: every process carrying its endpoint is gone
+    assert sf_processes(summary["run"]["endpoint"]) == []
+
+
+def sf_processes(endpoint: str) -> list[int]:
+    from deploy.sil_soak import _processes_with
+
+    return _processes_with(endpoint.encode())
