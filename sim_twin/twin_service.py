@@ -18,7 +18,8 @@ It also publishes the scenario's ``goal`` and ground-truth ``polytopes`` (``publ
 Setting ``twin.seed`` on the running twin (its parameter query) puts the robot back, as a person
 picks up a fallen robot in a long test: between two ticks the physics restarts from the
 scenario's initial state (upright, at rest, over the start) and the sensors' noise is drawn anew
-from that seed; simulated time goes on, the world stays as built and ``falls`` counts every fall.
+from that seed; simulated time goes on, the world stays as built and ``falls`` counts every fall
+(a put-back robot that stands for ``RECOVERY_S`` ends the episode).
 The other ``twin`` parameters fix the model and the world at start: changing them is refused.
 Simulated time advances one tick per loop tick; an overrun (a tick later than the next deadline)
 skips deadlines, so the real-time factor (simulated / wall seconds) drops below 1 and is reported
@@ -151,7 +152,6 @@ class TwinService(Service):
         tp: TwinParams = self.params["twin"]
         self.scenario.initialize(self.model, self.data, self.robot)
         self.sensors = SensorSuite(self.model, tp, tp.seed)
-        self.metrics.fell = False  # the next fall counts again
         self.count("put_back")
         self.log.warning("robot put back", extra={"fields": {"seed": tp.seed, "falls": self.metrics.falls}})
 
