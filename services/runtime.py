@@ -283,8 +283,13 @@ class Service:
         """
         return True
 
+    def accept_params(self, updated: dict[str, Any]) -> None:
+        """Raise ValueError to refuse validated new sections the service cannot take in
+        its current state (called on a Zenoh thread, under the parameter lock)."""
+
     def on_params_changed(self, section: str) -> None:
-        """Called (on a Zenoh thread) after a validated parameter change."""
+        """Called (on a Zenoh thread) after a validated parameter change, under the
+        parameter lock: changes apply one at a time, in the order they were accepted."""
 
     # --- messaging ----------------------------------------------------------------
 
@@ -447,10 +452,11 @@ class Service:
             by_section.setdefault(section, {})[name] = value
         with self._params_lock:
             updated = {s: with_overrides(self.params[s], ch) for s, ch in by_section.items()}
+            self.accept_params(updated)
             self.params.update(updated)
-        for section in updated:
-            self.log.info("parameters changed", extra={"fields": {"section": section, "changes": by_section[section]}})
-            self.on_params_changed(section)
+            for section in updated:
+                self.log.info("parameters changed", extra={"fields": {"section": section, "changes": by_section[section]}})
+                self.on_params_changed(section)
 
     # --- lifecycle ----------------------------------------------------------------------
 
