@@ -45,7 +45,7 @@ def above(lo: float, hi: float) -> Meta:
 WHEEL_TORQUE_PEAK = 15.0  # [N m] largest wheel drive peak of any variant (sim15nm; the real KV115 drive: 1.6)
 FOOT_TORQUE_PEAK = 10.0  # [N m] the foot cable drive's peak at the gearbox output
 WHEEL_NO_LOAD_SPEED = 611.8  # [rad/s] KV115 on the 50.8 V bus: no torque left beyond it
-JOINTS = 4  # wheel 0, wheel 1, wheel 2, foot
+CAN_NODES = 127  # CANopen node ids 1..127: per-node tuples are never longer (an emulated bus may carry more drives than joints)
 LOOP_HZ_MAX = 2000.0  # [Hz] what a Python hard-rate loop keeps on the onboard computer
 
 Probability = Annotated[float, within(0.0, 1.0)]
@@ -142,16 +142,16 @@ class HardwareParams(_Section):
     can_host: str = "127.0.0.1"  # socketcand only
     can_port: Port = 29536  # socketcand only
     can_bitrate: Annotated[int, within(10_000, 1_000_000)] = 1_000_000  # [bit/s] classic CAN tops out at 1 Mbit/s
-    node_ids: Annotated[tuple[Annotated[int, within(1, 127)], ...], Meta(min_length=1, max_length=JOINTS)] = (1, 2, 3, 4)  # CANopen node of each joint
-    host_node_id: Annotated[int, within(1, 127)] = 127  # the host's heartbeat identifier 0x700 + id
+    node_ids: Annotated[tuple[Annotated[int, within(1, CAN_NODES)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (1, 2, 3, 4)  # CANopen node of each joint
+    host_node_id: Annotated[int, within(1, CAN_NODES)] = 127  # the host's heartbeat identifier 0x700 + id
     host_heartbeat_period_s: Annotated[float, above(0.0, 1.0)] = 0.025  # drives fault after SafetyLimits.heartbeat_timeout_s
     drive_heartbeat_period_s: Annotated[float, above(0.0, 1.0)] = 0.050  # drive heartbeat producer time (0x1017)
     position_every: Annotated[int, within(1, 1000)] = 10  # position PDO on every n-th SYNC (bus budget)
     sdo_timeout_s: Annotated[float, above(0.0, 10.0)] = 0.5  # [s] per SDO response
     enable_timeout_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] to reach OPERATION ENABLED
-    torque_constant: Annotated[tuple[Annotated[float, above(0.0, 1.0)], ...], Meta(min_length=1, max_length=JOINTS)] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
-    current_max: Annotated[tuple[Annotated[float, above(0.0, 100.0)], ...], Meta(min_length=1, max_length=JOINTS)] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
-    joint_sign: Annotated[tuple[Literal[1, -1], ...], Meta(min_length=1, max_length=JOINTS)] = (1, 1, 1, 1)  # motor direction vs joint direction
+    torque_constant: Annotated[tuple[Annotated[float, above(0.0, 1.0)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
+    current_max: Annotated[tuple[Annotated[float, above(0.0, 100.0)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
+    joint_sign: Annotated[tuple[Literal[1, -1], ...], Meta(min_length=1, max_length=CAN_NODES)] = (1, 1, 1, 1)  # motor direction vs joint direction
     # Teensy
     serial_port: str = ""  # e.g. /dev/ttyACM0 or the pty the emulator prints
     teensy_mode: Literal["torque", "attitude"] = "torque"  # "torque" or "attitude" (the Teensy runs the PD)
@@ -161,15 +161,9 @@ class HardwareParams(_Section):
     recover_request: Request = 0  # operator command: set a new value to clear latched faults and re-initialise
 
     def _relations(self) -> list[str]:
-        errors = []
-        per_joint = {"node_ids": self.node_ids, "torque_constant": self.torque_constant,
-                     "current_max": self.current_max, "joint_sign": self.joint_sign}
-        if len({len(v) for v in per_joint.values()}) > 1:
-            errors.append("hardware.node_ids, torque_constant, current_max, joint_sign: one entry per joint each, "
-                          f"got {', '.join(f'{k} {len(v)}' for k, v in per_joint.items())}")
         if self.reconnect_min_s > self.reconnect_max_s:
-            errors.append(f"hardware.reconnect_min_s: above reconnect_max_s ({self.reconnect_min_s} > {self.reconnect_max_s})")
-        return errors
+            return [f"hardware.reconnect_min_s: above reconnect_max_s ({self.reconnect_min_s} > {self.reconnect_max_s})"]
+        return []
 
 
 # Sections owned by each layer follow; each is registered in SECTIONS below.
