@@ -56,6 +56,8 @@ Port = Annotated[int, within(1, 65535)]
 Seed = Annotated[int, within(0, 2**32 - 1)]  # numpy's seed range
 Request = Annotated[int, within(0, 2**53)]  # an operator command counter: a new value is the command
 Name = Annotated[str, Meta(min_length=1)]
+NodeId = Annotated[int, within(1, CAN_NODES)]
+PER_NODE = Meta(min_length=1, max_length=CAN_NODES)  # a tuple with one entry per drive
 
 
 @functools.cache
@@ -142,16 +144,16 @@ class HardwareParams(_Section):
     can_host: str = "127.0.0.1"  # socketcand only
     can_port: Port = 29536  # socketcand only
     can_bitrate: Annotated[int, within(10_000, 1_000_000)] = 1_000_000  # [bit/s] classic CAN tops out at 1 Mbit/s
-    node_ids: Annotated[tuple[Annotated[int, within(1, CAN_NODES)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (1, 2, 3, 4)  # CANopen node of each joint
-    host_node_id: Annotated[int, within(1, CAN_NODES)] = 127  # the host's heartbeat identifier 0x700 + id
+    node_ids: Annotated[tuple[NodeId, ...], PER_NODE] = (1, 2, 3, 4)  # CANopen node of each joint
+    host_node_id: NodeId = 127  # the host's heartbeat identifier 0x700 + id
     host_heartbeat_period_s: Annotated[float, above(0.0, 1.0)] = 0.025  # drives fault after SafetyLimits.heartbeat_timeout_s
     drive_heartbeat_period_s: Annotated[float, above(0.0, 1.0)] = 0.050  # drive heartbeat producer time (0x1017)
     position_every: Annotated[int, within(1, 1000)] = 10  # position PDO on every n-th SYNC (bus budget)
     sdo_timeout_s: Annotated[float, above(0.0, 10.0)] = 0.5  # [s] per SDO response
     enable_timeout_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] to reach OPERATION ENABLED
-    torque_constant: Annotated[tuple[Annotated[float, above(0.0, 1.0)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
-    current_max: Annotated[tuple[Annotated[float, above(0.0, 100.0)], ...], Meta(min_length=1, max_length=CAN_NODES)] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
-    joint_sign: Annotated[tuple[Literal[1, -1], ...], Meta(min_length=1, max_length=CAN_NODES)] = (1, 1, 1, 1)  # motor direction vs joint direction
+    torque_constant: Annotated[tuple[Annotated[float, above(0.0, 1.0)], ...], PER_NODE] = (0.083, 0.083, 0.083, 0.083)  # [N m/A] KV115 wheels
+    current_max: Annotated[tuple[Annotated[float, above(0.0, 100.0)], ...], PER_NODE] = (12.0, 12.0, 12.0, 12.0)  # [A] drive current clamp
+    joint_sign: Annotated[tuple[Literal[1, -1], ...], PER_NODE] = (1, 1, 1, 1)  # motor direction vs joint direction
     # Teensy
     serial_port: str = ""  # e.g. /dev/ttyACM0 or the pty the emulator prints
     teensy_mode: Literal["torque", "attitude"] = "torque"  # "torque" or "attitude" (the Teensy runs the PD)
