@@ -22,9 +22,10 @@ from services.zenoh_session import open_session
 from helpers import wait_for
 
 NS = "archer/test-control-params"
-# This workstation's margins (deploy/config/sil.toml): a stalled feeder thread in the
-# test process must not disarm the loop, or "control never dropped" would test the machine.
-PARAMS = {"control": ControlParams(estimate_fault_disarm_s=0.3), "safety": SafetyLimits(estimate_stale_s=0.03)}
+# Wide estimate margins: the feeder is a thread of the test process, and its stalls on
+# a loaded machine must not make the loop send safe commands, or "control never dropped"
+# would test the machine rather than the parameter path.
+PARAMS = {"control": ControlParams(estimate_fault_disarm_s=1.0), "safety": SafetyLimits(estimate_stale_s=0.1)}
 GAP_MAX_S = 0.05  # a restart of the loop process costs seconds; a tick 1 ms
 WATCHDOG_USEC = 2_000_000  # the control unit's WatchdogSec=2
 
@@ -124,12 +125,14 @@ def test_a_gain_change_while_armed_is_taken_between_ticks_and_a_bad_limit_is_ref
             await asyncio.sleep(1.5)
             across = torque.between(t_change - 1.0, time.monotonic())
             before = torque.between(t_change - 2.0, t_change - 1.0)
-            print(f"torque command gaps, max [ms]: loop stamps {1e3 * max_gap(across, 1):.1f} across the change, "
-                  f"{1e3 * max_gap(before, 1):.1f} in the second before; arrivals {1e3 * max_gap(across, 0):.1f} "
-                  f"and {1e3 * max_gap(before, 0):.1f}; {len(across)} commands")
-            assert service._loop_proc is proc and proc.alive and proc.proc.pid == pid  # no restart
-            assert max_gap(across, 1) < GAP_MAX_S  # the loop ticked on through the change
-            assert len(across) > 1500 and all(armed for _, _, armed in across)  # control never dropped
+            figures = (f"torque command gaps, max [ms]: loop stamps {1e3 * max_gap(across, 1):.1f} across the change, "
+                       f"{1e3 * max_gap(before, 1):.1f} in the second before; arrivals {1e3 * max_gap(across, 0):.1f} "
+                       f"and {1e3 * max_gap(before, 0):.1f}; {len(across)} commands, "
+                       f"{sum(not armed for _, _, armed in across)} not armed")
+            print(figures)
+            assert service._loop_proc is proc and proc.alive and proc.proc.pid == pid, figures  # no restart
+            assert max_gap(across, 1) < GAP_MAX_S, figures  # the loop ticked on through the change
+            assert len(across) > 1500 and all(armed for _, _, armed in across), figures  # control never dropped
             # the controller in the loop process runs with the new gain (read back from it)
             await wait_for(lambda: proc.last["control"].kp_tilt == 40.5, timeout_s=5.0)
             status = await asyncio.to_thread(query_status, client, NS, "control")
