@@ -1,6 +1,6 @@
 """Chaos soak: the real-time stack for minutes on the twin, with a schedule of faults injected.
 
-    python -m deploy.sil_soak --schedule deploy/config/soak_default.toml --out /tmp/soak
+    python -m deploy.sil_soak --schedule deploy/soak/default.toml --out /tmp/soak
     archer soak --duration 90 --fault stall@30:target=control/child,duration=0.2 --out /tmp/soak
 
 Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every service its own
@@ -59,7 +59,7 @@ from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
 NS_DEFAULT = "archer/soak"
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 SIL_CONFIG = CONFIG_DIR / "sil.toml"
-DEFAULT_SCHEDULE = CONFIG_DIR / "soak_default.toml"
+DEFAULT_SCHEDULE = Path(__file__).resolve().parent / "soak" / "default.toml"
 SERVICES = "estimator,control,planner,recorder"
 DURATION_S = 600.0
 GOAL_RESEND_S = 1.0

@@ -47,15 +47,19 @@ class HopRegulator:
         """``loss_nominal``: the per-hop energy loss [J] the reduced model predicts."""
         if phys.spool_radius <= 0 or phys.spring_k <= 0:
             raise ValueError("spool radius and spring stiffness must be positive")
-        self.p = params
         self.phys = phys
         self.loss = max(0.0, loss_nominal)  # [J] current estimate
         self._mg = phys.total_mass * phys.gravity
-        self._dmax = min(params.preload_max, phys.travel)
+        self.retune(params)
         self.preload_cmd = self._preload_for(params.hop_height)  # [m]
         self._released = math.nan  # spring compression at the last touchdown [m]
         self._h_prev = math.nan  # hop height of the flight before the last stance [m]
         self._h_now = math.nan  # hop height of the current flight [m]
+
+    def retune(self, params: ControlParams) -> None:
+        """New gains; the learnt loss and the current hop carry on."""
+        self.p = params
+        self._dmax = min(params.preload_max, self.phys.travel)
 
     def _preload_for(self, h: float) -> float:
         energy = self.loss + self.p.hop_gain * self._mg * (self.p.hop_height - h)

@@ -8,6 +8,7 @@ Interface (used by the ``control`` service and by the twin's lockstep runner):
     ctrl.drain_safety_events()  # -> list[SafetyEvent] (every trip, to log and publish)
     ctrl.tube(stamp_ns)         # -> TrackingTube      (the measured certificate)
     ctrl.request_arm(); ctrl.disarm(now_ns)
+    ctrl.retune(control_params, safety_limits)  # new gains and limits, between two ticks
 
 ``services.control.build_controller(variant, ...)`` builds one from the MJCF (the
 robot's parameters and the reduced hopper model) and the policy weights file; use
@@ -49,7 +50,7 @@ from onboard import zdp
 from onboard.foot_control import FootPhysics, HopRegulator
 from onboard.messages import ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand, TrackingTube
 from onboard.mlp import Mlp
-from onboard.params import ControlParams, SafetyLimits
+from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.phase import PhaseDetector
 from onboard.supervisor import Supervisor
 from onboard.tube import TubeMonitor
@@ -173,36 +174,18 @@ class LowLevelController:
     ) -> None:
         if params.policy not in POLICIES:
             raise ValueError(f"unknown policy {params.policy!r}; known: {', '.join(POLICIES)}")
-        self.p = params
         self.robot = robot
         self.hopper = hopper
-        self.safety = safety or SafetyLimits()
         self.design = design_policy(params, hopper)
         self.alloc = ac.WheelAllocation.from_axes(robot.wheel_axes)
-        self._kp = (params.kp_tilt, params.kp_tilt, params.kp_yaw)
-        self._kd = (params.kd_tilt, params.kd_tilt, params.kd_yaw)
         self._zero3 = (0.0, 0.0, 0.0)
-        # the controllers saturate at what the actuators deliver; the supervisor's
-        # clamps are the safety net behind them, and trip only on a real violation
-        self._wheel_max = min(self.safety.wheel_torque_max, robot.wheel_torque_peak)
-        self._foot_max = min(self.safety.foot_torque_max, robot.foot_torque_peak)
-
-        lin = self.design.linear
-        if params.policy == "zdp":
-            self._linear = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
-        elif params.policy == "lqr":  # the plain gain, nothing clipped (thesis Fig. 5.22)
-            self._linear = zdp.LinearPolicy.from_matrix(-lin.k_lqr, 0.0, 0.0, 0.0)
-        elif params.policy == "raibert":
-            kp, kd = params.raibert_kp, params.raibert_kd
-            s = -np.array([[kp, 0.0, kd, 0.0], [0.0, kp, 0.0, kd]])
-            self._linear = zdp.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
-        else:
+        if params.policy == "mlp":
             if mlp_weights is None:
                 raise ValueError("policy 'mlp' needs the weights (ControlParams.mlp_weights)")
             self._mlp = Mlp(mlp_weights)
             if (self._mlp.n_in, self._mlp.n_out) != (4, 2):
                 raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
-            self._linear = zdp.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+        self._tune(params, safety or SafetyLimits())
 
         self.supervisor = Supervisor(self.safety, params)
         touchdown_h = hopper.touchdown_height(self.design.preload_nominal)
@@ -229,6 +212,40 @@ class LowLevelController:
         self.holding = True
         self.armed_ticks = 0  # ticks that commanded torque
         self.saturated_ticks = 0  # of those, ticks whose wheel command hit the torque limit
+
+    def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
+        """What the gains and limits set directly: cheap enough for between two ticks."""
+        self.p = params
+        self.safety = safety
+        self._kp = (params.kp_tilt, params.kp_tilt, params.kp_yaw)
+        self._kd = (params.kd_tilt, params.kd_tilt, params.kd_yaw)
+        # the controllers saturate at what the actuators deliver; the supervisor's
+        # clamps are the safety net behind them, and trip only on a real violation
+        self._wheel_max = min(safety.wheel_torque_max, self.robot.wheel_torque_peak)
+        self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
+        lin = self.design.linear
+        if params.policy == "zdp":
+            self._linear = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+        elif params.policy == "lqr":  # the plain gain, nothing clipped (thesis Fig. 5.22)
+            self._linear = zdp.LinearPolicy.from_matrix(-lin.k_lqr, 0.0, 0.0, 0.0)
+        elif params.policy == "raibert":
+            kp, kd = params.raibert_kp, params.raibert_kd
+            s = -np.array([[kp, 0.0, kd, 0.0], [0.0, kp, 0.0, kd]])
+            self._linear = zdp.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+        else:  # the network's inputs and output are clipped as the linear policies' are
+            self._linear = zdp.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+
+    def retune(self, params: ControlParams, safety: SafetyLimits) -> None:
+        """Take new gains and limits between two ticks, keeping every state (armed,
+        phase, learnt hop loss, tube). A change of a field in
+        :data:`onboard.params.NEEDS_RESTART` needs a new controller: ValueError."""
+        rebuild = restart_changes("control", self.p, params)
+        if rebuild:
+            raise ValueError(f"{', '.join(rebuild)}: needs a new controller")
+        self._tune(params, safety)
+        self.supervisor.retune(safety, params)
+        self.phase.set_dwell(params.min_flight_s, params.min_stance_s)
+        self.foot.retune(params)
 
     # --- accessors -------------------------------------------------------------------
 

@@ -28,10 +28,7 @@ class PhaseDetector:
 
     def __init__(self, min_flight_s: float, min_stance_s: float, touchdown_height: float) -> None:
         """``touchdown_height``: CoM height [m] at touchdown assumed until one is seen."""
-        if min_flight_s < 0 or min_stance_s < 0:
-            raise ValueError("dwell times must be non-negative")
-        self._min_flight_ns = int(min_flight_s * NS)
-        self._min_stance_ns = int(min_stance_s * NS)
+        self.set_dwell(min_flight_s, min_stance_s)
         self.phase = "flight"
         self.hop = 0
         self.touchdown_height = touchdown_height
@@ -45,6 +42,13 @@ class PhaseDetector:
         self._seen_apex = False
         self._prev_foot_vel = 0.0
         self._prev_vz = 0.0
+
+    def set_dwell(self, min_flight_s: float, min_stance_s: float) -> None:
+        """The shortest flight and stance [s] a contact change must follow."""
+        if min_flight_s < 0 or min_stance_s < 0:
+            raise ValueError("dwell times must be non-negative")
+        self._min_flight_ns = int(min_flight_s * NS)
+        self._min_stance_ns = int(min_stance_s * NS)
 
     def reset(self, phase: str = "flight") -> None:
         self.phase = phase

@@ -65,8 +65,6 @@ class Supervisor:
     """See the module docstring."""
 
     def __init__(self, limits: SafetyLimits, params: ControlParams) -> None:
-        self.limits = limits
-        self.params = params
         self.armed = False
         self.arm_requested = params.auto_arm
         self.disarm_reason = "not armed"
@@ -78,6 +76,12 @@ class Supervisor:
         self._checked_ref: ComReference | None = None
         self._checked_ref_usable = False
         self._fault_since_ns: int | None = None
+        self.retune(limits, params)
+
+    def retune(self, limits: SafetyLimits, params: ControlParams) -> None:
+        """New limits and arming parameters; arming state, counts and trips carry on."""
+        self.limits = limits
+        self.params = params
         self._estimate_stale_ns = int(limits.estimate_stale_s * NS)
         self._reference_stale_ns = int(limits.reference_stale_s * NS)
         self._fault_disarm_ns = int(params.estimate_fault_disarm_s * NS)

@@ -15,8 +15,14 @@ Zenoh callbacks that drop decoded messages into latest-value slots; the parent p
 (this :class:`ControlService`) keeps the asyncio duties: liveliness, status, parameters,
 logging every safety trip. Every ``STATS_PERIOD_S`` the child reports its loop
 statistics (period jitter, compute time, overruns) and the safety trips to the parent
-over a pipe, so the tick never logs. Control parameters are read when the loop starts;
-a parameter change restarts the loop process.
+over a pipe, so the tick never logs.
+
+Parameters: a change of a control gain or a safety limit goes to the loop over the
+pipe and the controller takes it between two ticks (:meth:`LowLevelController.retune`);
+the loop process, its Zenoh session and the torque stream carry on. A change of a field
+in :data:`onboard.params.NEEDS_RESTART` needs a new loop process: refused while the
+controller is armed or about to arm, applied by a restart when disarmed (the new loop
+starts disarmed; the service's watchdog is fed through the restart).
 
 :func:`build_controller` builds the controller from the MJCF (the robot's parameters
 and the reduced hopper model) and the policy weights file; the twin's lockstep runner
@@ -33,6 +39,7 @@ import multiprocessing as mp
 import os
 import signal
 import threading
+import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, ClassVar
@@ -43,7 +50,7 @@ import numpy as np
 from onboard import messages as msgs
 from onboard import zdp
 from onboard.low_level import LowLevelController
-from onboard.params import ControlParams, SafetyLimits
+from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.topics import TOPICS
 from services.clock import WallClock
 from services.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
@@ -158,6 +165,7 @@ class LoopConfig:
     duration_s: float = 0.0  # > 0: stop by itself after this long (the bench)
     parent_pid: int = 0  # the loop process dies with this process (0: no check)
     commander: str = ""  # the service's instance id, carried by every command (onboard/commander.py)
+    hold_disarmed: bool = False  # start disarmed whatever auto_arm says (a restart for new parameters)
 
 
 class ControlLoop:
@@ -178,6 +186,14 @@ class ControlLoop:
         self._unsent_trips: list[msgs.SafetyEvent] = []
         self._trip_lock = threading.Lock()
         self.safe_ticks = 0  # ticks without a usable estimate or disarmed
+        # new gains and limits: set by the pipe thread, taken by the tick between two ticks
+        self.retune_to: tuple[int, ControlParams, SafetyLimits] | None = None
+        self._retuned: tuple[int, ControlParams, SafetyLimits] | None = None
+        self.params_seq = 0  # the parent's number of the parameters in effect
+        self.params_error = ""
+        self.arm_requests = 0  # arm requests taken from the parent
+        if cfg.hold_disarmed:
+            self.ctrl.disarm(self.clock.now_ns(), "parameter_restart")
         self.loop = DeadlineLoop(1.0 / cfg.control.rate_hz, self.tick, name="control-loop")
 
     def _latest(self, name: str) -> LatestSlot:
@@ -199,7 +215,21 @@ class ControlLoop:
         self.session.declare_subscriber(topic.key(self.cfg.ns), on_sample)
         return slot
 
+    def _retune(self, request: tuple[int, ControlParams, SafetyLimits]) -> None:
+        self._retuned = request
+        seq, control, safety = request
+        try:
+            self.ctrl.retune(control, safety)
+        except ValueError as exc:  # a field only a restart applies: the parent never sends one
+            self.params_error = str(exc)
+            return
+        self._tube_every = max(1, int(control.tube_period_s * control.rate_hz))
+        self.params_seq = seq
+
     def tick(self, _deadline_s: float) -> None:
+        request = self.retune_to
+        if request is not self._retuned:
+            self._retune(request)  # type: ignore[arg-type]
         now = self.clock.now_ns()
         ctrl = self.ctrl
         st = self.slots["state"].get()
@@ -239,7 +269,13 @@ class ControlLoop:
         return {
             "loop": self.loop.recorder.stats(None if final else STATUS_WINDOW).as_dict(),
             "armed": self.ctrl.armed,
+            "arm_requested": self.ctrl.supervisor.arm_requested,
+            "arm_requests": self.arm_requests,
             "disarm_reason": self.ctrl.supervisor.disarm_reason,
+            "params_seq": self.params_seq,
+            "params_error": self.params_error,
+            "control": self.ctrl.p,  # what the controller runs with, read back from it
+            "safety": self.ctrl.safety,
             "hops": self.ctrl.phase.hop,
             "safe_ticks": self.safe_ticks,
             "tube_p95_m": tube.impact_err_p95,
@@ -293,7 +329,10 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
                 break
             if req == "stop":
                 break
-            if req == "arm":
+            if isinstance(req, tuple) and req[0] == "params":
+                loop.retune_to = req[1:]
+            elif req == "arm":
+                loop.arm_requests += 1
                 loop.ctrl.request_arm()
             elif req == "disarm":
                 loop.ctrl.disarm(loop.clock.now_ns())
@@ -320,6 +359,8 @@ class LoopProcess:
         self.proc = ctx.Process(target=loop_process_main, args=(cfg, child), name="archer-control-loop", daemon=True)
         self.last: dict[str, Any] = {}
         self.realtime: dict[str, str] = {}
+        self.arm_requests = 0  # sent; the loop reports how many it took
+        self._send_lock = threading.Lock()  # parameter changes come from Zenoh's threads
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
         self.proc.start()
@@ -344,11 +385,15 @@ class LoopProcess:
             pass
         return out
 
-    def send(self, request: str) -> None:
-        try:
-            self._conn.send(request)
-        except (BrokenPipeError, OSError):
-            pass
+    def send(self, request: str | tuple[Any, ...]) -> None:
+        """``"stop"``, ``"arm"``, ``"disarm"`` or ``("params", seq, control, safety)``."""
+        with self._send_lock:
+            if request == "arm":
+                self.arm_requests += 1
+            try:
+                self._conn.send(request)
+            except (BrokenPipeError, OSError):
+                pass
 
     def wait_final(self, timeout_s: float) -> dict[str, Any]:
         """Wait for the loop's last report (after a stop or a timed run)."""
@@ -383,25 +428,47 @@ class LoopProcess:
 class ControlService(Service):
     name: ClassVar[str] = "control"
     params_sections: ClassVar[tuple[str, ...]] = ("control", "safety")
+    # parameter state, read by the parameter queryable from the moment run() declares it
+    _loop_proc: LoopProcess | None = None
+    _restart_pending = False  # a restart for new parameters is accepted and not done yet
+    _restart_deadline: float | None = None  # monotonic bound of the restart under way
+    _restarted_from: LoopProcess | None = None  # the loop that restart replaces
 
     async def setup(self) -> None:
-        self._loop_proc: LoopProcess | None = None
         self._restart = asyncio.Event()
         self._trips_logged = 0
         self._progress_ticks = 0
+        self._params_seq = 0  # numbers the gains and limits sent to the loop
         await self._start_loop()
 
-    def _loop_config(self) -> LoopConfig:
-        self._applied_control = self.params["control"]
+    def _loop_config(self, hold_disarmed: bool) -> LoopConfig:
+        self._sent = (self.params["control"], self.params["safety"])  # what the loop runs with
         return LoopConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
                           control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid(),
-                          commander=self.instance)
+                          commander=self.instance, hold_disarmed=hold_disarmed)
 
-    async def _start_loop(self) -> None:
-        proc = LoopProcess(self._loop_config())
+    async def _start_loop(self, hold_disarmed: bool = False) -> None:
+        proc = LoopProcess(self._loop_config(hold_disarmed))
         await asyncio.to_thread(proc.start)
-        self._loop_proc = proc
+        self._progress_ticks = 0  # a new loop counts its ticks from zero
+        with self._params_lock:
+            self._loop_proc = proc
+            self._restart_pending = False
+            self._sync_loop()  # what changed while it started
         self.log.info("control loop started", extra={"fields": {"pid": proc.proc.pid, "realtime": proc.realtime}})
+
+    async def _restart_loop(self, proc: LoopProcess) -> None:
+        """Stop the disarmed loop and start one with the new parameters, disarmed. A
+        restart asked for is progress until the new loop reports ticks (or the restart
+        overruns its bound): the watchdog stays fed through it."""
+        self._restart_deadline = time.monotonic() + STOP_TIMEOUT_S + START_TIMEOUT_S + STATS_PERIOD_S
+        self._restarted_from = proc
+        changed = restart_changes("control", self._sent[0], self.params["control"])
+        self.log.info("restarting the control loop for new parameters", extra={"fields": {"changed": changed}})
+        final = await asyncio.to_thread(proc.stop)
+        if final:
+            self._absorb(final)
+        await self._start_loop(hold_disarmed=True)
 
     async def main(self) -> None:
         while not self.stopping.is_set():
@@ -416,9 +483,7 @@ class ControlService(Service):
                 self._absorb(rep)
             if self._restart.is_set():
                 self._restart.clear()
-                self.log.info("parameters changed: restarting the control loop")
-                await asyncio.to_thread(proc.stop)
-                await self._start_loop()
+                await self._restart_loop(proc)
             elif not proc.alive:
                 # A failure, not a stop: the process exits non-zero so that systemd
                 # (Restart=on-failure) or the supervisor starts control again.
@@ -444,24 +509,65 @@ class ControlService(Service):
                 self._absorb(rep)
             self._loop_proc = None
 
-    def on_params_changed(self, section: str) -> None:
-        """Operator arm/disarm requests go to the loop; other changes restart it."""
-        if section == "safety":
-            self._restart_soon()
+    def accept_params(self, updated: dict[str, Any]) -> None:
+        """A restart-needing change only while the loop is known disarmed and not about
+        to arm; no arm request while a restart is on its way."""
+        control = updated.get("control")
+        if control is None:
             return
-        now = self.params["control"]
-        before = self._applied_control
-        if dataclasses.replace(now, arm_request=before.arm_request, disarm_request=before.disarm_request) != before:
-            self._restart_soon()
-        else:
-            if now.arm_request != before.arm_request:
-                self.request_arm()
-            if now.disarm_request != before.disarm_request:
-                self.request_disarm()
-            self._applied_control = now
+        current = self.params["control"]
+        restart = restart_changes("control", current, control)
+        if restart and not self._restart_pending:
+            why = self._arming_state()
+            if why:
+                raise ValueError(f"{', '.join(restart)}: needs a restart of the control loop, refused while {why}; "
+                                 "disarm first (control.disarm_request)")
+        if control.arm_request != current.arm_request and (restart or self._restart_pending):
+            raise ValueError("control.arm_request: refused while the control loop restarts for new parameters")
 
-    def _restart_soon(self) -> None:
-        self.call_in_loop(self._restart.set)
+    def _arming_state(self) -> str:
+        """Why the loop may be armed now or arm by itself ("" when it cannot).
+
+        A disarmed loop with no arm request pending arms only on a new arm request, and
+        those all pass through here: the loop counts the ones it took."""
+        proc = self._loop_proc
+        if proc is None:
+            return "the control loop starts"
+        rep = proc.last
+        if "armed" not in rep:
+            return "the control loop has not reported its state yet"
+        if rep.get("arm_requests") != proc.arm_requests:
+            return "an arm request is on its way to the loop"
+        if rep["armed"]:
+            return "armed"
+        if rep.get("arm_requested"):
+            return "arming (the loop arms on the next valid upright estimate)"
+        return ""
+
+    def on_params_changed(self, section: str) -> None:
+        self._sync_loop()
+
+    def _sync_loop(self) -> None:
+        """Bring the loop to ``self.params`` (under the parameter lock): gains and limits go
+        over the pipe for the next tick, operator arm/disarm as requests, restart-needing
+        fields by a restart (accepted only when disarmed: :meth:`accept_params`)."""
+        if self._loop_proc is None or self._restart_pending:
+            return  # the loop (re)starts from self.params
+        control, safety = self.params["control"], self.params["safety"]
+        sent_control, sent_safety = self._sent
+        if restart_changes("control", sent_control, control):
+            self._restart_pending = True
+            self.call_in_loop(self._restart.set)
+            return
+        if control.arm_request != sent_control.arm_request:
+            self.request_arm()
+        if control.disarm_request != sent_control.disarm_request:
+            self.request_disarm()
+        gains = dataclasses.replace(control, arm_request=sent_control.arm_request, disarm_request=sent_control.disarm_request)
+        if gains != sent_control or safety != sent_safety:
+            self._params_seq += 1
+            self._loop_proc.send(("params", self._params_seq, control, safety))
+        self._sent = (control, safety)
 
     def request_arm(self) -> None:
         if self._loop_proc is not None:
@@ -472,13 +578,18 @@ class ControlService(Service):
             self._loop_proc.send("disarm")
 
     def progress(self) -> bool:
-        """The loop process is alive and its tick count advanced since the last check."""
+        """The loop process is alive and its tick count advanced since the last check, or
+        a restart for new parameters is under way and within its time bound."""
         proc = self._loop_proc
-        if proc is None or not proc.alive:
-            return False
-        ticks = proc.last.get("loop", {}).get("ticks", 0)
-        advanced = ticks > self._progress_ticks
-        self._progress_ticks = ticks
+        advanced = False
+        if proc is not None and proc.alive:
+            ticks = proc.last.get("loop", {}).get("ticks", 0)
+            advanced = ticks > self._progress_ticks
+            self._progress_ticks = ticks
+        if self._restart_deadline is not None:
+            if not advanced or proc is self._restarted_from:
+                return time.monotonic() < self._restart_deadline
+            self._restart_deadline = None  # the new loop ticks
         return advanced
 
     def status_extra(self) -> dict[str, float]:
@@ -493,4 +604,6 @@ class ControlService(Service):
         for name, n in rep.get("rejected", {}).items():
             out[f"rejected_{name}"] = float(n)
         out["safety_trips_logged"] = float(self._trips_logged)
+        out["params_seq_sent"] = float(self._params_seq)
+        out["params_seq_applied"] = float(rep.get("params_seq", 0))
         return out

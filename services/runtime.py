@@ -302,8 +302,13 @@ class Service:
         """
         return True
 
+    def accept_params(self, updated: dict[str, Any]) -> None:
+        """Raise ValueError to refuse validated new sections the service cannot take in
+        its current state (called on a Zenoh thread, under the parameter lock)."""
+
     def on_params_changed(self, section: str) -> None:
-        """Called (on a Zenoh thread) after a validated parameter change."""
+        """Called (on a Zenoh thread) after a validated parameter change, under the
+        parameter lock: changes apply one at a time, in the order they were accepted."""
 
     # --- messaging ----------------------------------------------------------------
 
@@ -542,10 +547,11 @@ class Service:
             by_section.setdefault(section, {})[name] = value
         with self._params_lock:
             updated = {s: with_overrides(self.params[s], ch) for s, ch in by_section.items()}
+            self.accept_params(updated)
             self.params.update(updated)
-        for section in updated:
-            self.log.info("parameters changed", extra={"fields": {"section": section, "changes": by_section[section]}})
-            self.on_params_changed(section)
+            for section in updated:
+                self.log.info("parameters changed", extra={"fields": {"section": section, "changes": by_section[section]}})
+                self.on_params_changed(section)
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -568,9 +574,10 @@ class Service:
             self.session = await asyncio.to_thread(self._open_session)
         try:
             await asyncio.to_thread(self._refuse_if_running)
-            self._declared.append(self.session.liveliness().declare_token(liveliness_key(self.ns, self.name)))
+            # answerable before announced: whoever sees the token asks the status who we are
             self._declared.append(self.session.declare_queryable(status_key(self.ns, self.name), self._on_status_query))
             self._declared.append(self.session.declare_queryable(params_key(self.ns, self.name), self._on_params_query))
+            self._declared.append(self.session.liveliness().declare_token(liveliness_key(self.ns, self.name)))
             self._set_up = True
             await self.setup()
             self.state = "running"
@@ -660,9 +667,9 @@ class StandInCommander:
     def __init__(self, session: zenoh.Session, ns: str) -> None:
         self.instance = secrets.token_hex(8)
         self._started_ns = time.monotonic_ns()
-        self._entities = [
-            session.liveliness().declare_token(liveliness_key(ns, COMMANDER)),
+        self._entities = [  # answerable before announced, as a service
             session.declare_queryable(status_key(ns, COMMANDER), self._on_status_query),
+            session.liveliness().declare_token(liveliness_key(ns, COMMANDER)),
         ]
 
     def _on_status_query(self, query: zenoh.Query) -> None:

@@ -14,7 +14,7 @@ from onboard.foot_control import FootPhysics, HopRegulator
 from onboard.low_level import sample_reference
 from onboard.messages import BezierSegment, ComReference, JointSensors, StateEstimate
 from onboard.mlp import Mlp
-from onboard.params import ControlParams
+from onboard.params import ControlParams, SafetyLimits
 from onboard.phase import PhaseDetector
 from onboard.tube import TubeMonitor
 from services.control import build_controller
@@ -247,6 +247,39 @@ def test_nan_estimate_gives_zero_torque_and_a_safety_event(ctrl_factory):
     cmd = c.step(MS, estimate(MS, z=math.nan), None, joints(MS))
     assert not cmd.armed and cmd.wheel_torque == [0.0, 0.0, 0.0] and cmd.foot_torque == 0.0
     assert [e.trip for e in c.drain_safety_events()] == ["estimate_nonfinite"]
+
+
+def test_retune_takes_new_gains_and_limits_between_ticks_and_keeps_the_state(ctrl_factory):
+    q = qt.from_euler(0.01, -0.005, 0.0)  # a small tilt: the PD output stays inside the torque limit
+    states = [estimate(k * MS, vz=0.5 - 0.00981 * k, quat=q) for k in range(40)]
+    live = ctrl_factory()
+    before = [live.step(s.stamp_ns, s, None, joints(s.stamp_ns)) for s in states[:20]]
+    assert all(c.armed for c in before)
+    hops, arm_trips = live.phase.hop, live.supervisor.counts.get("arm")
+
+    faster = dataclasses.replace(ControlParams(), kp_tilt=80.0, kd_tilt=5.0)
+    live.retune(faster, SafetyLimits(wheel_torque_max=1.2))
+    fresh = build_controller("indoor", faster, SafetyLimits(wheel_torque_max=1.2))
+    fresh.request_arm()
+    for s in states[:20]:  # the same history: gains do not enter the controller's state
+        fresh.step(s.stamp_ns, s, None, joints(s.stamp_ns))
+    for s in states[20:]:
+        got = live.step(s.stamp_ns, s, None, joints(s.stamp_ns))
+        want = fresh.step(s.stamp_ns, s, None, joints(s.stamp_ns))
+        assert got.armed and got.wheel_torque == want.wheel_torque
+    assert live.phase.hop == hops and live.supervisor.counts.get("arm") == arm_trips  # no re-arm, no reset
+    assert max(map(abs, got.wheel_torque)) > 1.5 * max(map(abs, before[-1].wheel_torque))  # kp doubled
+
+    # a tighter safety limit clamps the very next command
+    live.retune(faster, SafetyLimits(wheel_torque_max=0.01))
+    t = 40 * MS
+    cmd = live.step(t, estimate(t, vz=0.5 - 0.00981 * 40, quat=q), None, joints(t))
+    assert cmd.armed and max(map(abs, cmd.wheel_torque)) <= 0.01
+
+    # what the constructor derived cannot be retuned: refused, nothing changed
+    with pytest.raises(ValueError, match=r"control\.hop_height, control\.rate_hz"):
+        live.retune(dataclasses.replace(faster, rate_hz=500.0, hop_height=0.1, kp_tilt=1.0), SafetyLimits())
+    assert live.p.kp_tilt == 80.0 and live.safety.wheel_torque_max == 0.01
 
 
 def test_unknown_policy_and_missing_weights_are_refused():

@@ -95,7 +95,8 @@ def test_service_relays_rejects_and_reports(zenoh_router):
             reply = await asyncio.to_thread(ask, b'{"set": {"safety.wheel_torque_max": 1.0}}')
             assert reply.error == "" and reply.params["safety.wheel_torque_max"] == 1.0
             reply = await asyncio.to_thread(ask, b'{"set": {"safety.wheel_torque_max": "lots"}}')
-            assert "expected a number" in reply.error and reply.params["safety.wheel_torque_max"] == 1.0
+            assert "safety.wheel_torque_max" in reply.error and "expected `float`" in reply.error
+            assert reply.params["safety.wheel_torque_max"] == 1.0
             reply = await asyncio.to_thread(ask, b'{"set": {"safety.no_such": 1}}')
             assert "no parameter" in reply.error
         finally:
