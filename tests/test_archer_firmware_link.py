@@ -7,6 +7,7 @@ a stranger's datagram) is dropped, counted and never applied.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import socket
 import struct
@@ -232,3 +233,24 @@ def test_foot_board_cycle_flight_compression_thrust() -> None:
     foot.step(True, False, 0.0, 0.0, 0.0, 0.0)
     assert foot.phase == FootPhase.FLIGHT and foot.hops == 1
     assert foot.step(False, False, 0.0, 0.0, 1.0, 1.0) == 0.0 and foot.phase == FootPhase.IDLE
+
+
+def test_the_reader_thread_stamps_replies_as_they_arrive() -> None:
+    """A reply read 50 ms after it came is stamped with its arrival: it is not late."""
+    params = dataclasses.replace(PARAMS, reply_late_s=0.03)
+    computer_port = free_port()
+    emu = BoardEmulator(params, FOOT, LOCAL, ("127.0.0.1", computer_port), time.monotonic)
+    board = ArcherBoard(UdpLink(("127.0.0.1", computer_port), emu.link.local, time.monotonic), params)
+    try:
+        board.open()
+        board.exchange(time.monotonic(), UPRIGHT)
+        settle()
+        emu.tick(time.monotonic())
+        time.sleep(0.05)
+        now = time.monotonic()
+        board.exchange(now, None)
+        assert board.fresh and now - board.state_rx_s > 0.04
+        assert board.stats.late == 0 and board.stats.replies == 1
+    finally:
+        emu.close()
+        board.close()

@@ -8,7 +8,8 @@ nothing is sent while the caller has no setpoint or a fault is latched.
 
 The board answers every packet it receives with one state, and only then. The
 replies carry no sequence number, so they are matched to requests first in, first
-out: a reply read more than ``reply_late_s`` after its request is *late*, a request
+out: a reply that arrived more than ``reply_late_s`` after its request is *late*
+(the link's reader thread stamps arrivals, :meth:`UdpLink.start_reader`), a request
 unanswered for ``reply_missing_s`` is *missing* (and forgotten), a reply with no
 request waiting is *unsolicited*. While commanding, no valid reply for
 ``link_timeout_s`` latches a fault (the computer's watchdog) until :meth:`recover`.
@@ -55,12 +56,16 @@ class ArcherBoard(LatchedFaults):
         self.link = link
         self.params = params
         self.state: codec.BoardState | None = None
-        self.state_rx_s = -1.0  # host time the newest state was read
+        self.state_rx_s = -1.0  # host time the newest state arrived
         self.fresh = False  # a new state arrived in the last exchange
         self.faults: list[str] = []
         self.stats = BoardStats()
         self._outstanding: deque[float] = deque(maxlen=MAX_OUTSTANDING)  # send times of unanswered requests
         self._commanding_since: float | None = None
+
+    def open(self) -> None:
+        """Stamp replies as they arrive (a reader thread) instead of when a tick polls."""
+        self.link.start_reader()
 
     # --- receiving --------------------------------------------------------------------
 
