@@ -249,7 +249,7 @@ def run_teensy(params: HardwareParams, plant: TwinPlant | None = None) -> int:
     return 0 if emulator.error is None else 1
 
 
-def _foot_physics() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
+def _board_geometry() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
     """The foot board's spring and spool and the flywheel board's wheel axes, from the MJCF model."""
     from sim_twin.model import robot_params  # the one source of physical parameters
 
@@ -259,11 +259,15 @@ def _foot_physics() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]
 
 def run_archer_firmware(params: ArcherFirmwareParams, port: int, peer_port: int, plant: TwinPlant | None = None) -> int:
     done = _stop_on_signal()
-    foot, axes = _foot_physics()
-    emulator = BoardEmulator(
-        params, foot, (LOOPBACK, port), (LOOPBACK, peer_port), time.perf_counter,  # the DeadlineLoop's clock
-        wheel_axes=axes, motors=plant.motors if plant is not None else None, body=plant.body if plant is not None else None,
-    )
+    foot, axes = _board_geometry()
+    try:
+        emulator = BoardEmulator(
+            params, foot, (LOOPBACK, port), (LOOPBACK, peer_port), time.perf_counter,  # the DeadlineLoop's clock
+            wheel_axes=axes, motors=plant.motors if plant is not None else None, body=plant.body if plant is not None else None,
+        )
+    except OSError as exc:  # the port is taken
+        print(f"archer emulate: cannot bind UDP {LOOPBACK}:{port}: {exc}", file=sys.stderr)
+        return 2
     if plant is not None:
         emulator.on_step = plant.step
     loop = DeadlineLoop(1.0 / params.rate_hz, emulator.tick, name="archer-firmware-emulator")
@@ -338,8 +342,4 @@ def _run_archer_firmware(args: argparse.Namespace) -> int:
     if args.rt_priority:
         make_realtime(args.rt_priority)  # before any thread starts: they inherit the policy
     plant = TwinPlant(args.twin, args.seed, (1.0,) * 4) if args.twin else None  # the board reports joint values
-    try:
-        return run_archer_firmware(params, args.port, peer_port, plant)
-    except OSError as exc:  # the port is taken
-        print(f"archer emulate: cannot bind UDP {LOOPBACK}:{args.port}: {exc}", file=sys.stderr)
-        return 2
+    return run_archer_firmware(params, args.port, peer_port, plant)
