@@ -87,9 +87,15 @@ def emulator():
             emu.stop()
 
 
-def slope(samples: list[tuple[float, tuple[float, ...]]], slot: int) -> float:
-    (t0, r0), (t1, r1) = samples[0], samples[-1]
-    return (r1[slot] - r0[slot]) / (t1 - t0)
+def slope(samples: list[tuple[float, tuple[float, ...]]], slot: int, max_gap_s: float = 0.02) -> float:
+    """d(speed)/dt over the intervals between replies shorter than ``max_gap_s``: a stall
+    of this process (a loaded machine) would let the watchdog stop the motor in a longer one."""
+    dv = dt = 0.0
+    for (t0, r0), (t1, r1) in zip(samples, samples[1:]):
+        if t1 - t0 < max_gap_s:
+            dv += r1[slot] - r0[slot]
+            dt += t1 - t0
+    return dv / dt
 
 
 def test_it_answers_only_a_request_with_13_floats(emulator) -> None:
