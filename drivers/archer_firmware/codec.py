@@ -21,7 +21,6 @@ import math
 import struct
 from dataclasses import dataclass
 
-FIRMWARE_PORT = 4333  # both ends, on the robot
 SETPOINT = struct.Struct("<10f")
 STATE = struct.Struct("<13f")
 RESET_MAGIC = bytes(range(1, 9))  # 01 02 03 04 05 06 07 08

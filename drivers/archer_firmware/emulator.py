@@ -20,7 +20,6 @@ board's own clock (``archer emulate archer-firmware`` drives it with a
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Callable, Sequence
 from enum import Enum
@@ -33,8 +32,6 @@ from onboard import quaternion as quat
 from onboard.attitude_control import WheelAllocation
 from onboard.foot_control import FootPhysics
 from onboard.params import ArcherFirmwareParams
-
-log = logging.getLogger("archer.drivers.archer_firmware.emulator")
 
 ZERO4 = [0.0, 0.0, 0.0, 0.0]
 IDENTITY_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
