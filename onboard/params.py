@@ -168,6 +168,40 @@ class HardwareParams(_Section):
         return []
 
 
+@dataclass(frozen=True)
+class ArcherFirmwareParams:
+    """ARCHER's own flywheel-board firmware over UDP (``docs/archer_firmware_protocol.md``).
+
+    Read by the computer-side driver (``drivers/archer_firmware``) and by its emulator,
+    which also takes the firmware's configuration from here: the attitude PD gains, the
+    current clamp and the foot board's hop cycle. Addresses default to loopback; the
+    robot's (board 10.0.0.7, computer 10.0.0.6) belong in its deployment config only.
+    """
+
+    board_host: str = "127.0.0.1"  # the flywheel Teensy
+    board_port: int = 4333  # the firmware's UDP port
+    computer_host: str = "127.0.0.1"  # the address the computer binds (the firmware answers there)
+    computer_port: int = 4333
+    # computer side
+    link_timeout_s: float = 0.100  # [s] no reply this long while commanding: fault (latched)
+    reply_late_s: float = 0.002  # [s] a reply arriving later than this after its request is late
+    reply_missing_s: float = 0.050  # [s] a request unanswered this long counts as missing
+    # the firmware (what the emulator runs; the real board has them in its own configuration)
+    rate_hz: float = 1000.0  # [Hz] the board's control loop
+    watchdog_s: float = 0.100  # [s] no valid packet this long: motors off
+    kp_tilt: float = 60.0  # [N m] per unit of quaternion error vector, roll and pitch
+    kp_yaw: float = 4.0  # [N m] per unit of quaternion error vector, yaw
+    kd_tilt: float = 3.0  # [N m s/rad] roll and pitch
+    kd_yaw: float = 0.25  # [N m s/rad] yaw
+    torque_constant: float = 0.083  # [N m/A] wheel motors
+    current_max: float = 12.0  # [A] wheel current clamp
+    # the foot board's hop cycle (spool position control, as the foot Teensy runs it)
+    foot_preload_m: float = 0.03  # [m] spring compression wound in during flight, released at touchdown
+    foot_spool_kp: float = 10.0  # [N m/rad]
+    foot_spool_kd: float = 0.2  # [N m s/rad]
+    foot_release_slack_m: float = 0.015  # [m] at touchdown unwind this much cable past the extended foot
+
+
 # Sections owned by each layer follow; each is registered in SECTIONS below.
 
 
@@ -478,6 +512,7 @@ SECTIONS: dict[str, type] = {
     "safety": SafetyLimits,
     "messaging": MessagingParams,
     "hardware": HardwareParams,
+    "archer_firmware": ArcherFirmwareParams,
     "estimator": EstimatorParams,
     "twin": TwinParams,
     "recorder": RecorderParams,

@@ -1,8 +1,8 @@
-"""``archer emulate drives|teensy``: run an emulated device in this process.
+"""``archer emulate drives|teensy|archer-firmware``: run an emulated device in this process.
 
 Prints ONE JSON line on stdout telling a client how to connect, then serves until
-SIGINT/SIGTERM. Only loopback TCP or pseudo-terminals, nothing else. The counters go
-to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
+SIGINT/SIGTERM. Only loopback TCP or UDP, or pseudo-terminals, nothing else. The counters
+go to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
 ``{"counters": ..., "monotonic_s": ...}`` line on every SIGUSR1 (a bench's window).
 
 - ``drives``: ELMO CiA 402 drives behind a socketcand server on 127.0.0.1. The line
@@ -12,13 +12,18 @@ to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
   loads).
 - ``teensy``: a Teensy on a pseudo-terminal; ``port`` is the path to open (a stable
   symlink to the pty), speaking ``docs/teensy_protocol.md``.
+- ``archer-firmware``: ARCHER's own flywheel board and foot board on UDP 127.0.0.1,
+  speaking ``docs/archer_firmware_protocol.md``; the line holds the board's ``host`` and
+  ``port`` and the ``peer_host``/``peer_port`` it answers (and accepts packets from only).
+  Its loop runs at ``archer_firmware.rate_hz`` on a :class:`DeadlineLoop` (the board's
+  own clock).
 
 ``--twin SCENARIO`` puts the MuJoCo twin behind the emulated devices (:class:`TwinPlant`):
 the torques the emulated motors apply drive the twin's actuators, and the twin's
 joints and IMU become what the devices report. The ``hardware`` service and the
 drivers then run unchanged against a simulated robot. The drives step the physics one
-tick per SYNC (simulated time follows the host's cycle); the Teensy steps it every
-millisecond of its own clock.
+tick per SYNC (simulated time follows the host's cycle); the Teensy and the ARCHER
+board step it every millisecond of their own clock.
 """
 
 from __future__ import annotations
@@ -33,15 +38,19 @@ import tempfile
 import threading
 import time
 
+from drivers.archer_firmware.emulator import BoardEmulator
 from drivers.elmo.emulator import SocketcandRunner, make_emulator
 from drivers.elmo.od import drive_dictionary, to_eds
 from drivers.teensy.emulator import TeensyEmulator
 from drivers.teensy.protocol import VERSION
-from onboard.params import HardwareParams
+from onboard.foot_control import FootPhysics
+from onboard.params import ArcherFirmwareParams, HardwareParams
 from services.config import ConfigError, load_params
-from services.realtime import make_realtime
+from services.realtime import DeadlineLoop, make_realtime
 
 DOCS = "docs/teensy_protocol.md"
+ARCHER_FIRMWARE_DOCS = "docs/archer_firmware_protocol.md"
+LOOPBACK = "127.0.0.1"  # emulators never listen beyond this machine
 
 
 class TwinMotor:
@@ -123,11 +132,15 @@ class TwinPlant:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("device", choices=("drives", "teensy"))
+    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware"))
     parser.add_argument("--node-ids", help="comma-separated CANopen node ids (default: hardware.node_ids)")
-    parser.add_argument("--port", type=int, default=0, help="drives: TCP port on 127.0.0.1 (default: a free one)")
+    parser.add_argument("--port", type=int, default=0, help="drives: TCP port, archer-firmware: UDP port, on 127.0.0.1 (default: a free one)")
+    parser.add_argument(
+        "--peer-port", type=int, default=None,
+        help="archer-firmware: the computer's UDP port on 127.0.0.1, the only sender accepted (default: archer_firmware.computer_port)",
+    )
     parser.add_argument("--channel", default=None, help="drives: socketcand channel name (default: hardware.can_channel)")
-    parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety)")
+    parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety, archer_firmware)")
     parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
     parser.add_argument("--seed", type=int, default=0, help="--twin: scenario and sensor-noise seed")
     parser.add_argument(
@@ -244,7 +257,61 @@ def run_teensy(params: HardwareParams, plant: TwinPlant | None = None) -> int:
     return 0 if emulator.error is None else 1
 
 
+def _board_geometry() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
+    """The foot board's spring and spool and the flywheel board's wheel axes, from the MJCF model."""
+    from sim_twin.model import robot_params  # the one source of physical parameters
+
+    r = robot_params()
+    return FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel), tuple(r.wheel_axes)
+
+
+def run_archer_firmware(params: ArcherFirmwareParams, port: int, peer_port: int, plant: TwinPlant | None = None) -> int:
+    done = _stop_on_signal()
+    foot, axes = _board_geometry()
+    try:
+        emulator = BoardEmulator(
+            params, foot, (LOOPBACK, port), (LOOPBACK, peer_port), time.perf_counter,  # the DeadlineLoop's clock
+            wheel_axes=axes, motors=plant.motors if plant is not None else None, body=plant.body if plant is not None else None,
+        )
+    except OSError as exc:  # the port is taken
+        print(f"archer emulate: cannot bind UDP {LOOPBACK}:{port}: {exc}", file=sys.stderr)
+        return 2
+    if plant is not None:
+        emulator.on_step = plant.step
+    loop = DeadlineLoop(1.0 / params.rate_hz, emulator.tick, name="archer-firmware-emulator")
+    host, bound_port = emulator.link.local
+    print(
+        json.dumps(
+            {
+                "device": "archer-firmware",
+                "host": host,
+                "port": bound_port,
+                "peer_host": LOOPBACK,
+                "peer_port": peer_port,
+                "protocol": ARCHER_FIRMWARE_DOCS,
+                "rate_hz": params.rate_hz,
+                "watchdog_s": params.watchdog_s,
+                "twin": plant is not None,
+                "pid": os.getpid(),
+            }
+        ),
+        flush=True,
+    )
+    loop.start()
+    try:
+        while not done.wait(0.5) and loop.error is None:
+            pass
+    finally:
+        loop.stop()
+        emulator.close()
+        final = {**emulator.summary(), **{f"loop_{k}": v for k, v in loop.recorder.stats().as_dict().items()}}
+        print(json.dumps({"final": final}), file=sys.stderr, flush=True)  # counters for tests and benches
+    return 0 if loop.error is None else 1
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.device == "archer-firmware":
+        return _run_archer_firmware(args)
     try:
         params = load_params(args.config, ("hardware", "safety"))["hardware"]
         if args.node_ids:
@@ -268,3 +335,19 @@ def run(args: argparse.Namespace) -> int:
     if args.device == "drives":
         return run_drives(params, args.port, args.channel or params.can_channel, plant)
     return run_teensy(params, plant)
+
+
+def _run_archer_firmware(args: argparse.Namespace) -> int:
+    try:
+        params: ArcherFirmwareParams = load_params(args.config, ("archer_firmware",))["archer_firmware"]
+    except ConfigError as exc:
+        print(f"archer emulate: {exc}", file=sys.stderr)
+        return 2
+    peer_port = args.peer_port if args.peer_port is not None else params.computer_port
+    if not (0 <= args.port <= 65535 and 1 <= peer_port <= 65535):
+        print("archer emulate: --port must be in 0..65535 and --peer-port in 1..65535", file=sys.stderr)
+        return 2
+    if args.rt_priority:
+        make_realtime(args.rt_priority)  # before any thread starts: they inherit the policy
+    plant = TwinPlant(args.twin, args.seed, (1.0,) * 4) if args.twin else None  # the board reports joint values
+    return run_archer_firmware(params, args.port, peer_port, plant)

@@ -1,4 +1,4 @@
-"""``archer emulate drives|teensy`` as processes: the one JSON line and stock clients.
+"""``archer emulate drives|teensy|archer-firmware`` as processes: the one JSON line and stock clients.
 
 A stock python-can client opens the printed bus and talks raw CANopen to the drives;
 the ``canopen`` package loads the printed EDS over the same socketcand bus; pyserial
@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -126,6 +127,16 @@ def test_bad_node_ids_are_a_clear_error() -> None:
     assert result.returncode == 2
 
 
+def test_archer_firmware_on_a_taken_port_is_a_clear_error() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = str(taken.getsockname()[1])
+        result = subprocess.run(ARCHER + ["archer-firmware", "--port", port], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and f"127.0.0.1:{port}" in result.stderr and result.stdout == ""
+    result = subprocess.run(ARCHER + ["archer-firmware", "--peer-port", "70000"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "--peer-port" in result.stderr
+
+
 def test_teensy_prints_a_port_pyserial_opens() -> None:
     proc, info = start("teensy")
     try:
@@ -144,7 +155,7 @@ def test_teensy_prints_a_port_pyserial_opens() -> None:
     assert final["sensors"] > 0
 
 
-@pytest.mark.parametrize("device", ["drives", "teensy"])
+@pytest.mark.parametrize("device", ["drives", "teensy", "archer-firmware"])
 def test_the_line_is_json_with_a_pid(device: str) -> None:
     proc, info = start(device)
     try:

@@ -1,0 +1,1 @@
+"""ARCHER's own flywheel-board firmware over UDP: codec, transport, device, emulator."""
