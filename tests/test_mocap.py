@@ -184,3 +184,14 @@ def test_mocap_service_publishes_the_twins_pose_with_its_capture_time(zenoh_rout
     assert moved > 0.01  # the twin moves: a pose matches one frame, not a constant
     # stamp = receive - 20 ms: the capture time, up to the loopback hop and scheduling
     assert abs(np.median(errors_ms)) < 3.0, np.percentile(errors_ms, [5, 50, 95])
+
+
+def test_estimator_on_natnet_poses_is_within_2x_of_the_direct_path() -> None:
+    from services.bench_mocap import run_path
+
+    runs = {path: run_path(path, "hop-in-place", 0, 2.0, 0.02) for path in ("direct", "natnet", "natnet_uncompensated")}
+    assert runs["natnet"]["natnet_frames"] > 150  # 100 Hz poses for 2 s went through NatNet and motioncapture
+    for key in ("rmse_pos_m", "rmse_vel_m_s", "rmse_att_deg"):
+        assert runs["natnet"][key] <= 2.0 * runs["direct"][key], (key, runs)
+    # the compensation is what keeps it there: fused as current, 20 ms late poses cost position accuracy
+    assert runs["natnet_uncompensated"]["rmse_pos_m"] > 4.0 * runs["natnet"]["rmse_pos_m"], runs
