@@ -195,3 +195,37 @@ def test_estimator_on_natnet_poses_is_within_2x_of_the_direct_path() -> None:
         assert runs["natnet"][key] <= 2.0 * runs["direct"][key], (key, runs)
     # the compensation is what keeps it there: fused as current, 20 ms late poses cost position accuracy
     assert runs["natnet_uncompensated"]["rmse_pos_m"] > 4.0 * runs["natnet"]["rmse_pos_m"], runs
+
+
+def test_mocap_service_without_a_server_or_its_body_publishes_nothing_and_counts_why(zenoh_router) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        silent_port = s.getsockname()[1]  # closed below: nobody answers there
+
+    async def run_service(params: MocapParams, seconds: float) -> tuple[str, dict[str, int], int]:
+        poses = []
+        service = MocapService(ns=NS_KEY, endpoint=zenoh_router, params={"mocap": params})
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        sub = client.declare_subscriber(TOPICS["pose"].key(NS_KEY), poses.append)
+        try:
+            await asyncio.sleep(seconds)
+            return service.state, service.counters.snapshot(), len(poses)
+        finally:
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    no_server = MocapParams(port=silent_port, connect_timeout_s=0.2, reconnect_s=0.2)
+    state, counters, n = asyncio.run(run_service(no_server, 1.5))
+    assert (state, n) == ("degraded", 0) and counters["connect_failed"] >= 2 and "connects" not in counters
+
+    proc, info = start("--twin", "hop-in-place")
+    try:
+        other_body = MocapParams(port=info["command_port"], rigid_body="not-" + info["rigid_body"])
+        state, counters, n = asyncio.run(run_service(other_body, 2.5))
+    finally:
+        stop(proc)
+    assert (state, n) == ("degraded", 0)
+    assert counters["connects"] == 1 and counters["rejected.body_missing"] > 50
