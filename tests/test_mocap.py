@@ -82,6 +82,7 @@ def test_emulator_streams_the_twin_to_a_third_party_unicast_client(tmp_path) -> 
     numbers = [f.prefix.frame_number for f in frames]
     assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
     moved = 0.0
+    held_ms = []
     for f in frames:
         (rb,) = f.rigid_bodies
         t = truth[f.prefix.frame_number]
@@ -91,10 +92,11 @@ def test_emulator_streams_the_twin_to_a_third_party_unicast_client(tmp_path) -> 
         assert np.allclose(rb.rot, (x, y, z, w), atol=F32)  # NatNet orders (x, y, z, w)
         s = f.suffix
         assert s.stamp_camera_mid_exposure == t["exposure_ns"]
-        # held for the latency before it went out (ticks are monotonic ns)
-        assert 0.02e9 <= s.stamp_transmit - s.stamp_camera_mid_exposure < 0.05e9
+        held_ms.append((s.stamp_transmit - s.stamp_camera_mid_exposure) / 1e6)  # ticks are monotonic ns
         moved = max(moved, math.dist(t["position"], truth[numbers[0]]["position"]))
     assert moved > 0.01  # the pushed twin moves: matching its pose is not matching a constant
+    # each frame held for the latency, never less; a stall of the loaded machine only delays some
+    assert min(held_ms) >= 20.0 and np.median(held_ms) < 23.0, np.percentile(held_ms, [0, 50, 100])
 
 
 def test_emulator_drops_and_counts_bad_requests() -> None:
