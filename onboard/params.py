@@ -505,6 +505,27 @@ class RecorderParams(_Section):
     status_period_s: Annotated[float, above(0.0, 3600.0)] = 5.0  # record every live service's status this often [s] (a query costs them CPU)
 
 
+@dataclass(frozen=True)
+class MocapParams:
+    """The ``mocap`` service: a motion capture system's pose through ``motioncapture``.
+
+    ``stamp_ns`` of a published pose is the capture time on the stack's monotonic
+    clock: the receive time minus ``latency_s`` (the motioncapture 1.1 bindings report
+    no per-frame latency or timestamp, so the lab measures it once and sets it here).
+    """
+
+    system: str = "optitrack"  # motioncapture backend: optitrack, vicon, qualisys, vrpn
+    host: str = "127.0.0.1"  # the mocap server (the lab's address belongs in the robot's config)
+    port: int = 0  # the server's command port (0: the system's default, e.g. NatNet 1510)
+    rigid_body: str = "archer"  # the robot's rigid body name in the mocap software
+    rigid_body_id: int = 1  # NatNet streaming id (the emulator's; the service matches by name)
+    latency_s: float = 0.005  # [s] capture to receive: exposure, processing, network
+    rate_hz: float = 120.0  # [Hz] the system's frame rate (emulator's stream rate)
+    quat_norm_tolerance: float = 1e-3  # |norm - 1| beyond which a pose is refused
+    connect_timeout_s: float = 2.0  # [s] a NatNet server must answer NAT_CONNECT within this
+    reconnect_s: float = 1.0  # [s] wait before connecting again after a failure
+
+
 SECTIONS: dict[str, type] = {
     "perception": PerceptionParams,
     "planner": PlannerParams,
@@ -516,6 +537,7 @@ SECTIONS: dict[str, type] = {
     "estimator": EstimatorParams,
     "twin": TwinParams,
     "recorder": RecorderParams,
+    "mocap": MocapParams,
 }
 
 # Fields a running control loop cannot take between two ticks: they shape the loop process

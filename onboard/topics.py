@@ -58,10 +58,10 @@ class Topic:
 _SENSOR_PUBLISHERS = ("hardware", "twin")
 
 _TABLE = [
-    # sensors: hardware service on the robot, the twin in simulation
+    # sensors: hardware service on the robot, the twin in simulation; pose also from motion capture
     Topic("imu", "sensors/imu", m.ImuSample, 1000, _SENSOR_PUBLISHERS, priority="real_time", express=True),
     Topic("joints", "sensors/joints", m.JointSensors, 1000, _SENSOR_PUBLISHERS, priority="real_time", express=True),
-    Topic("pose", "sensors/pose", m.PoseMeasurement, 100, _SENSOR_PUBLISHERS, priority="interactive_high", express=True),
+    Topic("pose", "sensors/pose", m.PoseMeasurement, 100, (*_SENSOR_PUBLISHERS, "mocap"), priority="interactive_high", express=True),
     Topic("depth", "sensors/depth", None, 5, _SENSOR_PUBLISHERS, priority="data_low", binary="depth"),
     # estimation
     Topic("state", "state/estimate", m.StateEstimate, 1000, ("estimator",), priority="real_time", express=True),
@@ -85,7 +85,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in _TABLE}
 assert len(TOPICS) == len(_TABLE), "duplicate topic name"
 assert len({t.suffix for t in _TABLE}) == len(_TABLE), "duplicate topic key"
 
-SERVICES = ("hardware", "twin", "estimator", "control", "planner", "perception", "recorder")
+SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder")
 
 
 def namespace(robot: str | None = None) -> str:

@@ -22,6 +22,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
     "planner": ("services.bench_planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
     "estimator": ("services.bench_estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
+    "mocap": ("services.bench_mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),
     "twin": ("sim_twin.bench", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
 }
 

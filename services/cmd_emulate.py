@@ -1,4 +1,4 @@
-"""``archer emulate drives|teensy|archer-firmware``: run an emulated device in this process.
+"""``archer emulate drives|teensy|archer-firmware|natnet``: run an emulated device in this process.
 
 Prints ONE JSON line on stdout telling a client how to connect, then serves until
 SIGINT/SIGTERM. Only loopback TCP or UDP, or pseudo-terminals, nothing else. The counters
@@ -17,6 +17,13 @@ go to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
   ``port`` and the ``peer_host``/``peer_port`` it answers (and accepts packets from only).
   Its loop runs at ``archer_firmware.rate_hz`` on a :class:`DeadlineLoop` (the board's
   own clock).
+- ``natnet``: an OptiTrack Motive server (:mod:`drivers.natnet`, NatNet 3.1) on
+  127.0.0.1, unicast only: ``command_port`` is where a client sends NAT_CONNECT, and
+  ``motioncapture`` holds the ``motioncapture.connect(type, cfg)`` arguments. It
+  streams the twin's true torso pose as rigid body ``mocap.rigid_body`` at
+  ``--rate`` Hz, each frame sent ``--latency`` s after its capture (the frame's
+  timestamps say so, on this host's monotonic clock). ``--truth FILE`` writes each
+  frame's true pose as a JSON line. Needs ``--twin``.
 
 ``--twin SCENARIO`` puts the MuJoCo twin behind the emulated devices (:class:`TwinPlant`):
 the torques the emulated motors apply drive the twin's actuators, and the twin's
@@ -43,8 +50,9 @@ from drivers.elmo.emulator import SocketcandRunner, make_emulator
 from drivers.elmo.od import drive_dictionary, to_eds
 from drivers.teensy.emulator import TeensyEmulator
 from drivers.teensy.protocol import VERSION
+from drivers import natnet
 from onboard.foot_control import FootPhysics
-from onboard.params import ArcherFirmwareParams, HardwareParams
+from onboard.params import ArcherFirmwareParams, HardwareParams, MocapParams
 from services.config import ConfigError, load_params
 from services.realtime import DeadlineLoop, make_realtime
 
@@ -101,8 +109,9 @@ class TwinPlant:
         self.motors = [TwinMotor(g) for g in motor_gears]
         self.body = BodyState()
         self.sim_s = 0.0
-        self._dt = self.substeps * self.model.opt.timestep
+        self.dt_s = self.substeps * self.model.opt.timestep  # [s] one control period
         self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
+        self._root_qp = int(self.model.joint(tm.ROOT_JOINT).qposadr[0])
         self._lock = threading.Lock()
 
     def step(self, now_s: float, joint_torques: list[float]) -> None:
@@ -115,7 +124,7 @@ class TwinPlant:
             self.scenario.before_step(self.sim_s, self.model, self.data)
             for _ in range(self.substeps):
                 self._mujoco.mj_step(self.model, self.data)
-            self.sim_s += self._dt
+            self.sim_s += self.dt_s
             for topic, msg in self.sensors.tick(self.data, now_ns):
                 if topic == "imu":
                     self.body.quat, self.body.gyro, self.body.accel = tuple(msg.quat), tuple(msg.gyro), tuple(msg.accel)
@@ -126,21 +135,31 @@ class TwinPlant:
                         m.position, m.velocity = pos * m.gear, vel * m.gear
                     self.body.foot_pos, self.body.foot_vel, self.body.contact = msg.foot_pos, msg.foot_vel, msg.foot_contact
 
+    def body_pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+        """The torso's true position [m] and attitude (w, x, y, z) in the world, now."""
+        with self._lock:
+            q = self.data.qpos[self._root_qp:self._root_qp + 7].tolist()
+        return (q[0], q[1], q[2]), (q[3], q[4], q[5], q[6])
+
     def on_sync(self, now_s: float) -> None:
         """The drive emulator's hook: one physics tick per SYNC with the drives' last torques."""
         self.step(now_s, [m.torque * m.gear for m in self.motors])
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware"))
+    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware", "natnet"))
     parser.add_argument("--node-ids", help="comma-separated CANopen node ids (default: hardware.node_ids)")
-    parser.add_argument("--port", type=int, default=0, help="drives: TCP port, archer-firmware: UDP port, on 127.0.0.1 (default: a free one)")
+    parser.add_argument("--port", type=int, default=0,
+                        help="drives: TCP port, archer-firmware: UDP port, natnet: UDP command port, on 127.0.0.1 (default: a free one)")
     parser.add_argument(
         "--peer-port", type=int, default=None,
         help="archer-firmware: the computer's UDP port on 127.0.0.1, the only sender accepted (default: archer_firmware.computer_port)",
     )
     parser.add_argument("--channel", default=None, help="drives: socketcand channel name (default: hardware.can_channel)")
-    parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety, archer_firmware)")
+    parser.add_argument("--config", help="TOML file overriding parameters (sections hardware, safety, archer_firmware, mocap)")
+    parser.add_argument("--rate", type=float, help="natnet: frames per second, 100-240 (default: mocap.rate_hz)")
+    parser.add_argument("--latency", type=float, help="natnet: capture to transmit [s] (default: mocap.latency_s)")
+    parser.add_argument("--truth", help="natnet: write every frame's true pose to this file (JSON lines)")
     parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
     parser.add_argument("--seed", type=int, default=0, help="--twin: scenario and sensor-noise seed")
     parser.add_argument(
@@ -256,6 +275,68 @@ def run_teensy(params: HardwareParams, plant: TwinPlant | None = None) -> int:
         print(json.dumps({"final": emulator.counts}), file=sys.stderr, flush=True)  # counters for benches
     return 0 if emulator.error is None else 1
 
+NATNET_RATE_HZ = (100.0, 240.0)  # what OptiTrack systems stream at
+
+
+def run_natnet(params: MocapParams, plant: TwinPlant, port: int, rate_hz: float, latency_s: float,
+               truth_path: str | None) -> int:
+    """Stream the twin's true pose over NatNet; the twin runs unactuated at its control rate."""
+    done = _stop_on_signal()
+    server = natnet.NatNetServer({params.rigid_body_id: params.rigid_body}, command_port=port).start()
+    ticks_per_frame = max(1, round(1.0 / (rate_hz * plant.dt_s)))
+    latency_ns = round(latency_s * 1e9)
+    pending: list[natnet.Frame] = []  # captured, not yet due
+    truth = open(truth_path, "w") if truth_path else None
+    counter = {"tick": 0, "frame": 0}
+    zero = [0.0, 0.0, 0.0, 0.0]
+
+    def tick(_deadline_s: float) -> None:
+        now_ns = time.monotonic_ns()
+        plant.step(now_ns / 1e9, zero)
+        counter["tick"] += 1
+        if counter["tick"] % ticks_per_frame == 0:
+            counter["frame"] += 1
+            pos, quat = plant.body_pose()
+            body = natnet.RigidBodySample(params.rigid_body_id, pos, quat)
+            pending.append(natnet.Frame(counter["frame"], (body,), now_ns, now_ns + latency_ns, plant.sim_s))
+            if truth is not None:
+                truth.write(json.dumps({"frame": counter["frame"], "exposure_ns": now_ns, "position": pos, "quat": quat}) + "\n")
+        while pending and pending[0].received_ns <= now_ns:
+            server.publish(pending.pop(0), now_ns)
+
+    loop = DeadlineLoop(plant.dt_s, tick, name="natnet-twin")
+    loop.start()
+    print(
+        json.dumps(
+            {
+                "device": "natnet",
+                "host": server.host,
+                "command_port": server.command_port,
+                "data_port": server.data_port,
+                "multicast": False,
+                "protocol": f"NatNet {'.'.join(map(str, natnet.PROTOCOL_VERSION[:2]))}",
+                "rigid_body": params.rigid_body,
+                "rigid_body_id": params.rigid_body_id,
+                "rate_hz": 1.0 / (ticks_per_frame * plant.dt_s),
+                "latency_s": latency_ns / 1e9,
+                "motioncapture": {"type": "optitrack",
+                                  "cfg": {"hostname": server.host, "port_command": str(server.command_port)}},
+                "pid": os.getpid(),
+            }
+        ),
+        flush=True,
+    )
+    try:
+        while not done.wait(0.5) and loop.error is None and server.error is None:
+            pass
+    finally:
+        loop.stop(2.0)
+        server.stop()
+        if truth is not None:
+            truth.close()
+        print(json.dumps({"final": dict(server.counts), "overruns": loop.recorder.stats().overruns}), file=sys.stderr, flush=True)
+    return 0 if loop.error is None and server.error is None else 1
+
 
 def _board_geometry() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
     """The foot board's spring and spool and the flywheel board's wheel axes, from the MJCF model."""
@@ -312,6 +393,8 @@ def run_archer_firmware(params: ArcherFirmwareParams, port: int, peer_port: int,
 def run(args: argparse.Namespace) -> int:
     if args.device == "archer-firmware":
         return _run_archer_firmware(args)
+    if args.device == "natnet":
+        return _run_natnet(args)
     try:
         params = load_params(args.config, ("hardware", "safety"))["hardware"]
         if args.node_ids:
@@ -351,3 +434,23 @@ def _run_archer_firmware(args: argparse.Namespace) -> int:
         make_realtime(args.rt_priority)  # before any thread starts: they inherit the policy
     plant = TwinPlant(args.twin, args.seed, (1.0,) * 4) if args.twin else None  # the board reports joint values
     return run_archer_firmware(params, args.port, peer_port, plant)
+
+
+def _run_natnet(args: argparse.Namespace) -> int:
+    try:
+        params = load_params(args.config, ("mocap",))["mocap"]
+    except ConfigError as exc:
+        print(f"archer emulate: {exc}", file=sys.stderr)
+        return 2
+    rate_hz = args.rate if args.rate is not None else params.rate_hz
+    latency_s = args.latency if args.latency is not None else params.latency_s
+    if not args.twin:
+        print("archer emulate natnet: --twin SCENARIO is needed (the pose it streams is the twin's)", file=sys.stderr)
+        return 2
+    if not NATNET_RATE_HZ[0] <= rate_hz <= NATNET_RATE_HZ[1] or not 0.0 <= latency_s < 1.0:
+        print(f"archer emulate natnet: --rate within {NATNET_RATE_HZ} Hz and 0 <= --latency < 1 s needed", file=sys.stderr)
+        return 2
+    if args.rt_priority:
+        make_realtime(args.rt_priority)
+    plant = TwinPlant(args.twin, args.seed, (1.0,) * len(_gear_ratios()))
+    return run_natnet(params, plant, args.port, rate_hz, latency_s, args.truth)

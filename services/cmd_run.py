@@ -25,6 +25,7 @@ SERVICE_CLASSES: dict[str, str] = {
     "perception": "services.perception:PerceptionService",
     "router": "services.router:RouterService",
     "hardware": "services.hardware:HardwareService",
+    "mocap": "services.mocap:MocapService",
     "control": "services.control:ControlService",
     "planner": "services.planner:PlannerService",
     "estimator": "services.estimator:EstimatorService",

@@ -41,7 +41,7 @@ def one(unit: dict, section: str, key: str) -> str:
 
 def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     parsed = units()
-    for service in ROBOT + ("twin",):
+    for service in ROBOT + ("twin", "mocap"):
         unit = parsed[f"archer-{service}.service"]
         assert one(unit, "Service", "Type") == "notify"
         assert one(unit, "Service", "Restart") == "on-failure"
