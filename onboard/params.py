@@ -169,7 +169,7 @@ class HardwareParams(_Section):
 
 
 @dataclass(frozen=True)
-class ArcherFirmwareParams:
+class ArcherFirmwareParams(_Section):
     """ARCHER's own flywheel-board firmware over UDP (``docs/archer_firmware_protocol.md``).
 
     Read by the computer-side driver (``drivers/archer_firmware``) and by its emulator,
@@ -178,28 +178,28 @@ class ArcherFirmwareParams:
     robot's (board 10.0.0.7, computer 10.0.0.6) belong in its deployment config only.
     """
 
-    board_host: str = "127.0.0.1"  # the flywheel Teensy
-    board_port: int = 4333  # the firmware's UDP port
-    computer_host: str = "127.0.0.1"  # the address the computer binds (the firmware answers there)
-    computer_port: int = 4333
+    board_host: Name = "127.0.0.1"  # the flywheel Teensy
+    board_port: Port = 4333  # the firmware's UDP port
+    computer_host: Name = "127.0.0.1"  # the address the computer binds (the firmware answers there)
+    computer_port: Port = 4333
     # computer side
-    link_timeout_s: float = 0.100  # [s] no reply this long while commanding: fault (latched)
-    reply_late_s: float = 0.002  # [s] a reply arriving later than this after its request is late
-    reply_missing_s: float = 0.050  # [s] a request unanswered this long counts as missing
+    link_timeout_s: Annotated[float, above(0.0, 10.0)] = 0.100  # [s] no reply this long while commanding: fault (latched)
+    reply_late_s: Annotated[float, above(0.0, 1.0)] = 0.002  # [s] a reply arriving later than this after its request is late
+    reply_missing_s: Annotated[float, above(0.0, 10.0)] = 0.050  # [s] a request unanswered this long counts as missing
     # the firmware (what the emulator runs; the real board has them in its own configuration)
-    rate_hz: float = 1000.0  # [Hz] the board's control loop
-    watchdog_s: float = 0.100  # [s] no valid packet this long: motors off
-    kp_tilt: float = 60.0  # [N m] per unit of quaternion error vector, roll and pitch
-    kp_yaw: float = 4.0  # [N m] per unit of quaternion error vector, yaw
-    kd_tilt: float = 3.0  # [N m s/rad] roll and pitch
-    kd_yaw: float = 0.25  # [N m s/rad] yaw
-    torque_constant: float = 0.083  # [N m/A] wheel motors
-    current_max: float = 12.0  # [A] wheel current clamp
+    rate_hz: Annotated[float, within(1.0, LOOP_HZ_MAX)] = 1000.0  # [Hz] the board's control loop
+    watchdog_s: Annotated[float, above(0.0, 10.0)] = 0.100  # [s] no valid packet this long: motors off
+    kp_tilt: Annotated[float, within(0.0, 500.0)] = 60.0  # [N m] per unit of quaternion error vector, roll and pitch
+    kp_yaw: Annotated[float, within(0.0, 500.0)] = 4.0  # [N m] per unit of quaternion error vector, yaw
+    kd_tilt: Annotated[float, within(0.0, 50.0)] = 3.0  # [N m s/rad] roll and pitch
+    kd_yaw: Annotated[float, within(0.0, 50.0)] = 0.25  # [N m s/rad] yaw
+    torque_constant: Annotated[float, above(0.0, 10.0)] = 0.083  # [N m/A] wheel motors
+    current_max: Annotated[float, above(0.0, 100.0)] = 12.0  # [A] wheel current clamp
     # the foot board's hop cycle (spool position control, as the foot Teensy runs it)
-    foot_preload_m: float = 0.03  # [m] spring compression wound in during flight, released at touchdown
-    foot_spool_kp: float = 10.0  # [N m/rad]
-    foot_spool_kd: float = 0.2  # [N m s/rad]
-    foot_release_slack_m: float = 0.015  # [m] at touchdown unwind this much cable past the extended foot
+    foot_preload_m: Annotated[float, within(0.0, 0.2)] = 0.03  # [m] spring compression wound in during flight, released at touchdown
+    foot_spool_kp: Annotated[float, within(0.0, 1000.0)] = 10.0  # [N m/rad]
+    foot_spool_kd: Annotated[float, within(0.0, 100.0)] = 0.2  # [N m s/rad]
+    foot_release_slack_m: Annotated[float, within(0.0, 0.2)] = 0.015  # [m] at touchdown unwind this much cable past the extended foot
 
 
 # Sections owned by each layer follow; each is registered in SECTIONS below.
@@ -506,7 +506,7 @@ class RecorderParams(_Section):
 
 
 @dataclass(frozen=True)
-class MocapParams:
+class MocapParams(_Section):
     """The ``mocap`` service: a motion capture system's pose through ``motioncapture``.
 
     ``stamp_ns`` of a published pose is the capture time on the stack's monotonic
@@ -514,16 +514,16 @@ class MocapParams:
     no per-frame latency or timestamp, so the lab measures it once and sets it here).
     """
 
-    system: str = "optitrack"  # motioncapture backend: optitrack, vicon, qualisys, vrpn
-    host: str = "127.0.0.1"  # the mocap server (the lab's address belongs in the robot's config)
-    port: int = 0  # the server's command port (0: the system's default, e.g. NatNet 1510)
-    rigid_body: str = "archer"  # the robot's rigid body name in the mocap software
-    rigid_body_id: int = 1  # NatNet streaming id (the emulator's; the service matches by name)
-    latency_s: float = 0.005  # [s] capture to receive: exposure, processing, network
-    rate_hz: float = 120.0  # [Hz] the system's frame rate (emulator's stream rate)
-    quat_norm_tolerance: float = 1e-3  # |norm - 1| beyond which a pose is refused
-    connect_timeout_s: float = 2.0  # [s] a NatNet server must answer NAT_CONNECT within this
-    reconnect_s: float = 1.0  # [s] wait before connecting again after a failure
+    system: Literal["optitrack", "vicon", "qualisys", "vrpn"] = "optitrack"  # motioncapture backend
+    host: Name = "127.0.0.1"  # the mocap server (the lab's address belongs in the robot's config)
+    port: Annotated[int, within(0, 65535)] = 0  # the server's command port (0: the system's default, e.g. NatNet 1510)
+    rigid_body: Name = "archer"  # the robot's rigid body name in the mocap software
+    rigid_body_id: Annotated[int, within(0, 65535)] = 1  # NatNet streaming id (the emulator's; the service matches by name)
+    latency_s: Annotated[float, within(0.0, 1.0)] = 0.005  # [s] capture to receive: exposure, processing, network
+    rate_hz: Annotated[float, within(1.0, 1000.0)] = 120.0  # [Hz] the system's frame rate (emulator's stream rate)
+    quat_norm_tolerance: Annotated[float, above(0.0, 0.5)] = 1e-3  # |norm - 1| beyond which a pose is refused
+    connect_timeout_s: Annotated[float, above(0.0, 60.0)] = 2.0  # [s] a NatNet server must answer NAT_CONNECT within this
+    reconnect_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] wait before connecting again after a failure
 
 
 SECTIONS: dict[str, type] = {

@@ -233,8 +233,9 @@ def angle_between(a: Sequence[float], b: Sequence[float]) -> float:
 def tilt(q: Sequence[float]) -> float:
     """Angle [rad] between the body z axis and world z (0 upright, pi upside down)."""
     w, x, y, z = q
-    cz = 1.0 - 2.0 * (x * x + y * y)  # world z component of body z
-    return math.acos(max(-1.0, min(1.0, cz)))
+    # the half angle from its sine and cosine parts: exact near upright, where acos of the
+    # body z axis's world z component (1 - 2 (x^2 + y^2)) loses half the digits
+    return 2.0 * math.atan2(math.sqrt(x * x + y * y), math.sqrt(w * w + z * z))
 
 
 def body_z(q: Sequence[float]) -> Vec3:

@@ -63,7 +63,7 @@ class NatNetPoses:
         self._conn.send(None)
         self._proc.join(5.0)
 
-    def feed(self, topic: str, msg: Any) -> None:
+    def feed(self, topic: str, msg: Any, now_ns: int) -> None:
         if topic == "pose":
             receive_ns = self.now_ns + self.tick_ns  # the tick being delivered
             self.frames += 1
@@ -71,7 +71,7 @@ class NatNetPoses:
             self._conn.send((natnet.Frame(self.frames, (body,), msg.stamp_ns, receive_ns, msg.stamp_ns / NS), receive_ns))
             self.mc.waitForNextFrame()
             msg = pose_of(self.mc.rigidBodies[self.params.rigid_body], receive_ns, self.params)
-        self.inner.feed(topic, msg)
+        self.inner.feed(topic, msg, now_ns)
 
     def estimate(self, now_ns: int, data: Any) -> Any:
         self.now_ns = now_ns

@@ -109,7 +109,9 @@ def test_service_publishes_the_estimate_at_rate(zenoh_router):
         # valid unless the IMU went stale (a loaded machine can hold messages back > 5 ms):
         # the filter's own uncertainty stays small throughout
         assert sum(s.valid for s in during) > 0.8 * len(during)
-        assert max(s.pos_vel_cov[0] for s in during) < 0.03 ** 2
+        # a valid estimate is a certain one (a stalled replay grows the covariance honestly
+        # and the estimate says it is not valid then)
+        assert max(s.pos_vel_cov[0] for s in during if s.valid) < 0.03 ** 2
         # the estimate at its stamp against the truth interpolated there
         errs = [math.dist(s.position, [np.interp(s.stamp_ns, stamps, path[:, i]) for i in range(3)]) for s in during]
         # Median, not RMS: when the whole suite shares this process's GIL the replay can
