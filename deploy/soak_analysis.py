@@ -6,7 +6,8 @@ so a ``safety`` event's stamp and the soak's receipt times compare directly.
 Per fault (:func:`analyze`):
 
 - **detection**: the first sign that the stack noticed, among the signals of the fault's kind
-  (:data:`SIGNALS`), each at the time the soak saw it:
+  (:data:`SIGNALS`), each at the time the soak saw it, from injection until ``ATTRIBUTION_S``
+  after the action ended (what shows later is not this fault's doing):
 
   - ``safety:<trip>``: a ``safety`` event (stamped by its publisher) other than the routine ones
     (:data:`ROUTINE_TRIPS`);
@@ -18,7 +19,7 @@ Per fault (:func:`analyze`):
 
 - **time to zero torque**: from injection to the twin's ``command_stale`` / ``command_refused``
   event (it stopped applying torque) or the first ``torque_cmd`` with ``armed`` false, whichever
-  is first; only when the robot was armed at injection.
+  is first, within the same attribution bound; only when the robot was armed at injection.
 - **fell**: the twin's ``falls`` count (its physics, not an estimate) rose during the fault's window.
 - **recovery**: from injection until everything the fault disturbed is back: each service whose
   liveliness was lost declared it again (the unit is active); the commands are armed again (and
@@ -47,6 +48,10 @@ FALL_TRIP = "tilt"  # the control's own (estimated) fall trip
 ARMED_AT_INJECTION_S = 0.05  # an armed command this recent: the robot was under control
 ARMED_HOLD_S = 1.0  # re-armed means armed this long without a disarmed command
 REFERENCE_GAP_S = 0.5  # a reference gap this long is a disturbance (SafetyLimits.reference_stale_s)
+# Signs of a fault (detection, zero torque) count up to this long after its action ended: later
+# ones belong to something else (a loaded workstation makes the estimate honestly invalid now
+# and then). The status poll is 0.5 s, a counter's rise shows within two polls.
+ATTRIBUTION_S = 2.0
 TWIN = "twin"
 
 SIGNALS = {
@@ -57,7 +62,7 @@ SIGNALS = {
     "malformed_flood": ("safety", "counter"),
     "bad_stamps": ("safety", "counter"),
 }
-_STAMP_SIGNS = re.compile(r"future|late|stale|outlier|reject|reset|bad_stamp|invalid")
+_STAMP_SIGNS = re.compile(r"future|past|stale|outlier|reject|reset|bad_stamp|invalid")
 
 
 def counter_matters(fault: Fault, name: str) -> bool:
@@ -102,6 +107,11 @@ class Injection:
     helper: dict[str, Any] | None = None  # what a hog or flood process reported
     error: str = ""  # why the action could not be carried out
 
+    @property
+    def attribution_end_ns(self) -> int:
+        """Signs of this fault are looked for up to here (``ATTRIBUTION_S`` after the action)."""
+        return min(self.window_end_ns, self.end_ns + int(ATTRIBUTION_S * NS))
+
 
 def _ms(t_ns: int | None, ref_ns: int) -> float | None:
     return None if t_ns is None else round((t_ns - ref_ns) / 1e6, 2)
@@ -116,8 +126,8 @@ def _first_at_or_after(times: Sequence[int], t: int) -> int:
 
 
 def detection_signals(s: Streams, inj: Injection) -> dict[str, int]:
-    """Each signal of the fault's kind and the first time it showed in the window."""
-    f, lo, hi = inj.fault, inj.start_ns, inj.window_end_ns
+    """Each signal of the fault's kind and the first time it showed while it is attributed to it."""
+    f, lo, hi = inj.fault, inj.start_ns, inj.attribution_end_ns
     kinds = SIGNALS[f.kind]
     out: dict[str, int] = {}
 
@@ -155,8 +165,8 @@ def armed_at(s: Streams, t: int) -> bool:
 
 
 def zero_torque(s: Streams, inj: Injection) -> tuple[int | None, str]:
-    """When torque went to zero after injection, and what said so."""
-    lo, hi = inj.start_ns, inj.window_end_ns
+    """When torque went to zero after injection (while attributed to it), and what said so."""
+    lo, hi = inj.start_ns, inj.attribution_end_ns
     twin = next(((stamp, trip) for stamp, trip in s.safety if lo <= stamp < hi and trip in ZERO_TORQUE_TRIPS), None)
     i = _first_at_or_after(s.torque_rx, lo)
     disarmed = None

@@ -114,7 +114,9 @@ class EstimatorService(Service):
                     self.fail(f"estimator loop crashed: {self._loop.error!r}")
                     return
                 if self.state != "error":
-                    self.state = "running" if self.est.status()["mode"] != "init" else "degraded"
+                    with self._lock:  # the loop thread updates the estimator meanwhile
+                        mode = self.est.status()["mode"]
+                    self.state = "running" if mode != "init" else "degraded"
         finally:
             await asyncio.to_thread(self._loop.stop, 2.0)
 

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import subprocess
+import sys
 import time
 
 DEFAULT_TIMEOUT_S = 30.0  # generous: the CI machine may be loaded
@@ -16,3 +19,26 @@ async def wait_for(predicate, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
         if time.monotonic() > deadline:
             raise AssertionError("condition not met in time")
         await asyncio.sleep(POLL_S)
+
+
+EMULATE = [sys.executable, "-m", "services.cli", "emulate"]
+
+
+def start_emulator(*args: str) -> tuple[subprocess.Popen, dict]:
+    """``archer emulate ARGS`` as a process, and the one JSON line saying how to connect."""
+    proc = subprocess.Popen(EMULATE + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    if not line:
+        proc.wait(10)
+        raise AssertionError(proc.stderr.read())
+    return proc, json.loads(line)
+
+
+def stop_emulator(proc: subprocess.Popen) -> dict:
+    """SIGTERM (unless it already ended), a clean exit, and its final counters."""
+    if proc.poll() is None:
+        proc.terminate()
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert out == ""  # exactly one line on stdout
+    return next(json.loads(line)["final"] for line in err.splitlines() if line.startswith('{"final"'))

@@ -13,7 +13,6 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import time
 
 import can
@@ -21,26 +20,9 @@ import canopen
 import pytest
 import serial
 
+from helpers import EMULATE, start_emulator, stop_emulator
 
-ARCHER = [sys.executable, "-m", "services.cli", "emulate"]
 LIVENESS_S = 0.5  # twin tests check physics, not timing: heartbeat/link bounds a loaded machine keeps
-
-
-def start(*args: str) -> tuple[subprocess.Popen, dict]:
-    proc = subprocess.Popen(ARCHER + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    line = proc.stdout.readline()
-    if not line:
-        proc.wait(10)
-        raise AssertionError(proc.stderr.read())
-    return proc, json.loads(line)
-
-
-def stop(proc: subprocess.Popen) -> dict:
-    proc.terminate()
-    out, err = proc.communicate(timeout=10)
-    assert proc.returncode == 0, err
-    assert out == ""  # exactly one line on stdout
-    return next(json.loads(line)["final"] for line in err.splitlines() if line.startswith('{"final"'))
 
 
 def recv_until(bus: can.BusABC, predicate, timeout_s: float) -> list[can.Message]:
@@ -54,7 +36,7 @@ def recv_until(bus: can.BusABC, predicate, timeout_s: float) -> list[can.Message
 
 
 def test_drives_print_one_line_a_stock_python_can_client_can_use() -> None:
-    proc, info = start("drives", "--node-ids", "1,2,3,4")
+    proc, info = start_emulator("drives", "--node-ids", "1,2,3,4")
     try:
         assert info["interface"] == "socketcand" and info["channel"] == "can0"
         assert info["bus"]["host"] == "127.0.0.1" and info["node_ids"] == [1, 2, 3, 4]
@@ -73,13 +55,13 @@ def test_drives_print_one_line_a_stock_python_can_client_can_use() -> None:
         finally:
             bus.shutdown()
     finally:
-        final = stop(proc)
+        final = stop_emulator(proc)
     assert final["frames_in"] >= 2 and set(final["drives"]) == {"1", "2", "3", "4"}
 
 
 def test_drives_report_their_counters_on_sigusr1_and_keep_serving() -> None:
     """What ``archer bench hardware`` reads at both ends of its window."""
-    proc, info = start("drives", "--node-ids", "1,2")
+    proc, info = start_emulator("drives", "--node-ids", "1,2")
     try:
         bus = can.Bus(**info["bus"])
         try:
@@ -106,7 +88,7 @@ def test_drives_report_their_counters_on_sigusr1_and_keep_serving() -> None:
 
 
 def test_canopen_package_reads_the_drive_over_the_printed_bus() -> None:
-    proc, info = start("drives", "--node-ids", "7")
+    proc, info = start_emulator("drives", "--node-ids", "7")
     network = canopen.Network()
     try:
         network.connect(**info["bus"])
@@ -117,13 +99,13 @@ def test_canopen_package_reads_the_drive_over_the_printed_bus() -> None:
         assert node.sdo[0x6076].raw == 996  # rated torque [mN m] = 12 A x 0.083 N m/A
     finally:
         network.disconnect()
-        stop(proc)
+        stop_emulator(proc)
 
 
 def test_bad_node_ids_are_a_clear_error() -> None:
-    result = subprocess.run(ARCHER + ["drives", "--node-ids", "1,x"], capture_output=True, text=True, timeout=30)
+    result = subprocess.run(EMULATE + ["drives", "--node-ids", "1,x"], capture_output=True, text=True, timeout=30)
     assert result.returncode == 2 and "--node-ids" in result.stderr and result.stdout == ""
-    result = subprocess.run(ARCHER + ["drives", "--node-ids", "0,200"], capture_output=True, text=True, timeout=30)
+    result = subprocess.run(EMULATE + ["drives", "--node-ids", "0,200"], capture_output=True, text=True, timeout=30)
     assert result.returncode == 2
 
 
@@ -131,14 +113,14 @@ def test_archer_firmware_on_a_taken_port_is_a_clear_error() -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = str(taken.getsockname()[1])
-        result = subprocess.run(ARCHER + ["archer-firmware", "--port", port], capture_output=True, text=True, timeout=60)
+        result = subprocess.run(EMULATE + ["archer-firmware", "--port", port], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and f"127.0.0.1:{port}" in result.stderr and result.stdout == ""
-    result = subprocess.run(ARCHER + ["archer-firmware", "--peer-port", "70000"], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(EMULATE + ["archer-firmware", "--peer-port", "70000"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--peer-port" in result.stderr
 
 
 def test_teensy_prints_a_port_pyserial_opens() -> None:
-    proc, info = start("teensy")
+    proc, info = start_emulator("teensy")
     try:
         assert info["device"] == "teensy" and info["pty"].startswith("/dev/pts/")
         port = serial.Serial(info["port"], timeout=0.2)
@@ -151,17 +133,17 @@ def test_teensy_prints_a_port_pyserial_opens() -> None:
         finally:
             port.close()
     finally:
-        final = stop(proc)
+        final = stop_emulator(proc)
     assert final["sensors"] > 0
 
 
 @pytest.mark.parametrize("device", ["drives", "teensy", "archer-firmware"])
 def test_the_line_is_json_with_a_pid(device: str) -> None:
-    proc, info = start(device)
+    proc, info = start_emulator(device)
     try:
         assert info["pid"] == proc.pid and info["device"] == device
     finally:
-        stop(proc)
+        stop_emulator(proc)
 
 
 def test_teensy_with_the_twin_behind_it_reports_the_twins_physics() -> None:
@@ -169,7 +151,7 @@ def test_teensy_with_the_twin_behind_it_reports_the_twins_physics() -> None:
     from drivers.teensy.device import Teensy
     from drivers.teensy.transport import SerialLink
 
-    proc, info = start("teensy", "--twin", "hop-in-place")
+    proc, info = start_emulator("teensy", "--twin", "hop-in-place")
     teensy = Teensy(SerialLink(info["port"], 0.05, 1.0), "torque", LIVENESS_S)
     try:
         end = time.monotonic() + 0.6
@@ -183,7 +165,7 @@ def test_teensy_with_the_twin_behind_it_reports_the_twins_physics() -> None:
         assert s.quat != (1.0, 0.0, 0.0, 0.0)  # the static emulator would report identity
     finally:
         teensy.link.close()
-        stop(proc)
+        stop_emulator(proc)
 
 
 def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
@@ -193,13 +175,13 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
     from onboard.params import HardwareParams
     from services.hardware import gear_ratios
 
-    proc, info = start("drives", "--twin", "hop-in-place")
+    proc, info = start_emulator("drives", "--twin", "hop-in-place")
     bus = info["bus"]
     transport = CanTransport(SocketcandBus(bus["channel"], bus["host"], bus["port"]))
     params = HardwareParams()
     group = DriveGroup(transport, [ElmoDrive(j) for j in joint_drives(params, gear_ratios())], params, LIVENESS_S)
     try:
-        group.start()
+        group.start_emulator()
         group.enable(timeout_s=5.0)
         for _ in range(400):
             group.exchange((0.0, 0.0, 0.3, 0.0), armed=True)
@@ -208,7 +190,7 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
         assert fb[2].velocity > 10.0 and abs(fb[0].velocity) < 1.0
         assert fb[2].torque == pytest.approx(0.3, abs=0.005)
     finally:
-        group.stop()
+        group.stop_emulator()
         transport.shutdown()
-        final = stop(proc)
+        final = stop_emulator(proc)
     assert final["syncs"] >= 400

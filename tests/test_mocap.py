@@ -9,8 +9,6 @@ import json
 import math
 import socket
 import struct
-import subprocess
-import sys
 import time
 from types import SimpleNamespace
 
@@ -24,28 +22,10 @@ from onboard.params import MocapParams
 from onboard.topics import TOPICS
 from services.mocap import MocapService, pose_of
 from services.zenoh_session import open_session
+from helpers import start_emulator, stop_emulator
 
-ARCHER = [sys.executable, "-m", "services.cli", "emulate", "natnet"]
 NS_KEY = "archer/test-mocap"
 F32 = 1e-6  # float32 on the wire: relative precision of a position near 1 m
-
-
-def start(*args: str) -> tuple[subprocess.Popen, dict]:
-    proc = subprocess.Popen(ARCHER + list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    line = proc.stdout.readline()
-    if not line:
-        proc.wait(10)
-        raise AssertionError(proc.stderr.read())
-    return proc, json.loads(line)
-
-
-def stop(proc: subprocess.Popen) -> dict:
-    if proc.poll() is None:
-        proc.terminate()
-    out, err = proc.communicate(timeout=10)
-    assert proc.returncode == 0, err
-    assert out == ""  # exactly one line on stdout
-    return next(json.loads(line)["final"] for line in err.splitlines() if line.startswith('{"final"'))
 
 
 def read_truth(path) -> list[dict]:
@@ -54,7 +34,7 @@ def read_truth(path) -> list[dict]:
 
 def test_emulator_streams_the_twin_to_a_third_party_unicast_client(tmp_path) -> None:
     truth_file = tmp_path / "truth.jsonl"
-    proc, info = start("--twin", "push", "--rate", "125", "--latency", "0.02", "--truth", str(truth_file))
+    proc, info = start_emulator("natnet", "--twin", "push", "--rate", "125", "--latency", "0.02", "--truth", str(truth_file))
     frames, descriptions = [], []
     try:
         assert info["host"] == "127.0.0.1" and info["multicast"] is False and info["protocol"] == "NatNet 3.1"
@@ -70,7 +50,7 @@ def test_emulator_streams_the_twin_to_a_third_party_unicast_client(tmp_path) -> 
                 client.update_sync()  # reads what arrived and sends the unicast keep-alive
                 time.sleep(0.01)
     finally:
-        final = stop(proc)
+        final = stop_emulator(proc)
     bodies = descriptions[0].rigid_bodies
     assert [(b.name, b.id_num) for b in bodies] == [(info["rigid_body"], info["rigid_body_id"])]
     span_s = (frames[-1].suffix.stamp_camera_mid_exposure - frames[0].suffix.stamp_camera_mid_exposure) / 1e9
@@ -100,7 +80,7 @@ def test_emulator_streams_the_twin_to_a_third_party_unicast_client(tmp_path) -> 
 
 
 def test_emulator_drops_and_counts_bad_requests() -> None:
-    proc, info = start("--twin", "hop-in-place")
+    proc, info = start_emulator("natnet", "--twin", "hop-in-place")
     try:
         server = ("127.0.0.1", info["command_port"])
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
@@ -115,7 +95,7 @@ def test_emulator_drops_and_counts_bad_requests() -> None:
             reply, _ = s.recvfrom(nn.MAX_PACKET)
             assert struct.unpack_from("<H", reply)[0] == nn.NAT_SERVERINFO
     finally:
-        final = stop(proc)
+        final = stop_emulator(proc)
     assert final["rejected.truncated"] == 1 and final["rejected.size_mismatch"] == 1
     assert final["rejected.unsupported"] == 1 and final["connects"] == 1
 
@@ -140,7 +120,7 @@ def test_pose_of_stamps_the_capture_time_and_refuses_bad_values() -> None:
 def test_mocap_service_publishes_the_twins_pose_with_its_capture_time(zenoh_router, tmp_path) -> None:
     truth_file = tmp_path / "truth.jsonl"
     latency_s = 0.02
-    proc, info = start("--twin", "push", "--rate", "125", "--latency", str(latency_s), "--truth", str(truth_file))
+    proc, info = start_emulator("natnet", "--twin", "push", "--rate", "125", "--latency", str(latency_s), "--truth", str(truth_file))
     params = MocapParams(port=info["command_port"], rigid_body=info["rigid_body"], latency_s=latency_s)
     poses: list[m.PoseMeasurement] = []
 
@@ -168,7 +148,7 @@ def test_mocap_service_publishes_the_twins_pose_with_its_capture_time(zenoh_rout
     try:
         got = asyncio.run(asyncio.wait_for(scenario(), 60))
     finally:
-        stop(proc)
+        stop_emulator(proc)
     assert got["state"] == "running"
     assert got["rate"] > 0.6 * 125, got  # a loaded machine may lose some of the twin's deadlines
     truth = read_truth(truth_file)
@@ -223,11 +203,11 @@ def test_mocap_service_without_a_server_or_its_body_publishes_nothing_and_counts
     state, counters, n = asyncio.run(run_service(no_server, 1.5))
     assert (state, n) == ("degraded", 0) and counters["connect_failed"] >= 2 and "connects" not in counters
 
-    proc, info = start("--twin", "hop-in-place")
+    proc, info = start_emulator("natnet", "--twin", "hop-in-place")
     try:
         other_body = MocapParams(port=info["command_port"], rigid_body="not-" + info["rigid_body"])
         state, counters, n = asyncio.run(run_service(other_body, 2.5))
     finally:
-        stop(proc)
+        stop_emulator(proc)
     assert (state, n) == ("degraded", 0)
     assert counters["connects"] == 1 and counters["rejected.body_missing"] > 50
