@@ -41,6 +41,7 @@ the reference the lean arithmetic is tested against, and ~10x slower.
 
 from __future__ import annotations
 
+import math
 from bisect import insort
 from collections import deque
 from collections.abc import Sequence
@@ -54,6 +55,9 @@ _stamp = itemgetter(0)
 Entry = list  # [t_ns, dt, ax, ay, az, stance, foot_s, impulse | None, leg | None, gap_cov | None]
 _T, _DT, _AX, _AY, _AZ, _STANCE, _S, _IMP, _LEG, _GAP = range(10)
 Cov2 = tuple[float, float, float]  # (P_pp, P_pv, P_vv) of one axis
+
+
+REACQUIRE_MARGIN = 2.0  # re-acquiring a lost track: the pose's innovation at half the gate
 
 
 class ComFilter:
@@ -71,15 +75,19 @@ class ComFilter:
         gate_chi2: float,
         com_offset_body: Sequence[float],
         com_per_compression: Sequence[float],
+        reacquire_s: float = math.inf,
     ) -> None:
         """``com_offset_body``: CoM relative to the pose sensor's point at zero foot
         compression [m, body]; ``com_per_compression``: its derivative with respect to the
-        compression [m/m, body]; ``gate_chi2``: 3-dof Mahalanobis gate."""
+        compression [m/m, body]; ``gate_chi2``: 3-dof Mahalanobis gate; ``reacquire_s``:
+        with no pose fused for this long, a gated pose means the filter is the one that is
+        wrong (see :meth:`admits_pose`)."""
         self.compensate = compensate_latency
         self._delay_ns = int(round(delay_s * NS)) if compensate_latency else 0
         self._q_flight = accel_psd_flight
         self._q_stance = accel_psd_stance
         self._gate = gate_chi2
+        self._reacquire_ns = reacquire_s * NS
         self._c0 = tuple(float(v) for v in com_offset_body)
         self._ck = tuple(float(v) for v in com_per_compression)
         self._init_pos_var = init_pos_std * init_pos_std
@@ -96,7 +104,7 @@ class ComFilter:
         self._last_a = (0.0, 0.0, 0.0)  # input and foot compression at the horizon
         self._last_s = 0.0
         self.last_fused_stamp = -1  # capture stamp of the newest fused pose [ns]
-        self.counters = {"pose_fused": 0, "pose_outliers": 0, "pose_late": 0, "leg_fused": 0, "leg_outliers": 0}
+        self.counters = {"pose_fused": 0, "pose_outliers": 0, "pose_late": 0, "pose_reacquired": 0, "leg_fused": 0, "leg_outliers": 0}
 
     # --- inputs ------------------------------------------------------------------
 
@@ -247,9 +255,23 @@ class ComFilter:
         yx = zx - x[0] - tau * x[3]
         yy = zy - x[1] - tau * x[4]
         yz = zz - x[2] - tau * x[5]
-        if (yx * yx + yy * yy + yz * yz) / sv > self._gate:
+        d2 = yx * yx + yy * yy + yz * yz
+        if d2 / sv <= self._gate:
+            return True
+        newest = max(self.last_fused_stamp, max((pose[0] for pose in self._pending), default=-1))
+        if stamp_ns - newest <= self._reacquire_ns:
             self.counters["pose_outliers"] += 1
             return False
+        # Every pose refused for reacquire_s while the IMU kept the filter going: it is the
+        # state that went wrong (a stall, a missed touchdown), not the poses. Inflate the
+        # position variance to what admits this one (with margin) and the velocity's over
+        # the same time, as if that error had built up unseen: the pose then pulls the state
+        # back. A foreign stream beside the real one never gets here: the real poses keep
+        # being fused.
+        excess = REACQUIRE_MARGIN * d2 / self._gate - sv
+        window = self._reacquire_ns / NS
+        self._add_cov(excess, 0.0, excess / (window * window))
+        self.counters["pose_reacquired"] += 1
         return True
 
     def _fuse_pose(self, pose: tuple, t_ns: int, ax: float, ay: float, az: float, foot_s: float, as_current: bool = False) -> None:

@@ -146,6 +146,7 @@ class StateEstimator:
             gate_chi2=self._gate3,
             com_offset_body=c0,
             com_per_compression=(0.0, 0.0, mu),
+            reacquire_s=p.pose_reacquire_s,
         )
         self._pose_pos_var = p.pose_pos_std_m ** 2
         self._pose_att_var = p.pose_att_std_rad ** 2

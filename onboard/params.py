@@ -227,6 +227,7 @@ class EstimatorParams(_Section):
     # Mahalanobis gating of pose and leg-kinematics measurements. No reset after a run of
     # refusals: the covariance grows while nothing is fused, and the gate alone decides.
     gate_probability: Annotated[float, Meta(gt=0.0, lt=1.0)] = 0.9995  # chi-square acceptance probability
+    pose_reacquire_s: Annotated[float, above(0.0, 10.0)] = 0.1  # [s] every pose gated this long: the state is lost, take the poses back (its covariance inflated)
     # CoM process model: white acceleration noise around projectile / stance dynamics.
     accel_psd_flight: Annotated[float, above(0.0, 1e3)] = 0.003  # [(m/s^2)^2/Hz] flight: what projectile dynamics leave out (drag)
     accel_psd_stance: Annotated[float, above(0.0, 1e3)] = 2.0  # [(m/s^2)^2/Hz] stance (accelerometer-driven)

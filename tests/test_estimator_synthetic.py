@@ -178,6 +178,8 @@ class SensorConfig:
     outage: tuple[float, float] | None = None  # [s] no pose captured in this window
     outlier_every: int = 0  # every n-th delivered pose is moved by outlier_m
     outlier_m: float = 1.0
+    jump_at_s: float | None = None  # from then on every pose is moved by jump_m: the track is lost
+    jump_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -228,6 +230,8 @@ def run_synthetic(track: Track, params: EstimatorParams, cfg: SensorConfig, seed
             origin = track.pos[k] - r @ (c0 + np.array([0.0, 0.0, mu * track.foot_s[k]]))
             origin = origin + rng.normal(0.0, cfg.pos_std, 3)
             delivered += 1
+            if cfg.jump_at_s is not None and ts >= cfg.jump_at_s:
+                origin = origin + np.array(cfg.jump_m)
             if cfg.outlier_every and delivered % cfg.outlier_every == 0:
                 direction = rng.normal(size=3)
                 origin = origin + cfg.outlier_m * direction / np.linalg.norm(direction)
@@ -311,9 +315,24 @@ def test_one_metre_outliers_are_rejected(track: Track) -> None:
     c = run.est.counters
     assert run.outliers_injected >= 40
     assert c["pose_outliers"] == run.outliers_injected
-    assert c.get("pose_resets", 0) == 0
+    assert c.get("pose_resets", 0) == 0 and c["pose_reacquired"] == 0  # the real poses keep the track
     pos, vel, att = errors(run, track)
     assert pos < 0.003 and vel < 0.04 and att < 0.2
+
+
+def test_a_lost_track_is_taken_back_from_the_poses(track: Track) -> None:
+    """Every pose 30 cm off from some time on (the state went wrong: a stall, a robot put
+    back): the gate refuses them for ``pose_reacquire_s``, then the covariance is inflated
+    and the poses pull the state over; before, the gate refused them for good."""
+    jump = (0.3, -0.2, 0.0)
+    run = run_synthetic(track, PARAMS, SensorConfig(jump_at_s=1.5, jump_m=jump, dropout=0.0))
+    moved = track.pos + np.array(jump)
+    err = np.linalg.norm(run.pos - moved, axis=1)
+    k0 = 1500 + 20  # the first moved pose arrives 20 ms late
+    assert run.est.counters["pose_reacquired"] >= 1
+    settle = k0 + int(1000 * (PARAMS.pose_reacquire_s + 0.2))
+    assert err[settle:].max() < 0.01
+    assert run.modes[settle] == "ok"
 
 
 def test_lean_arithmetic_matches_filterpy(track: Track) -> None:
