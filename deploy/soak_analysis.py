@@ -62,7 +62,7 @@ SIGNALS = {
     "malformed_flood": ("safety", "counter"),
     "bad_stamps": ("safety", "counter"),
 }
-_STAMP_SIGNS = re.compile(r"future|past|stale|outlier|reject|reset|bad_stamp|invalid")
+_STAMP_SIGNS = re.compile(r"future|past|order|stale|outlier|reject|reset|bad_stamp|invalid")
 
 
 def counter_matters(fault: Fault, name: str) -> bool:

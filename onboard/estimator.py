@@ -261,11 +261,11 @@ class StateEstimator:
         isf = math.isfinite
         if not (isf(gx) and isf(gy) and isf(gz) and isf(fx) and isf(fy) and isf(fz)):
             return self._reject("imu_nonfinite")
-        if t <= self._t_imu:
-            return self._reject("imu_out_of_order")
-        refused = self._stamp_refused("imu", t, arrival_ns)
+        refused = self._stamp_refused("imu", t, arrival_ns)  # first: a wrong clock, named as one
         if refused:
             return self._reject(refused)
+        if t <= self._t_imu:
+            return self._reject("imu_out_of_order")
         p = self.params
         wr = gx * gx + gy * gy + gz * gz
         fn2 = fx * fx + fy * fy + fz * fz
