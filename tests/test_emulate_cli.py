@@ -181,7 +181,7 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
     params = HardwareParams()
     group = DriveGroup(transport, [ElmoDrive(j) for j in joint_drives(params, gear_ratios())], params, LIVENESS_S)
     try:
-        group.start_emulator()
+        group.start()
         group.enable(timeout_s=5.0)
         for _ in range(400):
             group.exchange((0.0, 0.0, 0.3, 0.0), armed=True)
@@ -190,7 +190,7 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
         assert fb[2].velocity > 10.0 and abs(fb[0].velocity) < 1.0
         assert fb[2].torque == pytest.approx(0.3, abs=0.005)
     finally:
-        group.stop_emulator()
+        group.stop()
         transport.shutdown()
         final = stop_emulator(proc)
     assert final["syncs"] >= 400
