@@ -296,9 +296,10 @@ def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None
     # Late feedback is scheduling: the emulator process, the service loop and the commander
     # share 2 cores. Measured in this test (2 s window, 4 drives): 0-0.3 % quiet (6 runs),
     # at most 2.7 % with one core kept busy by another process (5 runs), 4.5-50 % with both
-    # (5 runs: a drive whose answer slips past the next tick stays a tick late). 10 % is
-    # well above one busy core and fails when feedback is systematically late.
-    assert delta["feedback_missed"] / expected < 0.10, delta
+    # (5 runs: a drive whose answer slips past the next tick stays a tick late). 20 % is
+    # far above one busy core (CI runs the tests one at a time) and fails when feedback is
+    # systematically late, as the old 50 % bound did not.
+    assert delta["feedback_missed"] / expected < 0.20, delta
     assert delta["faults_latched"] == 0
     # the load of this window's frames, not since the bus opened (start-up included):
     # 0.906-0.907 measured in 16 runs, between the nominal and the worst-stuffing budget
