@@ -200,8 +200,14 @@ class FirmwareRig:
         from drivers.natnet import NatNetServer
         from onboard.foot_control import FootPhysics
 
-        params = load_params(config, ("archer_firmware", "mocap"))
+        params = load_params(config, ("archer_firmware", "mocap", "control"))
+        user = tomllib.loads(Path(config).read_text()) if config else {}
         self.firmware, self.mocap = params["archer_firmware"], params["mocap"]
+        if not {"kp_tilt", "kp_yaw", "kd_tilt", "kd_yaw"} & set(user.get("archer_firmware", {})):
+            # the board configured as the control gains say: its PD acts on Im(q), the loop's on 2 Im(q)
+            c = params["control"]
+            self.firmware = with_overrides(self.firmware, {"kp_tilt": 2.0 * c.kp_tilt, "kp_yaw": 2.0 * c.kp_yaw,
+                                                           "kd_tilt": c.kd_tilt, "kd_yaw": c.kd_yaw})
         r = tm.robot_params(variant)
         foot = FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel)
         computer_port = _free_udp_port()
@@ -212,7 +218,6 @@ class FirmwareRig:
         except BaseException:
             self.board.close()
             raise
-        user = tomllib.loads(Path(config).read_text()) if config else {}
         overrides = {
             "hardware": {"backend": "archer-firmware"},
             "archer_firmware": {"board_host": LOOPBACK, "board_port": self.board.link.local[1],
