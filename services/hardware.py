@@ -368,13 +368,15 @@ class HardwareService(Service):
                 event = msgs.SafetyEvent(trip=f"hardware_fault: {reason}", value=float(len(faults)), limit=0.0, armed=False, count=self.counters.get("trip.hardware_fault"))
                 self.safety_pub.put(event)
             self._faults_reported = len(faults)
+        # the IMU first: the estimator integrates an IMU interval once the same sample's joint
+        # frame arrives, and fuses the leg kinematics only at a current IMU sample
+        imu = backend.imu()
+        if imu is not None:
+            self.imu_pub.put(imu)
         joints = backend.joints()
         if joints is not None:
             self._wheel_vel = joints.wheel_vel
             self.joints_pub.put(joints)
-        imu = backend.imu()
-        if imu is not None:
-            self.imu_pub.put(imu)
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
