@@ -40,19 +40,22 @@ NS = 1_000_000_000
 class ArcherFirmwareBackend:
     def __init__(
         self, params: ArcherFirmwareParams, wheel_axes: Sequence[Sequence[float]], clock: Callable[[], float] = time.monotonic,
+        on_reader_start: Callable[[], None] | None = None,
     ) -> None:
+        """``on_reader_start`` runs first on the thread that reads and stamps the board's replies."""
         link = UdpLink((params.computer_host, params.computer_port), (params.board_host, params.board_port), clock)
         self.board = ArcherBoard(link, params)
         self.alloc = WheelAllocation.from_axes(wheel_axes)
         self.poll_disarmed = params.poll_disarmed
         self.torques_ignored = 0  # armed torque commands this firmware cannot take (ticks)
+        self._on_reader_start = on_reader_start
 
     @property
     def faults(self) -> list[str]:
         return self.board.faults
 
     def open(self) -> None:
-        self.board.open()
+        self.board.open(self._on_reader_start)
 
     def exchange(self, now_s: float, torques: Sequence[float], armed: bool, attitude: msgs.AttitudeSetpoint | None) -> None:
         setpoint = None

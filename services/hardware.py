@@ -310,7 +310,9 @@ class HardwareService(Service):
             from services.archer_firmware_backend import ArcherFirmwareBackend
             from sim_twin.model import robot_params  # the one source of physical parameters (as gear_ratios)
 
-            self.backend = ArcherFirmwareBackend(self.params["archer_firmware"], robot_params().wheel_axes)
+            # the replies' reader stamps arrivals: it runs with the exchange thread's scheduling
+            self.backend = ArcherFirmwareBackend(self.params["archer_firmware"], robot_params().wheel_axes,
+                                                 on_reader_start=self._make_loop_realtime)
         else:
             raise ValueError(f"hardware.backend must be 'can', 'teensy' or 'archer-firmware', not {hw.backend!r}")
         await asyncio.to_thread(self.backend.open)
