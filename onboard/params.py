@@ -204,6 +204,12 @@ class ArcherFirmwareParams(_Section):
     foot_spool_kp: Annotated[float, within(0.0, 1000.0)] = 10.0  # [N m/rad]
     foot_spool_kd: Annotated[float, within(0.0, 100.0)] = 0.2  # [N m s/rad]
     foot_release_slack_m: Annotated[float, within(0.0, 0.2)] = 0.015  # [m] at touchdown unwind this much cable past the extended foot
+    # hop height from the contact switch: a fixed preload gains more per hop than the impact loses
+    # (measured on the twin: apex 0.51 -> 0.86 m in 5 s, then the spring bottoms out; 0.015 m: the
+    # hop dies), so the board scales the preload by the flight time it measured (apex rise g T^2 / 8)
+    foot_hop_height_m: Annotated[float, within(0.0, 0.5)] = 0.12  # [m] apex rise the preload is regulated to (0: fixed preload)
+    foot_hop_gain: Annotated[float, within(0.0, 1.0)] = 0.5  # fraction of the hop-height error corrected per hop
+    foot_min_flight_s: Annotated[float, within(0.0, 1.0)] = 0.05  # [s] a shorter flight is the foot bouncing at touchdown, not a hop
 
 
 # Sections owned by each layer follow; each is registered in SECTIONS below.
