@@ -35,9 +35,11 @@ Per tick:
 Attitude mode (``ControlParams.output = "attitude"``, :meth:`LowLevelController.step_attitude`):
 the hardware runs the quaternion PD itself (ARCHER's flywheel board) and the foot's hop
 cycle (its foot board), so the tick stops at the desired attitude: in flight the ZDP's
-(step 3, the same policy), on the ground the attitude the robot landed with (upright
-before the first hop), zero desired rate, the spin-down as the wheels' feed-forward in
-stance; no foot command. Phases come from the estimate's contact, i.e. the foot board's
+(step 3, the same policy) at zero rate; in stance the estimated attitude and rate, so
+that the board's PD adds nothing to the spin-down sent as the wheels' feed-forward (as
+step 3's stance: holding a tilted landing attitude against gravity on the foot ran the
+wheels away, 600 rad/s in 4 s on the twin); upright until the first flight (balancing
+while it stands); no foot command. Phases come from the estimate's contact, i.e. the foot board's
 contact reports. The firmware's PD takes the gains as they are set on the board.
 
 Frames: world z up; ``eta`` is the world-frame horizontal part of the body z axis at
@@ -211,6 +213,7 @@ class LowLevelController:
         self._yaw_ref = 0.0
         self._hold: tuple[float, float] | None = None  # hop-in-place point [m]
         self._was_armed = False
+        self._flown = False  # attitude mode: a flight since it armed
         self._spool_prev: tuple[int, float] | None = None
         self._spool_vel = 0.0
         # telemetry (read by the runner and the service status)
@@ -314,6 +317,7 @@ class LowLevelController:
             self._yaw_ref = qt.yaw_of(state.quat)
             self._hold = (state.position[0], state.position[1])
             self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
+            self._flown = False
             self.phase.reset()
         return True
 
@@ -349,17 +353,22 @@ class LowLevelController:
         sup = self.supervisor
         ref = sup.check_reference(now_ns, reference)
         self._phase_update(now_ns, state, ref)
+        omega = [0.0, 0.0, 0.0]
         if self.phase.phase == "flight":
             q_des = self._flight_attitude(now_ns, state, ref)
+            self._flown = True
             ff = self._zero3
-        else:  # the landing attitude held; the wheels spun down through the feed-forward
+        elif not self._flown:  # standing since it armed: upright
             q_des = self.q_des
+            ff = self._zero3
+        else:  # stance: the PD follows the estimate, the wheels spin down through the feed-forward
+            q_des, omega = tuple(state.quat), list(state.omega)
             ff = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
             wm = self._wheel_max
             ff = (max(-wm, min(wm, ff[0])), max(-wm, min(wm, ff[1])), max(-wm, min(wm, ff[2])))
         self.armed_ticks += 1
         wheel, _ = sup.limit_command(now_ns, ff, 0.0, state.wheel_vel)
-        return AttitudeSetpoint(stamp_ns=now_ns, quat_des=list(q_des), omega_des=[0.0, 0.0, 0.0],
+        return AttitudeSetpoint(stamp_ns=now_ns, quat_des=list(q_des), omega_des=omega,
                                 torque_ff=[wheel[0], wheel[1], wheel[2]], foot_torque=0.0, armed=True)
 
     def _target(self, now_ns: int, s: StateEstimate, ref: ComReference | None, t_ahead: float) -> tuple[float, float, float, float]:

@@ -51,7 +51,7 @@ def test_flight_setpoint_is_the_policy_attitude_the_torque_mode_tracks(make):
     assert sp.foot_torque == 0.0  # the foot board runs the hop by itself
 
 
-def test_on_the_ground_upright_then_the_landing_attitude_held_and_wheels_spun_down(make):
+def test_on_the_ground_upright_then_the_pd_follows_the_estimate_and_wheels_spin_down(make):
     c = make()
     yaw = 0.7
     q = qt.from_euler(0.0, 0.0, yaw)
@@ -66,9 +66,11 @@ def test_on_the_ground_upright_then_the_landing_attitude_held_and_wheels_spun_do
         flight = c.step_attitude(t, estimate(t, vz=-1.0, quat=q), ref)
     assert c.phase.phase == "flight"
     t += MS
-    landed = c.step_attitude(t, estimate(t, contact=True, quat=q, wheel_vel=(40.0, -20.0, 0.0)), ref)
-    assert c.phase.phase == "stance"
-    assert landed.quat_des == flight.quat_des  # the impact attitude held through the stance
+    tilted, rate = qt.from_euler(0.05, -0.03, yaw), (0.2, -0.1, 0.0)
+    landed = c.step_attitude(t, estimate(t, contact=True, quat=tilted, omega=rate, wheel_vel=(40.0, -20.0, 0.0)), ref)
+    assert c.phase.phase == "stance" and flight.quat_des != landed.quat_des
+    # the board's PD adds nothing: it is asked for the attitude and rate the robot has
+    assert landed.quat_des == pytest.approx(list(tilted)) and landed.omega_des == pytest.approx(list(rate))
     gamma = ATTITUDE.spin_down_gamma
     assert landed.torque_ff[0] == pytest.approx(-gamma * 40.0) and landed.torque_ff[1] == pytest.approx(gamma * 20.0)
     assert landed.torque_ff[2] == 0.0 and landed.foot_torque == 0.0
@@ -76,8 +78,10 @@ def test_on_the_ground_upright_then_the_landing_attitude_held_and_wheels_spun_do
 
 def test_feed_forward_is_clamped_to_the_wheel_limit(make):
     c = make(ATTITUDE, SafetyLimits(wheel_torque_max=0.5))
-    sp = c.step_attitude(0, estimate(0, contact=True, wheel_vel=(400.0, 0.0, 0.0)), None)
-    assert sp.armed and sp.torque_ff[0] == pytest.approx(-0.5)
+    for k in range(60):
+        c.step_attitude(k * MS, estimate(k * MS, vz=-1.0), None)
+    sp = c.step_attitude(60 * MS, estimate(60 * MS, contact=True, wheel_vel=(400.0, 0.0, 0.0)), None)
+    assert c.phase.phase == "stance" and sp.armed and sp.torque_ff[0] == pytest.approx(-0.5)
 
 
 def test_bad_estimate_gives_a_disarmed_setpoint_and_a_safety_event(make):
