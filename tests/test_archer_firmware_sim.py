@@ -34,7 +34,7 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
         assert key in m, key
     assert m["hardware"] == "archer-firmware"
     # the stack is up and stayed up: hardware and mocap in place of the twin's topics
-    assert m["services_started"] == sorted(["control", "estimator", "hardware", "mocap"]) + ["scenario_reference"]
+    assert m["services_started"] == ["control", "estimator", "hardware", "mocap", "router", "scenario_reference"]
     assert m["service_failures"] == [] and set(m["service_restarts"].values()) == {0}, m["service_failures"]
     assert m["sim_time_s"] > 0.8 * DURATION_S
     # it hops, driven through the board's PD and the foot board's cycle, and does not fall
