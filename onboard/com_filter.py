@@ -134,6 +134,10 @@ class ComFilter:
         while entries and entries[0][_T] <= limit:
             self._step(entries.popleft())
 
+    def set_stance_psd(self, psd: float) -> None:
+        """The stance process noise from now on [(m/s^2)^2/Hz] (its input changed: measured or modelled)."""
+        self._q_stance = psd
+
     def add_impulse(self, dvx: float, dvy: float, dvz: float, var: float, at_ns: int) -> None:
         """A velocity jump [m/s] after the newest sample stamped at or before ``at_ns``
         (at the horizon if that one is consumed already), with variance ``var`` [(m/s)^2]

@@ -44,6 +44,16 @@ Model (thesis line 2751 and :mod:`onboard.com_filter`, :mod:`onboard.attitude_fi
 - each IMU interval is integrated once the same tick's joint frame (or the next
   sample, or ``estimate``) arrives, so the contact reading at the interval's end picks
   the dynamics: call ``update_joints`` after ``update_imu`` of the same tick;
+- no accelerometer (``ImuSample.accel_sensed`` False: ARCHER's own firmware reports none):
+  the specific force is a model, not a reading. In flight the body falls freely (the
+  cable holds the spring's preload inside the body: 0); in stance, once the foot board
+  has let the cable go, the spring pushes the sprung body along the leg,
+  ``(k s + c s') / m_sprung`` from the foot's compression and rate. That model leaves out
+  the leg's sideways constraint forces and what the cable still holds right after
+  touchdown, so the stance process noise is ``accel_psd_stance_modelled`` instead of
+  ``accel_psd_stance``, and gravity never corrects the attitude (a modelled force along the
+  leg would say "upright" whatever the tilt): the pose sensor's attitude is the only
+  correction, and without poses the attitude uncertainty grows with the gyro's;
 - contact: the foot switch with hysteresis in time (consecutive samples to switch);
   without a foot sensor (``JointSensors.foot_sensed`` False) the specific force with
   hysteresis in level, and no leg kinematics;
@@ -84,6 +94,8 @@ class RobotGeometry(Protocol):
     leg_length: float  # torso origin to the foot's lowest point, foot extended [m]
     foot_radius: float  # contact sphere [m]
     foot_travel: float  # maximum compression [m]
+    spring_stiffness: float  # leg spring [N/m]
+    spring_damping: float  # [N s/m]
 
 
 def _check(p: EstimatorParams) -> None:
@@ -122,6 +134,10 @@ class StateEstimator:
         self._mu_sprung = 1.0 - mu
         c0 = tuple(float(v) for v in robot.com_offset_body)
         self._foot_travel = robot.foot_travel
+        # the spring's push per metre of compression and per m/s of its rate, on the sprung body [m/s^2]
+        m_sprung = robot.total_mass - robot.foot_mass
+        self._spring_sf = (robot.spring_stiffness / m_sprung, robot.spring_damping / m_sprung)
+        self._accel_sensed = True  # False once a sample says it carries no accelerometer
         self._foot_radius = robot.foot_radius
         # CoM relative to the foot sphere's centre at zero compression [m, body]; the foot
         # slides along body z, so compression s moves the sphere up by s and the CoM by mu s.
@@ -257,7 +273,14 @@ class StateEstimator:
         # float(): callers building messages from numpy arrays pass numpy scalars,
         # whose arithmetic is several times slower than a float's
         gx, gy, gz = float(gyro[0]), float(gyro[1]), float(gyro[2])
-        fx, fy, fz = float(accel[0]), float(accel[1]), float(accel[2])
+        sensed = msg.accel_sensed
+        if sensed:
+            fx, fy, fz = float(accel[0]), float(accel[1]), float(accel[2])
+        else:
+            fx, fy, fz = 0.0, 0.0, self._modelled_specific_force()
+        if sensed != self._accel_sensed:
+            self._accel_sensed = sensed
+            self.com.set_stance_psd(self.params.accel_psd_stance if sensed else self.params.accel_psd_stance_modelled)
         isf = math.isfinite
         if not (isf(gx) and isf(gy) and isf(gz) and isf(fx) and isf(fy) and isf(fz)):
             return self._reject("imu_nonfinite")
@@ -284,7 +307,7 @@ class StateEstimator:
         att.propagate(t, gx, gy, gz, dt, 0.25 * self._gap_alpha_var * gap ** 4 if gap > 0.0 else 0.0)
         # gravity as the direction of up, only after a quasi-static spell
         wx, wy, wz = att.omega
-        if abs(math.sqrt(fn2) - self._g) < p.static_accel_tol_m_s2 and wx * wx + wy * wy + wz * wz < self._static_gyro2:
+        if sensed and abs(math.sqrt(fn2) - self._g) < p.static_accel_tol_m_s2 and wx * wx + wy * wy + wz * wz < self._static_gyro2:
             if self._static_since < 0:
                 self._static_since = t
             elif t - self._static_since >= self._static_hold_ns:
@@ -308,12 +331,20 @@ class StateEstimator:
         sy = r10 * fx + r11 * fy + r12 * fz
         sz = r20 * fx + r21 * fy + r22 * fz
         self._pending = (t, dt, sx, sy, sz)
-        if not self._foot_sensed:
+        if not self._foot_sensed and sensed:
             # the spring's push is the only large specific force on a hopping robot's body
             f = math.sqrt(fn2)
             reading = f > p.accel_contact_on_m_s2 or (self._switch and f > p.accel_contact_off_m_s2)
             self._contact_reading(reading, t)
         return True
+
+    def _modelled_specific_force(self) -> float:
+        """The specific force along the leg [m/s^2, body z] with no accelerometer: the spring's
+        push in stance (the raw switch, as the CoM step picks its dynamics), free fall in flight."""
+        if not self._switch:
+            return 0.0
+        k, c = self._spring_sf
+        return max(0.0, k * self.foot_pos + c * self.foot_vel)  # the spring only pushes
 
     def _step_com(self) -> None:
         """Integrate the CoM over the newest IMU interval.

@@ -9,6 +9,7 @@ Interface (used by the ``control`` service and by the twin's lockstep runner):
     ctrl.tube(stamp_ns)         # -> TrackingTube      (the measured certificate)
     ctrl.request_arm(); ctrl.disarm(now_ns)
     ctrl.retune(control_params, safety_limits)  # new gains and limits, between two ticks
+    sp = ctrl.step_attitude(now_ns, state, reference)  # -> AttitudeSetpoint (ControlParams.output = "attitude")
 
 ``services.control.build_controller(variant, ...)`` builds one from the MJCF (the
 robot's parameters and the reduced hopper model) and the policy weights file; use
@@ -31,6 +32,16 @@ Per tick:
    stance: spin the wheels down; keep the cable slack;
 4. supervisor: clamp to the limits.
 
+Attitude mode (``ControlParams.output = "attitude"``, :meth:`LowLevelController.step_attitude`):
+the hardware runs the quaternion PD itself (ARCHER's flywheel board) and the foot's hop
+cycle (its foot board), so the tick stops at the desired attitude: in flight the ZDP's
+(step 3, the same policy) at zero rate; in stance the estimated attitude and rate, so
+that the board's PD adds nothing to the spin-down sent as the wheels' feed-forward (as
+step 3's stance: holding a tilted landing attitude against gravity on the foot ran the
+wheels away, 600 rad/s in 4 s on the twin); upright until the first flight (balancing
+while it stands); no foot command. Phases come from the estimate's contact, i.e. the foot board's
+contact reports. The firmware's PD takes the gains as they are set on the board.
+
 Frames: world z up; ``eta`` is the world-frame horizontal part of the body z axis at
 impact (the foot lands at ``-leg * axis`` from the CoM).
 """
@@ -48,7 +59,8 @@ from onboard import attitude_control as ac
 from onboard import quaternion as qt
 from onboard import zdp
 from onboard.foot_control import FootPhysics, HopRegulator
-from onboard.messages import ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand, TrackingTube
+from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand,
+                              TrackingTube)
 from onboard.mlp import Mlp
 from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.phase import PhaseDetector
@@ -201,6 +213,7 @@ class LowLevelController:
         self._yaw_ref = 0.0
         self._hold: tuple[float, float] | None = None  # hop-in-place point [m]
         self._was_armed = False
+        self._flown = False  # attitude mode: a flight since it armed
         self._spool_prev: tuple[int, float] | None = None
         self._spool_vel = 0.0
         # telemetry (read by the runner and the service status)
@@ -289,6 +302,75 @@ class LowLevelController:
     def _safe(self, now_ns: int) -> TorqueCommand:
         return TorqueCommand(stamp_ns=now_ns, wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
 
+    def safe_setpoint(self, now_ns: int) -> AttitudeSetpoint:
+        return AttitudeSetpoint(stamp_ns=now_ns, quat_des=list(self.q_des), omega_des=[0.0, 0.0, 0.0],
+                                torque_ff=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
+
+    def _check_and_arm(self, now_ns: int, state: StateEstimate) -> bool:
+        """The supervisor's verdict on the estimate; on arming hold heading and place, upright."""
+        sup = self.supervisor
+        if not sup.check_estimate(now_ns, state):
+            self._was_armed = sup.armed
+            return False
+        if not self._was_armed:  # just armed: hold heading and place
+            self._was_armed = True
+            self._yaw_ref = qt.yaw_of(state.quat)
+            self._hold = (state.position[0], state.position[1])
+            self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
+            self._flown = False
+            self.phase.reset()
+        return True
+
+    def _phase_update(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> None:
+        ev = self.phase.update(now_ns, state)
+        if ev is not None:
+            self._phase_events.append(ev)
+            self._on_event(now_ns, ev, state, ref)
+
+    def _flight_attitude(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> qt.Quat:
+        """Predict the impact, sample the reference there, the policy's impact attitude (step 3)."""
+        g = self._g
+        px, py, pz = state.position
+        vx, vy, vz = state.velocity
+        z_td = self.phase.touchdown_height
+        disc = vz * vz + 2.0 * g * (pz - z_td)
+        t_imp = (vz + math.sqrt(disc)) / g if disc > 0.0 else max(vz / g, 0.0)
+        self.foot.in_flight(pz + vz * vz / (2.0 * g) - z_td)  # ballistic apex rise
+        xi, yi = px + vx * t_imp, py + vy * t_imp
+        rx, ry, rvx, rvy = self._target(now_ns, state, ref, t_imp)
+        self.predicted_impact = (t_imp, xi, yi)
+        self.reference_at_impact = (rx, ry, rvx, rvy)
+        ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
+        self.eta = (ax, ay)
+        az = math.sqrt(max(1e-6, 1.0 - ax * ax - ay * ay))
+        self.q_des = qt.from_axis_yaw((ax, ay, az), self._yaw_ref)
+        return self.q_des
+
+    def step_attitude(self, now_ns: int, state: StateEstimate, reference: ComReference | None) -> AttitudeSetpoint:
+        """One tick in attitude mode (module docstring): the setpoint for a PD that runs on the hardware."""
+        if not self._check_and_arm(now_ns, state):
+            return self.safe_setpoint(now_ns)
+        sup = self.supervisor
+        ref = sup.check_reference(now_ns, reference)
+        self._phase_update(now_ns, state, ref)
+        omega = [0.0, 0.0, 0.0]
+        if self.phase.phase == "flight":
+            q_des = self._flight_attitude(now_ns, state, ref)
+            self._flown = True
+            ff = self._zero3
+        elif not self._flown:  # standing since it armed: upright
+            q_des = self.q_des
+            ff = self._zero3
+        else:  # stance: the PD follows the estimate, the wheels spin down through the feed-forward
+            q_des, omega = tuple(state.quat), list(state.omega)
+            ff = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
+            wm = self._wheel_max
+            ff = (max(-wm, min(wm, ff[0])), max(-wm, min(wm, ff[1])), max(-wm, min(wm, ff[2])))
+        self.armed_ticks += 1
+        wheel, _ = sup.limit_command(now_ns, ff, 0.0, state.wheel_vel)
+        return AttitudeSetpoint(stamp_ns=now_ns, quat_des=list(q_des), omega_des=omega,
+                                torque_ff=[wheel[0], wheel[1], wheel[2]], foot_torque=0.0, armed=True)
+
     def _target(self, now_ns: int, s: StateEstimate, ref: ComReference | None, t_ahead: float) -> tuple[float, float, float, float]:
         if ref is None:
             if self._hold is None:
@@ -311,14 +393,8 @@ class LowLevelController:
         joints: JointSensors | None = None,
     ) -> TorqueCommand:
         sup = self.supervisor
-        if not sup.check_estimate(now_ns, state):
-            self._was_armed = sup.armed
+        if not self._check_and_arm(now_ns, state):
             return self._safe(now_ns)
-        if not self._was_armed:  # just armed: hold heading and place
-            self._was_armed = True
-            self._yaw_ref = qt.yaw_of(state.quat)
-            self._hold = (state.position[0], state.position[1])
-            self.phase.reset()
 
         # spool speed by differencing the encoder (the message carries no speed)
         spool_pos = math.nan
@@ -330,27 +406,10 @@ class LowLevelController:
             self._spool_prev = (now_ns, spool_pos)
 
         ref = sup.check_reference(now_ns, reference)
-        ev = self.phase.update(now_ns, state)
-        if ev is not None:
-            self._phase_events.append(ev)
-            self._on_event(now_ns, ev, state, ref)
+        self._phase_update(now_ns, state, ref)
 
-        g = self._g
-        px, py, pz = state.position
-        vx, vy, vz = state.velocity
         if self.phase.phase == "flight":
-            z_td = self.phase.touchdown_height
-            disc = vz * vz + 2.0 * g * (pz - z_td)
-            t_imp = (vz + math.sqrt(disc)) / g if disc > 0.0 else max(vz / g, 0.0)
-            self.foot.in_flight(pz + vz * vz / (2.0 * g) - z_td)  # ballistic apex rise
-            xi, yi = px + vx * t_imp, py + vy * t_imp
-            rx, ry, rvx, rvy = self._target(now_ns, state, ref, t_imp)
-            self.predicted_impact = (t_imp, xi, yi)
-            self.reference_at_impact = (rx, ry, rvx, rvy)
-            ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
-            self.eta = (ax, ay)
-            az = math.sqrt(max(1e-6, 1.0 - ax * ax - ay * ay))
-            self.q_des = qt.from_axis_yaw((ax, ay, az), self._yaw_ref)
+            self._flight_attitude(now_ns, state, ref)
             u = ac.pd_torque(state.quat, state.omega, self.q_des, self._zero3, self._zero3, self._kp, self._kd, self.p.attitude_log)
             wheel = self.alloc.wheel_torques(u)
             stance = False

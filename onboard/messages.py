@@ -49,6 +49,7 @@ class ImuSample(Message):
     quat: Quat  # orientation estimate of the IMU, body->world [w, x, y, z]
     gyro: Vec3  # body angular rate [rad/s], body frame
     accel: Vec3  # specific force [m/s^2], body frame (reads +g at rest)
+    accel_sensed: bool = True  # False: no accelerometer behind this source (ARCHER's firmware); accel is 0, not a measurement
 
 
 class JointSensors(Message):

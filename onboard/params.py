@@ -134,7 +134,7 @@ class HardwareParams(_Section):
     emulators use the same values. Gear ratios come from the MJCF model.
     """
 
-    backend: Literal["can", "teensy"] = "can"  # "can": ELMO drives over CANopen; "teensy": framed serial
+    backend: Literal["can", "teensy", "archer-firmware"] = "can"  # "can": ELMO drives over CANopen; "teensy": framed serial; "archer-firmware": ARCHER's flywheel board over UDP ([archer_firmware])
     rate_hz: Annotated[float, within(1.0, LOOP_HZ_MAX)] = 1000.0  # exchange rate with the drives / the Teensy [Hz]
     rt_priority: RtPriority = 70  # SCHED_FIFO priority of the exchange thread, below control (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the exchange thread is pinned to (-1: no pinning)
@@ -186,6 +186,10 @@ class ArcherFirmwareParams(_Section):
     link_timeout_s: Annotated[float, above(0.0, 10.0)] = 0.100  # [s] no reply this long while commanding: fault (latched)
     reply_late_s: Annotated[float, above(0.0, 1.0)] = 0.002  # [s] a reply arriving later than this after its request is late
     reply_missing_s: Annotated[float, above(0.0, 10.0)] = 0.050  # [s] a request unanswered this long counts as missing
+    # The board answers only what it receives and has no motors-off packet: while disarmed the computer
+    # sends the reset command every tick (motors off, and the board answers with its state, which the
+    # estimator needs to arm on). False: silence while disarmed (no state until armed; the watchdog stops the motors).
+    poll_disarmed: bool = True
     # the firmware (what the emulator runs; the real board has them in its own configuration)
     rate_hz: Annotated[float, within(1.0, LOOP_HZ_MAX)] = 1000.0  # [Hz] the board's control loop
     watchdog_s: Annotated[float, above(0.0, 10.0)] = 0.100  # [s] no valid packet this long: motors off
@@ -200,6 +204,12 @@ class ArcherFirmwareParams(_Section):
     foot_spool_kp: Annotated[float, within(0.0, 1000.0)] = 10.0  # [N m/rad]
     foot_spool_kd: Annotated[float, within(0.0, 100.0)] = 0.2  # [N m s/rad]
     foot_release_slack_m: Annotated[float, within(0.0, 0.2)] = 0.015  # [m] at touchdown unwind this much cable past the extended foot
+    # hop height from the contact switch: a fixed preload gains more per hop than the impact loses
+    # (measured on the twin: apex 0.51 -> 0.86 m in 5 s, then the spring bottoms out; 0.015 m: the
+    # hop dies), so the board scales the preload by the flight time it measured (apex rise g T^2 / 8)
+    foot_hop_height_m: Annotated[float, within(0.0, 0.5)] = 0.12  # [m] apex rise the preload is regulated to (0: fixed preload)
+    foot_hop_gain: Annotated[float, within(0.0, 1.0)] = 0.5  # fraction of the hop-height error corrected per hop
+    foot_min_flight_s: Annotated[float, within(0.0, 1.0)] = 0.05  # [s] a shorter flight is the foot bouncing at touchdown, not a hop
 
 
 # Sections owned by each layer follow; each is registered in SECTIONS below.
@@ -231,6 +241,14 @@ class EstimatorParams(_Section):
     # CoM process model: white acceleration noise around projectile / stance dynamics.
     accel_psd_flight: Annotated[float, above(0.0, 1e3)] = 0.003  # [(m/s^2)^2/Hz] flight: what projectile dynamics leave out (drag)
     accel_psd_stance: Annotated[float, above(0.0, 1e3)] = 2.0  # [(m/s^2)^2/Hz] stance (accelerometer-driven)
+    # stance without an accelerometer (ImuSample.accel_sensed False, e.g. ARCHER's own firmware): the
+    # specific force is modelled as the spring's push along the leg; what that leaves out (the leg's
+    # sideways constraint forces, cable tension left after the release, spring model error) is this.
+    # Measured on the twin behind the emulated boards (hop in place, 14 stances): the model's error
+    # integrated over each stance is an equivalent 0.05 along the leg and 0.004 sideways; twice the
+    # accelerometer's figure leaves room for tilted stances and keeps the estimate valid through the
+    # pose horizon (4 x 0.025 s of stance adds 0.32 m/s of velocity std, under valid_vel_std_m_s)
+    accel_psd_stance_modelled: Annotated[float, above(0.0, 1e3)] = 4.0  # [(m/s^2)^2/Hz]
     leg_vel_std_m_s: Annotated[float, above(0.0, 10.0)] = 0.03  # [m/s] stance CoM velocity from leg kinematics
     leg_settle_s: Annotated[float, within(0.0, 0.1)] = 0.006  # [s] after touchdown the foot bounces off the ground this long
     accel_delay_s: Annotated[float, within(0.0, 0.005)] = 0.0005  # [s] accelerometer samples describe this long before their
@@ -294,6 +312,9 @@ class ControlParams(_Section):
     rt_priority: RtPriority = 80  # SCHED_FIFO priority of the loop process (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop process is pinned to (-1: no pinning)
     tube_period_s: Annotated[float, above(0.0, 60.0)] = 0.5  # publish the measured tube this often [s]
+    # "torque": wheel and foot torques (torque_cmd); "attitude": the hardware runs the attitude PD and
+    # the foot's hop cycle itself, the loop publishes attitude setpoints (attitude_cmd) and no foot command
+    output: Literal["torque", "attitude"] = "torque"
     arm_request: Request = 0  # operator command: set a new value to arm (after a latched disarm)
     disarm_request: Request = 0  # operator command: set a new value to disarm
     # flight: quaternion PD (thesis 2201-2216)
@@ -547,7 +568,7 @@ SECTIONS: dict[str, type] = {
 # of one by restarting its loop, which it refuses while the controller is armed. Every other
 # control and safety field is applied between two ticks.
 NEEDS_RESTART: dict[str, frozenset[str]] = {
-    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "policy", "mlp_weights", "hop_height",
+    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "policy", "mlp_weights", "hop_height",
                           "zdp_q_pos", "zdp_q_vel", "zdp_q_tilt", "zdp_r", "tube_window"}),
 }
 

@@ -45,6 +45,8 @@ NETWORK_PATH = "etc/systemd/network/80-archer-can.network"
 SERVICE_GROUP = "archer"
 UNIT_SUFFIXES = (".service", ".target")
 KEPT_CONFIGS = ("archer.toml", "environment")  # never overwritten once installed
+# robot profiles: deploy/config/<profile>.toml is installed as archer.toml, and the profile's target runs it
+PROFILES = {"archer": "archer.target", "archer-firmware": "archer-firmware.target"}
 _PLACEHOLDER = re.compile(r"@[A-Z_]+@")
 
 
@@ -91,15 +93,19 @@ def read_users_file(path: Path) -> dict[str, str]:
     return {user: password for user, password in pairs}
 
 
-def plan_install(prefix: Path, archer: str, config_dir: str = TARGET_CONFIG_DIR) -> list[Action]:
-    """Every file ``install`` writes, with its text and mode."""
+def plan_install(prefix: Path, archer: str, config_dir: str = TARGET_CONFIG_DIR, profile: str = "archer") -> list[Action]:
+    """Every file ``install`` writes, with its text and mode; ``profile`` picks the robot's
+    parameters (``deploy/config/<profile>.toml`` becomes ``archer.toml``)."""
+    if profile not in PROFILES:
+        raise ValueError(f"unknown profile {profile!r}; known: {', '.join(PROFILES)}")
     zenoh_dir = f"{config_dir}/zenoh"
     local = prefix / config_dir.lstrip("/")
     actions = [Action(prefix / SYSTEMD_UNIT_DIR / name, text) for name, text in render_units(archer, config_dir).items()]
     actions.append(Action(prefix / SYSUSERS_PATH, (UNIT_DIR / "archer.sysusers.conf").read_text()))
     actions.append(Action(prefix / NETWORK_PATH, (UNIT_DIR / "80-archer-can.network").read_text()))
+    sources = {"archer.toml": f"{profile}.toml"}
     for name in KEPT_CONFIGS:
-        actions.append(Action(local / name, (EXAMPLE_CONFIG_DIR / name).read_text(), keep_existing=True))
+        actions.append(Action(local / name, (EXAMPLE_CONFIG_DIR / sources.get(name, name)).read_text(), keep_existing=True))
     # Zenoh: passwords generated once, kept afterwards (services already hold theirs).
     users_path = local / "zenoh" / "users.txt"
     passwords = read_users_file(users_path)
@@ -140,7 +146,7 @@ def apply(actions: list[Action], dry_run: bool) -> list[str]:
 
 NEXT_STEPS = """next, on the robot:
   systemd-sysusers && systemctl daemon-reload && systemctl restart systemd-networkd
-  systemctl enable --now archer.target        # or: systemctl start archer-sil.target
+  systemctl enable --now {target}        # or: systemctl start archer-sil.target
   journalctl -u 'archer-*' -f                 # JSON log lines per service
   ARCHER_ZENOH_CONFIG={config_dir}/zenoh/operator.json5 archer status   # as a member of group archer"""
 
@@ -165,6 +171,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--prefix", default="/", help="install root, as DESTDIR (default /)")
     p.add_argument("--dry-run", action="store_true", help="print what would be written, write nothing")
     p.add_argument("--archer", default=None, help="path of the archer executable the units run (default: this one)")
+    p.add_argument("--profile", choices=sorted(PROFILES), default="archer",
+                   help="the robot: archer (our drives and Teensy protocol), archer-firmware (ARCHER's own boards over UDP, OptiTrack)")
     p = sub.add_parser("render", help="write the rendered units to a directory")
     p.add_argument("directory")
     p.add_argument("--archer", default=None)
@@ -177,9 +185,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.action == "install":
             archer = args.archer or archer_executable()
-            lines = apply(plan_install(Path(args.prefix), archer), args.dry_run)
+            lines = apply(plan_install(Path(args.prefix), archer, profile=args.profile), args.dry_run)
             print("\n".join(lines))
-            print(NEXT_STEPS.format(config_dir=TARGET_CONFIG_DIR))
+            print(NEXT_STEPS.format(config_dir=TARGET_CONFIG_DIR, target=PROFILES[args.profile]))
             return 0
         if args.action == "render":
             out = Path(args.directory)

@@ -4,6 +4,9 @@ Subscribes (latest value): ``state`` (StateEstimate), ``reference`` (ComReferenc
 ``joints`` (JointSensors: the foot's cable spool angle).
 Computes: :class:`onboard.low_level.LowLevelController` every 1 ms.
 Publishes: ``torque_cmd`` every tick (disarmed zeros until a valid estimate arms it),
+or with ``control.output = "attitude"`` (hardware that runs the attitude PD and the foot's
+hop cycle itself: ARCHER's firmware) ``attitude_cmd`` instead
+(:meth:`LowLevelController.step_attitude`; disarmed until a valid estimate arms it);
 ``phase`` and ``safety`` events as they happen, ``tube`` every
 ``ControlParams.tube_period_s``.
 
@@ -179,8 +182,10 @@ class ControlLoop:
         self.rejected: dict[str, int] = {}
         self.received: dict[str, int] = {}
         self.slots = {name: self._latest(name) for name in ("state", "reference", "joints")}
+        self.attitude_mode = cfg.control.output == "attitude"
+        self.command_topic = "attitude_cmd" if self.attitude_mode else "torque_cmd"
         self.pubs = {name: TypedPublisher(self.session, TOPICS[name], cfg.ns, self.clock)
-                     for name in ("torque_cmd", "phase", "safety", "tube")}
+                     for name in (self.command_topic, "phase", "safety", "tube")}
         self._tube_every = max(1, int(cfg.control.tube_period_s * cfg.control.rate_hz))
         self._ticks = 0
         self._unsent_trips: list[msgs.SafetyEvent] = []
@@ -233,16 +238,23 @@ class ControlLoop:
         now = self.clock.now_ns()
         ctrl = self.ctrl
         st = self.slots["state"].get()
+        cmd: msgs.TorqueCommand | msgs.AttitudeSetpoint
         if st is None:
-            cmd = msgs.TorqueCommand(stamp_ns=now, wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
+            if self.attitude_mode:
+                cmd = ctrl.safe_setpoint(now)
+            else:
+                cmd = msgs.TorqueCommand(stamp_ns=now, wheel_torque=[0.0, 0.0, 0.0], foot_torque=0.0, armed=False)
         else:
             ref = self.slots["reference"].get()
-            jn = self.slots["joints"].get()
-            cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None)
+            if self.attitude_mode:  # the foot board runs the foot: no joints needed
+                cmd = ctrl.step_attitude(now, st[0], ref[0] if ref is not None else None)
+            else:
+                jn = self.slots["joints"].get()
+                cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None)
         if not cmd.armed:
             self.safe_ticks += 1
         cmd.commander = self.cfg.commander
-        self.pubs["torque_cmd"].put(cmd)
+        self.pubs[self.command_topic].put(cmd)
         for ev in ctrl.drain_phase_events():
             self.pubs["phase"].put(ev)
         trips = ctrl.drain_safety_events()

@@ -1,13 +1,16 @@
 """The ``hardware`` service: torque commands to the motors, sensor frames to topics, at 1 kHz.
 
-Subscribes ``torque_cmd`` (and ``attitude_cmd`` for a Teensy in attitude mode) into
+Subscribes ``torque_cmd`` (``attitude_cmd`` instead for a Teensy in attitude mode and for
+ARCHER's own firmware, which runs the attitude PD on its board) into
 latest-value slots. A :class:`~services.realtime.DeadlineLoop` thread then, every
 tick: checks the command (its own watchdog: nothing newer than
 ``SafetyLimits.command_stale_s``, or not armed, means zero torque and disabled
 drives), clamps it to ``SafetyLimits``, does one batched exchange with the hardware
 (:class:`CanBackend`: ELMO drives over CANopen, one RPDO each and one SYNC;
-:class:`TeensyBackend`: one frame to the Teensy), and publishes ``joints`` (and
-``imu`` when a Teensy provides it), stamped with the time the values were sampled.
+:class:`TeensyBackend`: one frame to the Teensy;
+:class:`~services.archer_firmware_backend.ArcherFirmwareBackend`: one UDP packet to
+the flywheel board), and publishes ``joints`` (and ``imu`` when a Teensy or the
+flywheel board provides it), stamped with the time the values were sampled.
 
 Faults latch in the drivers (EMCY, lost heartbeat or feedback, bus-off, error
 frames, vanished port): the motors get zero torque and a ``safety`` event is
@@ -272,7 +275,7 @@ class CommandGate:
 
 class HardwareService(Service):
     name = "hardware"
-    params_sections = ("hardware", "safety")
+    params_sections = ("hardware", "safety", "archer_firmware")
 
     def __init__(self, *args: Any, backend: Backend | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -292,7 +295,8 @@ class HardwareService(Service):
         hw: HardwareParams = self.params["hardware"]
         # from the one live commander only (Service.commands): forged commands never reach a drive
         self.torque_slot: LatestSlot = self.commands("torque_cmd")
-        self.attitude_slot: LatestSlot | None = self.commands("attitude_cmd") if hw.backend == "teensy" and hw.teensy_mode == "attitude" else None
+        attitude = hw.backend == "archer-firmware" or (hw.backend == "teensy" and hw.teensy_mode == "attitude")
+        self.attitude_slot: LatestSlot | None = self.commands("attitude_cmd") if attitude else None
         self.joints_pub = self.publisher("joints")
         self.imu_pub = self.publisher("imu")
         self.safety_pub = self.publisher("safety")
@@ -302,8 +306,15 @@ class HardwareService(Service):
             self.backend = CanBackend(hw, self.safety, gear_ratios())
         elif hw.backend == "teensy":
             self.backend = TeensyBackend(hw, self.safety)
+        elif hw.backend == "archer-firmware":
+            from services.archer_firmware_backend import ArcherFirmwareBackend
+            from sim_twin.model import robot_params  # the one source of physical parameters (as gear_ratios)
+
+            # the replies' reader stamps arrivals: it runs with the exchange thread's scheduling
+            self.backend = ArcherFirmwareBackend(self.params["archer_firmware"], robot_params().wheel_axes,
+                                                 on_reader_start=self._make_loop_realtime)
         else:
-            raise ValueError(f"hardware.backend must be 'can' or 'teensy', not {hw.backend!r}")
+            raise ValueError(f"hardware.backend must be 'can', 'teensy' or 'archer-firmware', not {hw.backend!r}")
         await asyncio.to_thread(self.backend.open)
         self.loop = DeadlineLoop(1.0 / hw.rate_hz, self._tick, name="hardware-loop", on_start=self._make_loop_realtime)
 
@@ -336,7 +347,7 @@ class HardwareService(Service):
         attitude = None
         if self.attitude_slot is None:
             slot = self.torque_slot.get()
-        else:  # the Teensy runs the PD: the watchdog and the limits apply to the setpoint's torques
+        else:  # the board runs the PD: the watchdog and the limits apply to the setpoint's torques
             slot = self.attitude_slot.get()
             if slot is not None:
                 attitude = slot[0]
@@ -344,6 +355,9 @@ class HardwareService(Service):
                 slot = (as_torque, slot[1])
         cmd, recv_ns = slot if slot is not None else (None, 0)
         torques, armed, tripped = self.gate.gate(cmd, recv_ns, now_ns, self._wheel_vel)
+        if attitude is not None and armed:  # what reaches the board is the clamped feed-forward
+            attitude = msgs.AttitudeSetpoint(stamp_ns=attitude.stamp_ns, quat_des=attitude.quat_des, omega_des=attitude.omega_des,
+                                             torque_ff=list(torques[:3]), foot_torque=torques[3], armed=True, commander=attitude.commander)
         if tripped:
             self._publish_safety("command_stale", self.gate.last_age_s, self.safety.command_stale_s)
         backend.exchange(now_ns / NS, torques, armed, attitude if armed else None)
@@ -356,13 +370,15 @@ class HardwareService(Service):
                 event = msgs.SafetyEvent(trip=f"hardware_fault: {reason}", value=float(len(faults)), limit=0.0, armed=False, count=self.counters.get("trip.hardware_fault"))
                 self.safety_pub.put(event)
             self._faults_reported = len(faults)
+        # the IMU first: the estimator integrates an IMU interval once the same sample's joint
+        # frame arrives, and fuses the leg kinematics only at a current IMU sample
+        imu = backend.imu()
+        if imu is not None:
+            self.imu_pub.put(imu)
         joints = backend.joints()
         if joints is not None:
             self._wheel_vel = joints.wheel_vel
             self.joints_pub.put(joints)
-        imu = backend.imu()
-        if imu is not None:
-            self.imu_pub.put(imu)
 
     # --- lifecycle ---------------------------------------------------------------------------------
 

@@ -10,6 +10,15 @@ same Zenoh endpoint, exactly as on the robot with the twin in place of the hardw
 ``--planner scenario`` (or ``auto`` in a scenario without obstacles) the scenario's own reference is
 published by :class:`sim_twin.twin_service.ScenarioReferenceService` instead of the planner.
 
+``--hardware archer-firmware`` (realtime) runs the robot as it is built: the twin sits behind
+emulated ARCHER boards (flywheel board with its attitude PD, foot board with its hop cycle; UDP,
+``docs/archer_firmware_protocol.md``) and an OptiTrack NatNet stream of its pose, all on
+127.0.0.1 with free ports (:class:`sim_twin.twin_service.FirmwareTwinService`); the stack adds the
+``hardware`` service (``hardware.backend = "archer-firmware"``) and the ``mocap`` service, and
+control runs in attitude mode (``control.output = "attitude"``). The services get these settings
+(and the ports) in a generated config file next to ``--config``'s. The physics metrics are the
+twin's, as in any realtime run, plus the boards' and the NatNet server's counters.
+
 With ``--json`` the last line of stdout is one JSON object of metrics (definitions in
 :mod:`sim_twin.metrics`).
 """
@@ -21,10 +30,16 @@ import asyncio
 import json
 import logging
 import math
+import os
 import signal
+import socket
 import sys
+import tempfile
 import threading
 import time
+import tomllib
+from pathlib import Path
+from typing import Any
 
 from onboard.params import with_overrides
 from services.config import ConfigError, load_params
@@ -38,6 +53,9 @@ log = logging.getLogger("archer.sim")
 
 MODES = ("lockstep", "realtime")
 STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode when archer run knows them
+HARDWARE = ("twin", "archer-firmware")
+FIRMWARE_SERVICES = ("hardware", "mocap")  # with --hardware archer-firmware, before the stack's
+LOOPBACK = "127.0.0.1"
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
 ROUTINE_UNIT_EVENTS = ("start", "ready")  # the rest says why a unit went down
 SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
@@ -72,6 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--namespace", default=None, help="realtime: key namespace (default archer/robot0)")
     parser.add_argument("--join", action="store_true",
                         help="realtime: join the router already serving the endpoint (default: refuse to start)")
+    parser.add_argument("--hardware", choices=HARDWARE, default="twin",
+                        help="realtime: twin: the twin publishes the sensors and takes torques; archer-firmware: the twin "
+                             "behind emulated ARCHER boards (UDP) and an OptiTrack stream, driven by the hardware and mocap services")
     parser.add_argument("--services", default="auto",
                         help="realtime: comma list of services to run as processes, or 'none' "
                              "(auto: estimator, control and planner, each if archer run knows it)")
@@ -128,6 +149,8 @@ def build_config(args: argparse.Namespace) -> RunConfig:
 
 
 def run_lockstep(args: argparse.Namespace) -> dict:
+    if getattr(args, "hardware", "twin") != "twin":
+        raise ValueError("--hardware archer-firmware is a realtime option (the boards run on their own clocks)")
     cfg = build_config(args)
     duration = cfg.duration_s if cfg.duration_s is not None else sc.SCENARIOS[cfg.scenario](cfg.seed, cfg.obstacles).default_duration_s
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
@@ -152,13 +175,75 @@ def _take_twin_priority() -> None:
         log.warning("twin scheduling refused", extra={"fields": {"event": what, "detail": detail}})
 
 
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((LOOPBACK, 0))
+        return s.getsockname()[1]
+
+
+def _toml(data: dict[str, dict[str, Any]]) -> str:
+    """Tables of scalars and arrays as TOML (a JSON scalar or array is TOML's, NaN and inf aside)."""
+    lines = []
+    for section, table in data.items():
+        lines.append(f"[{section}]")
+        lines += [f"{key} = {json.dumps(list(v) if isinstance(v, tuple) else v)}" for key, v in table.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+class FirmwareRig:
+    """The emulated ARCHER boards and the NatNet server of ``--hardware archer-firmware``, bound
+    before the stack starts, and the config file that tells the services where they are."""
+
+    def __init__(self, config: str | None, variant: str) -> None:
+        from drivers.archer_firmware.emulator import BoardEmulator
+        from drivers.natnet import NatNetServer
+        from onboard.foot_control import FootPhysics
+
+        params = load_params(config, ("archer_firmware", "mocap", "control"))
+        user = tomllib.loads(Path(config).read_text()) if config else {}
+        self.firmware, self.mocap = params["archer_firmware"], params["mocap"]
+        if not {"kp_tilt", "kp_yaw", "kd_tilt", "kd_yaw"} & set(user.get("archer_firmware", {})):
+            # the board configured as the control gains say: its PD acts on Im(q), the loop's on 2 Im(q)
+            c = params["control"]
+            self.firmware = with_overrides(self.firmware, {"kp_tilt": 2.0 * c.kp_tilt, "kp_yaw": 2.0 * c.kp_yaw,
+                                                           "kd_tilt": c.kd_tilt, "kd_yaw": c.kd_yaw})
+        r = tm.robot_params(variant)
+        foot = FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel)
+        computer_port = _free_udp_port()
+        self.board = BoardEmulator(self.firmware, foot, (LOOPBACK, 0), (LOOPBACK, computer_port), time.monotonic,
+                                   wheel_axes=r.wheel_axes)
+        try:
+            self.natnet = NatNetServer({self.mocap.rigid_body_id: self.mocap.rigid_body}, host=LOOPBACK).start()
+        except BaseException:
+            self.board.close()
+            raise
+        overrides = {
+            "hardware": {"backend": "archer-firmware"},
+            "archer_firmware": {"board_host": LOOPBACK, "board_port": self.board.link.local[1],
+                                "computer_host": LOOPBACK, "computer_port": computer_port},
+            "mocap": {"system": "optitrack", "host": LOOPBACK, "port": self.natnet.command_port},
+            "control": {"output": "attitude"},
+        }
+        for section, table in overrides.items():
+            user[section] = {**user.get(section, {}), **table}
+        fd, self.config_path = tempfile.mkstemp(prefix="archer-firmware-", suffix=".toml")
+        with os.fdopen(fd, "w") as f:
+            f.write(_toml(user))
+
+    def close(self) -> None:
+        self.natnet.stop()
+        self.board.close()
+        os.unlink(self.config_path)
+
+
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.cmd_run import SERVICE_CLASSES
     from services.runtime import exit_by_deadline, stop_signal_exit_code
     from services.supervisor import Supervisor, sim_specs
     from services.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.topics import namespace
-    from sim_twin.twin_service import ScenarioReferenceService, TwinService
+    from sim_twin.twin_service import FirmwareTwinService, ScenarioReferenceService, TwinService
 
     if args.estimator != "kalman" or args.controller != "lowlevel":
         raise ValueError("realtime mode runs the estimator and control services: --estimator kalman --controller lowlevel only")
@@ -180,8 +265,11 @@ def run_realtime(args: argparse.Namespace) -> dict:
         raise ValueError(f"{endpoint} is already served by another process{f' ({holder})' if holder else ''}; "
                          "stop it, choose another --endpoint, or pass --join to run beside it")
     planner = args.planner if args.planner != "auto" else ("graph" if scenario.obstacles else "scenario")
+    firmware = getattr(args, "hardware", "twin") == "archer-firmware"
     if args.services == "auto":
         wanted = [s for s in STACK_SERVICES if not (s == "planner" and planner == "scenario")]
+        if firmware:
+            wanted = [*FIRMWARE_SERVICES, *wanted]
     else:
         wanted = [s for s in args.services.split(",") if s and s != "none"]
         unknown = [s for s in wanted if s not in SERVICE_CLASSES]
@@ -205,7 +293,11 @@ def run_realtime(args: argparse.Namespace) -> dict:
         for sig in (signal.SIGINT, signal.SIGTERM):
             # installed explicitly: a script's background job starts with SIGINT ignored
             loop.add_signal_handler(sig, on_signal, sig)
-        twin = TwinService(ns=ns, endpoint=endpoint, params={"twin": twin_params, "safety": params["safety"]})
+        twin_kwargs = {"ns": ns, "endpoint": endpoint, "params": {"twin": twin_params, "safety": params["safety"]}}
+        if rig is not None:
+            twin = FirmwareTwinService(**twin_kwargs, board=rig.board, natnet_server=rig.natnet, mocap=rig.mocap)
+        else:
+            twin = TwinService(**twin_kwargs)
         local = [twin]
         if planner == "scenario":
             local.append(ScenarioReferenceService(ns=ns, endpoint=endpoint, params={"twin": twin_params}))
@@ -215,7 +307,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
         # are up, as a robot is switched on under a running stack.
         units = [n for n in wanted if n in SERVICE_CLASSES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
-        sup = Supervisor(sim_specs(units, endpoint, ns, args.config))
+        sup = Supervisor(sim_specs(units, endpoint, ns, rig.config_path if rig is not None else args.config))
         wall0 = time.perf_counter()
         twin_started = time.monotonic()
         cpu0: tuple[dict[str, float], float] | None = None
@@ -258,7 +350,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
             wall = time.perf_counter() - wall0
             exit_codes = await asyncio.to_thread(sup.stop)
         out = {"scenario": args.scenario, "seed": args.seed, "mode": "realtime", "variant": args.variant,
-               "estimator": "kalman", "planner": planner, "controller": "lowlevel", "wall_time_s": round(wall, 3)}
+               "estimator": "kalman", "planner": planner, "controller": "lowlevel", "hardware": getattr(args, "hardware", "twin"),
+               "wall_time_s": round(wall, 3)}
         out.update(twin.summary())
         out["services_started"] = sorted(exit_codes) + (["scenario_reference"] if planner == "scenario" else [])
         out["services_missing"] = missing
@@ -277,7 +370,12 @@ def run_realtime(args: argparse.Namespace) -> dict:
             out["stopped_by"] = signal.Signals(stop_signal[0]).name
         return out
 
-    return asyncio.run(main())
+    rig = FirmwareRig(args.config, args.variant) if firmware else None
+    try:
+        return asyncio.run(main())
+    finally:
+        if rig is not None:
+            rig.close()
 
 
 def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, float], float], wall_s: float) -> dict[str, float]:

@@ -121,8 +121,7 @@ class TwinService(Service):
             self._put_back()
         now_ns = self.clock.now_ns()
         data = self.data
-        slot = self.torque_slot.get()
-        cmd, recv_ns = slot if slot is not None else (None, 0)
+        cmd, recv_ns = self._command(now_ns)
         t = self.sim_ns / NS
         self.scenario.before_step(t, self.model, data)
         act = self.actuation
@@ -137,15 +136,28 @@ class TwinService(Service):
             mujoco.mj_step(self.model, data)
         self.sim_ns += self.tick_ns
         for topic, msg in self.sensors.tick(data, now_ns):
-            if isinstance(msg, DepthImage):
-                self.pubs[topic].put_bytes(encode_depth(msg))
-            else:
-                self.pubs[topic].put(msg)
+            self._deliver(topic, msg)
+        self._after_step(now_ns)
         ref = self.reference_slot.get()
         state = self.state_slot.get() if self.metrics.traces_next_tick() else None
         self.metrics.update(self.sim_ns / NS, now_ns, data, ref[0] if ref else None, state[0] if state else None,
                             act.last_applied)
         self.rate("tick").tick()
+
+    def _command(self, now_ns: int) -> tuple[msgs.TorqueCommand | None, int]:
+        """The command for this tick and when it was received (stack clock)."""
+        slot = self.torque_slot.get()
+        return slot if slot is not None else (None, 0)
+
+    def _deliver(self, topic: str, msg: Any) -> None:
+        """What a sensor delivers this tick goes out on its topic."""
+        if isinstance(msg, DepthImage):
+            self.pubs[topic].put_bytes(encode_depth(msg))
+        else:
+            self.pubs[topic].put(msg)
+
+    def _after_step(self, now_ns: int) -> None:
+        """After the physics and the sensors of a tick (the devices a subclass runs)."""
 
     def _put_back(self) -> None:
         """On the loop thread, between ticks: the scenario's initial state, new sensor noise."""
@@ -236,6 +248,86 @@ class TwinService(Service):
                     "max_wheel_speed_rad_s": mt.max_wheel, "torque_saturation_fraction": self.actuation.saturation_fraction})
         for key, value in self.actuation.counters.items():
             out[f"commands.{key}"] = float(value)
+        return out
+
+
+class FirmwareTwinService(TwinService):
+    """The twin behind ARCHER's own boards and an OptiTrack stream instead of topics.
+
+    The emulated flywheel and foot boards (:class:`drivers.archer_firmware.emulator.BoardEmulator`,
+    on UDP) and the NatNet server (:class:`drivers.natnet.NatNetServer`) are built by the caller
+    before the stack starts, so that their ports can go into the ``hardware`` and ``mocap``
+    services' configuration; this service runs them on its tick, in the twin's clock:
+
+    1. the board reads the packets waiting, answers each with its state (what the twin's IMU,
+       encoders and foot sensors delivered last tick), runs its PD and foot cycle: its motor
+       torques are this tick's command (limits and motor curve apply as for any command);
+    2. physics, as the twin;
+    3. the IMU and joint readings go to the board, not to topics (the ``hardware`` service
+       publishes what the board reports); the depth camera still publishes;
+    4. the torso's true pose is captured at ``mocap.rate_hz`` and each frame streamed
+       ``mocap.latency_s`` later (the ``mocap`` service publishes it as ``pose``).
+
+    Physics metrics (falls, hops, goal error) are the twin's, as in every realtime run.
+    """
+
+    def __init__(self, *args: Any, board: Any, natnet_server: Any, mocap: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.board = board
+        self.natnet = natnet_server
+        self.mocap = mocap
+        self._board_torques = [0.0, 0.0, 0.0, 0.0]
+        self._frames: list[Any] = []  # captured, not yet due
+        self._frame_no = 0
+
+    async def setup(self) -> None:
+        await super().setup()
+        from drivers.elmo.emulator import InertiaLoad
+        from drivers.teensy.emulator import BodyState
+
+        self.board.body = BodyState()
+        self.board.motors = [InertiaLoad() for _ in range(4)]  # positions and speeds written from the twin's sensors
+        self.board.on_step = self._on_board_step
+        self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
+        self._root_qp = int(self.model.joint(tm.ROOT_JOINT).qposadr[0])
+        self._ticks_per_frame = max(1, round(self.params["twin"].control_rate_hz / self.mocap.rate_hz))
+        self._latency_ns = round(self.mocap.latency_s * NS)
+
+    def _on_board_step(self, _now_s: float, torques: list[float]) -> None:
+        self._board_torques = torques
+
+    def _command(self, now_ns: int) -> tuple[msgs.TorqueCommand | None, int]:
+        self.board.tick(now_ns / NS)
+        w = self._board_torques
+        return msgs.TorqueCommand(stamp_ns=now_ns, wheel_torque=w[:3], foot_torque=w[3], armed=True), now_ns
+
+    def _deliver(self, topic: str, msg: Any) -> None:
+        body, motors = self.board.body, self.board.motors
+        if topic == "imu":
+            body.quat, body.gyro, body.accel = tuple(msg.quat), tuple(msg.gyro), tuple(msg.accel)
+        elif topic == "joints":
+            for k in range(3):
+                motors[k].position, motors[k].velocity = msg.wheel_pos[k], msg.wheel_vel[k]
+            motors[3].position, motors[3].velocity = msg.foot_motor_pos, float(self.data.qvel[self._spool_dof])  # no spool speed in JointSensors
+            body.foot_pos, body.foot_vel, body.contact = msg.foot_pos, msg.foot_vel, msg.foot_contact
+        elif topic == "depth":
+            super()._deliver(topic, msg)
+
+    def _after_step(self, now_ns: int) -> None:
+        from drivers import natnet
+
+        if self.sim_ns // self.tick_ns % self._ticks_per_frame == 0:
+            self._frame_no += 1
+            q = self.data.qpos[self._root_qp:self._root_qp + 7].tolist()
+            body = natnet.RigidBodySample(self.mocap.rigid_body_id, (q[0], q[1], q[2]), (q[3], q[4], q[5], q[6]))
+            self._frames.append(natnet.Frame(self._frame_no, (body,), now_ns, now_ns + self._latency_ns, self.sim_ns / NS))
+        while self._frames and self._frames[0].received_ns <= now_ns:
+            self.natnet.publish(self._frames.pop(0), now_ns)
+
+    def summary(self) -> dict[str, Any]:
+        out = super().summary()
+        out["board"] = self.board.summary()
+        out["natnet"] = dict(self.natnet.counts)
         return out
 
 

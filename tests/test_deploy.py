@@ -68,6 +68,11 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
     assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)
     assert sorted(sil) == sorted(f"archer-{s}.service" for s in ROBOT if s != "hardware") + ["archer-twin.service"]
+    firmware = one(parsed["archer-firmware.target"], "Unit", "Wants").split()
+    assert sorted(firmware) == sorted(f"archer-{s}.service" for s in (*ROBOT, "mocap"))
+    for name in firmware:  # stopping the target stops its units
+        assert "archer-firmware.target" in one(parsed[name], "Unit", "PartOf").split(), name
+    assert set(one(parsed["archer-firmware.target"], "Unit", "Conflicts").split()) == {"archer.target", "archer-sil.target"}
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed")
@@ -134,3 +139,17 @@ def test_cli_dry_run(tmp_path):
     ).stdout
     assert "would write" in out and "archer-control.service" in out and "systemctl enable --now archer.target" in out
     assert list(tmp_path.iterdir()) == []
+
+
+def test_archer_firmware_profile_installs_the_robot_lan_config(tmp_path):
+    apply(plan_install(tmp_path, FAKE_ARCHER, profile="archer-firmware"), dry_run=False)
+    params = load_params(tmp_path / "etc/archer/archer.toml")
+    fw, hw, mocap, control = params["archer_firmware"], params["hardware"], params["mocap"], params["control"]
+    assert hw.backend == "archer-firmware" and control.output == "attitude"
+    assert (fw.board_host, fw.board_port, fw.computer_host, fw.computer_port) == ("10.0.0.7", 4333, "10.0.0.6", 4333)
+    assert mocap.system == "optitrack" and mocap.host != "127.0.0.1"
+    # the board's PD on Im(q) is the loop's on 2 Im(q) with twice the stiffness
+    assert (fw.kp_tilt, fw.kp_yaw) == (2 * control.kp_tilt, 2 * control.kp_yaw)
+    assert (fw.kd_tilt, fw.kd_yaw) == (control.kd_tilt, control.kd_yaw)
+    with pytest.raises(ValueError):
+        plan_install(tmp_path, FAKE_ARCHER, profile="nonesuch")

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from drivers.archer_firmware import codec
@@ -63,9 +64,10 @@ class ArcherBoard(LatchedFaults):
         self._outstanding: deque[float] = deque(maxlen=MAX_OUTSTANDING)  # send times of unanswered requests
         self._commanding_since: float | None = None
 
-    def open(self) -> None:
-        """Stamp replies as they arrive (a reader thread) instead of when a tick polls."""
-        self.link.start_reader()
+    def open(self, on_reader_start: Callable[[], None] | None = None) -> None:
+        """Stamp replies as they arrive (a reader thread) instead of when a tick polls;
+        ``on_reader_start`` runs first on that thread (its scheduling)."""
+        self.link.start_reader(on_reader_start)
 
     # --- receiving --------------------------------------------------------------------
 

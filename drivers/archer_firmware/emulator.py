@@ -51,7 +51,10 @@ class FootBoard:
     unwinds past the fully extended foot so the cable is slack and the stored energy
     goes into the stance (compression, then thrust); at lift-off it winds again. The
     energy each hop gains makes up what the impact loses, so an upright robot hops in
-    place by itself. Spool torque is the gearbox output [N m], positive winds.
+    place by itself. The preload is scaled after each flight by the flight time the
+    contact switch measured (apex rise ``g T^2 / 8``) towards ``foot_hop_height_m``:
+    the hop's energy goes as the preload squared. Spool torque is the gearbox output
+    [N m], positive winds.
     """
 
     def __init__(self, params: ArcherFirmwareParams, phys: FootPhysics) -> None:
@@ -62,18 +65,35 @@ class FootBoard:
         self.preload = min(params.foot_preload_m, phys.travel)
         self.phase = FootPhase.IDLE
         self.hops = 0  # lift-offs seen
+        self.liftoff_s: float | None = None
 
-    def step(self, enabled: bool, contact: bool, deflection: float, rate: float, spool_pos: float, spool_vel: float) -> float:
+    def _regulate(self, flight_s: float) -> None:
+        """After a flight of ``flight_s``: the preload for the hop height (energy ~ preload^2)."""
+        p = self.p
+        rise = self.phys.gravity * flight_s * flight_s / 8.0
+        if p.foot_hop_height_m <= 0.0 or flight_s < p.foot_min_flight_s:
+            return
+        scale = (p.foot_hop_height_m / rise) ** (0.5 * p.foot_hop_gain)
+        self.preload = min(max(self.preload * scale, 0.0), self.phys.travel)
+
+    def step(self, enabled: bool, contact: bool, deflection: float, rate: float, spool_pos: float, spool_vel: float,
+             now_s: float | None = None) -> float:
         previous = self.phase
         if not enabled:
             self.phase = FootPhase.IDLE
+            self.liftoff_s = None
             return 0.0
         if not contact:
             self.phase = FootPhase.FLIGHT
             if previous in (FootPhase.COMPRESSION, FootPhase.THRUST):
                 self.hops += 1
-        elif previous != FootPhase.THRUST:
-            self.phase = FootPhase.COMPRESSION if rate > 0.0 else FootPhase.THRUST
+                self.liftoff_s = now_s
+        else:
+            if previous == FootPhase.FLIGHT and self.liftoff_s is not None and now_s is not None:
+                self._regulate(now_s - self.liftoff_s)  # touchdown: the flight just measured
+                self.liftoff_s = None
+            if previous != FootPhase.THRUST:
+                self.phase = FootPhase.COMPRESSION if rate > 0.0 else FootPhase.THRUST
         r = self.phys.spool_radius
         if self.phase == FootPhase.FLIGHT:
             target = self.preload / r
@@ -191,7 +211,7 @@ class BoardEmulator:
             wheels = [0.0, 0.0, 0.0]
             self.currents = [0.0, 0.0, 0.0]
         b, spool = self.body, self.motors[3]
-        foot = self.foot.step(self.motors_on, b.contact, b.foot_pos, b.foot_vel, spool.position, spool.velocity)
+        foot = self.foot.step(self.motors_on, b.contact, b.foot_pos, b.foot_vel, spool.position, spool.velocity, now)
         self.applied = [*wheels, foot]
         if self.on_step is not None:
             self.on_step(now, list(self.applied))

@@ -62,14 +62,17 @@ class UdpLink:
         self.rx += 1
         return True
 
-    def start_reader(self) -> None:
-        """Read on a thread from now on, stamping each datagram as it arrives."""
+    def start_reader(self, on_start: Callable[[], None] | None = None) -> None:
+        """Read on a thread from now on, stamping each datagram as it arrives; ``on_start`` runs
+        first on that thread (the caller's scheduling: a stamp taken late is a wrong stamp)."""
         if self._reader is not None:
             return
-        self._reader = threading.Thread(target=self._read_forever, name="udp-reader", daemon=True)
+        self._reader = threading.Thread(target=self._read_forever, args=(on_start,), name="udp-reader", daemon=True)
         self._reader.start()
 
-    def _read_forever(self) -> None:
+    def _read_forever(self, on_start: Callable[[], None] | None) -> None:
+        if on_start is not None:
+            on_start()
         while not self._closed.is_set():
             # select, then a non-blocking read: the socket stays non-blocking for send()
             readable, _, _ = select.select([self._sock], [], [], READER_WAKE_S)
