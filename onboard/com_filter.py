@@ -60,6 +60,17 @@ Cov2 = tuple[float, float, float]  # (P_pp, P_pv, P_vv) of one axis
 REACQUIRE_MARGIN = 2.0  # re-acquiring a lost track: the pose's innovation at half the gate
 
 
+def _advance(x: list[float], dt: float, ax: float, ay: float, az: float) -> None:
+    """The mean ``[p, v]`` over ``dt`` under constant acceleration ``a`` (in place)."""
+    h = 0.5 * dt * dt
+    x[0] += x[3] * dt + ax * h
+    x[1] += x[4] * dt + ay * h
+    x[2] += x[5] * dt + az * h
+    x[3] += ax * dt
+    x[4] += ay * dt
+    x[5] += az * dt
+
+
 class ComFilter:
     """CoM Kalman filter with a delayed fusion horizon (lean float arithmetic)."""
 
@@ -229,14 +240,9 @@ class ComFilter:
         for e in self._entries:
             if e[_T] > stamp_ns:
                 break
-            dt, ax, ay, az = e[_DT], e[_AX], e[_AY], e[_AZ]
+            dt = e[_DT]
             h = 0.5 * dt * dt
-            x[0] += x[3] * dt + ax * h
-            x[1] += x[4] * dt + ay * h
-            x[2] += x[5] * dt + az * h
-            x[3] += ax * dt
-            x[4] += ay * dt
-            x[5] += az * dt
+            _advance(x, dt, e[_AX], e[_AY], e[_AZ])
             q = self._q_stance if e[_STANCE] else self._q_flight
             p00, p01, p11 = (p00 + dt * (2.0 * p01 + dt * p11) + q * dt * dt * dt / 3.0, p01 + dt * p11 + q * h, p11 + q * dt)
             gap = e[_GAP]
@@ -313,14 +319,8 @@ class ComFilter:
     # --- Kalman arithmetic (overridden by the filterpy backend) ------------------------
 
     def _predict(self, dt: float, ax: float, ay: float, az: float, q: float) -> None:
-        x = self._x
+        _advance(self._x, dt, ax, ay, az)
         h = 0.5 * dt * dt
-        x[0] += x[3] * dt + ax * h
-        x[1] += x[4] * dt + ay * h
-        x[2] += x[5] * dt + az * h
-        x[3] += ax * dt
-        x[4] += ay * dt
-        x[5] += az * dt
         p00, p01, p11 = self._p
         # F P F^T + Q, Q the discretized continuous white-noise acceleration model
         self._p = [
