@@ -197,7 +197,11 @@ def test_a_foreign_pose_stream_never_captures_the_estimate(zenoh_router):
     stamps = np.array(sorted(truth))
     xs = np.array([truth[t][0] for t in stamps])
     during = [s for s in states if t0 + 500_000_000 <= s.stamp_ns <= t0 + 1_990_000_000]
-    assert max(abs(s.position[0] - np.interp(s.stamp_ns, stamps, xs)) for s in during) < 0.05
+    errors = [abs(s.position[0] - np.interp(s.stamp_ns, stamps, xs)) for s in during]
+    assert max(errors) < 1.0  # never pulled towards the foreign poses, 100 m away
+    # every estimate that says it is valid is close (a stalled replay makes some drift, invalid:
+    # seen once in a clean-clone run, 12 cm while the replay thread stalled)
+    assert max(e for e, s in zip(errors, during) if s.valid) < 0.05
     # most say they are valid (a replay thread stalled by a loaded machine makes some honestly
     # invalid), and none of those is far off: the foreign stream never captured it
     assert sum(s.valid for s in during) >= 0.5 * len(during)
