@@ -26,6 +26,8 @@ import threading
 from collections import Counter
 from dataclasses import dataclass
 
+from drivers.udp import free_udp_port
+
 NAT_CONNECT = 0
 NAT_SERVERINFO = 1
 NAT_REQUEST = 2
@@ -132,12 +134,6 @@ def unpack_request(data: bytes) -> tuple[int, bytes]:
     return message_id, data[_HEADER.size:]
 
 
-def _free_udp_port(host: str) -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
 class NatNetServer:
     """A Motive-like NatNet server on ``host``: command port, model definitions, unicast frames.
 
@@ -160,7 +156,7 @@ class NatNetServer:
         self._sock.bind((host, command_port))
         self._sock.settimeout(0.1)  # the receive loop looks at the stop flag this often
         self.command_port = self._sock.getsockname()[1]
-        self.data_port = data_port or _free_udp_port(host)
+        self.data_port = data_port or free_udp_port(host)
         self._clients: dict[tuple[str, int], None] = {}  # command addresses, in connection order
         self._lock = threading.Lock()
         self._stop = threading.Event()

@@ -32,7 +32,6 @@ import logging
 import math
 import os
 import signal
-import socket
 import sys
 import tempfile
 import threading
@@ -41,6 +40,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from drivers.udp import free_udp_port
 from onboard.params import with_overrides
 from services.config import ConfigError, load_params
 from services.runtime import EXIT_SIGINT
@@ -175,12 +175,6 @@ def _take_twin_priority() -> None:
         log.warning("twin scheduling refused", extra={"fields": {"event": what, "detail": detail}})
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((LOOPBACK, 0))
-        return s.getsockname()[1]
-
-
 def _toml(data: dict[str, dict[str, Any]]) -> str:
     """Tables of scalars and arrays as TOML (a JSON scalar or array is TOML's, NaN and inf aside)."""
     lines = []
@@ -210,7 +204,7 @@ class FirmwareRig:
                                                            "kd_tilt": c.kd_tilt, "kd_yaw": c.kd_yaw})
         r = tm.robot_params(variant)
         foot = FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel)
-        computer_port = _free_udp_port()
+        computer_port = free_udp_port()
         self.board = BoardEmulator(self.firmware, foot, (LOOPBACK, 0), (LOOPBACK, computer_port), time.monotonic,
                                    wheel_axes=r.wheel_axes)
         try:

@@ -17,6 +17,7 @@ import pytest
 
 from drivers.archer_firmware import codec as c
 from drivers.archer_firmware.device import ArcherBoard
+from drivers.udp import free_udp_port
 from drivers.archer_firmware.emulator import BoardEmulator, FootBoard, FootPhase
 from drivers.archer_firmware.transport import UdpLink
 from onboard import quaternion as quat
@@ -38,9 +39,7 @@ class Clock:
 
 
 def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(LOCAL)
-        return s.getsockname()[1]
+    return free_udp_port(LOCAL[0])
 
 
 @pytest.fixture
