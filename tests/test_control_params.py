@@ -6,6 +6,7 @@ process is refused while armed and applied by a restart, watchdog fed, when disa
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import threading
 import time
@@ -105,16 +106,29 @@ async def ask(session, changes: dict) -> m.ParamReply:
     return await asyncio.to_thread(set_params, session, changes)
 
 
+
+@contextlib.asynccontextmanager
+async def armed_control(endpoint: str):
+    """A control service armed on a fed estimate: yields it, a client session and the torque log."""
+    service = ControlService(ns=NS, endpoint=endpoint, params=dict(PARAMS))
+    task = asyncio.create_task(service.run())
+    client = open_session(endpoint, "peer")
+    torque = TorqueLog(client)
+    feeder = Feeder(client)
+    feeder.thread.start()
+    try:
+        await wait_for(lambda: getattr(service, "_loop_proc", None) is not None and service._loop_proc.last.get("armed"))
+        yield service, client, torque
+    finally:
+        feeder.running = False
+        torque.sub.undeclare()
+        service.request_stop()
+        await asyncio.wait_for(task, 10.0)
+        client.close()
+
 def test_a_gain_change_while_armed_is_taken_between_ticks_and_a_bad_limit_is_refused(zenoh_router):
     async def scenario() -> None:
-        service = ControlService(ns=NS, endpoint=zenoh_router, params=dict(PARAMS))
-        task = asyncio.create_task(service.run())
-        client = open_session(zenoh_router, "peer")
-        torque = TorqueLog(client)
-        feeder = Feeder(client)
-        feeder.thread.start()
-        try:
-            await wait_for(lambda: getattr(service, "_loop_proc", None) is not None and service._loop_proc.last.get("armed"))
+        async with armed_control(zenoh_router) as (service, client, torque):
             proc = service._loop_proc
             pid = proc.proc.pid
             await asyncio.sleep(1.0)
@@ -152,12 +166,6 @@ def test_a_gain_change_while_armed_is_taken_between_ticks_and_a_bad_limit_is_ref
             await asyncio.sleep(2 * 0.5)  # two loop reports
             assert proc.last["safety"].wheel_torque_max == 1.5 and proc.last["control"].kp_tilt == 40.5
             assert proc.last["params_seq"] == 1 and proc.last["armed"]
-        finally:
-            feeder.running = False
-            torque.sub.undeclare()
-            service.request_stop()
-            await asyncio.wait_for(task, 10.0)
-            client.close()
 
     asyncio.run(scenario())
 
@@ -170,14 +178,7 @@ def test_a_restart_parameter_is_refused_while_armed_and_applied_when_disarmed_wi
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
 
     async def scenario() -> None:
-        service = ControlService(ns=NS, endpoint=zenoh_router, params=dict(PARAMS))
-        task = asyncio.create_task(service.run())
-        client = open_session(zenoh_router, "peer")
-        torque = TorqueLog(client)
-        feeder = Feeder(client)
-        feeder.thread.start()
-        try:
-            await wait_for(lambda: getattr(service, "_loop_proc", None) is not None and service._loop_proc.last.get("armed"))
+        async with armed_control(zenoh_router) as (service, client, torque):
             first = service._loop_proc
 
             reply = await ask(client, {"control.rate_hz": 500.0})
@@ -211,12 +212,8 @@ def test_a_restart_parameter_is_refused_while_armed_and_applied_when_disarmed_wi
             await asyncio.sleep(1.0)
             rate = len(torque.between(t0, time.monotonic())) / (time.monotonic() - t0)
             assert 250.0 < rate < 600.0, rate  # the new loop runs at 500 Hz
-        finally:
-            feeder.running = False
-            torque.sub.undeclare()
-            service.request_stop()
-            await asyncio.wait_for(task, 10.0)
-            client.close()
-            manager.close()
 
-    asyncio.run(scenario())
+    try:
+        asyncio.run(scenario())
+    finally:
+        manager.close()
