@@ -39,7 +39,7 @@ import mujoco
 
 from onboard import messages as msgs
 from onboard.binary_messages import DepthImage, encode_depth
-from onboard.params import SafetyLimits, TwinParams, with_overrides
+from onboard.params import SafetyLimits, TwinParams, as_dict, with_overrides
 from services.realtime import DeadlineLoop
 from services.runtime import Service
 from sim_twin import model as tm
@@ -167,11 +167,14 @@ class TwinService(Service):
         self.count("put_back")
         self.log.warning("robot put back", extra={"fields": {"seed": tp.seed, "falls": self.metrics.falls}})
 
-    def set_params(self, changes: dict[str, Any]) -> None:
-        fixed = sorted(k for k in changes if k.startswith("twin.") and k.removeprefix("twin.") not in LIVE_TWIN_PARAMS)
+    def accept_params(self, updated: dict[str, Any]) -> None:
+        new = updated.get("twin")
+        if new is None:
+            return
+        old = as_dict(self.params["twin"])
+        fixed = sorted(f"twin.{k}" for k, v in as_dict(new).items() if v != old[k] and k not in LIVE_TWIN_PARAMS)
         if fixed:
             raise ValueError(f"{fixed} are fixed while the twin runs; only {['twin.' + k for k in LIVE_TWIN_PARAMS]} can change")
-        super().set_params(changes)
 
     def on_params_changed(self, section: str) -> None:
         if section == "twin":
