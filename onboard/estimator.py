@@ -23,7 +23,9 @@ has been fused for ``pose_timeout_s``, else ``"ok"``.
 
 Honest covariance: every uncertainty grows with the time since its input was last
 fused, and ``valid`` is the covariance's verdict (position, velocity, attitude and body
-rate standard deviations under the ``valid_*`` limits), never a timer. Between IMU
+rate standard deviations under the ``valid_*`` limits), never a timer; ``attitude_valid``
+is the verdict on the attitude and body rate alone (in an IMU gap the CoM velocity's
+uncertainty crosses its limit well before the attitude's). Between IMU
 samples, and past the newest one, the estimate is predicted with the rate and the CoM
 acceleration held; what the IMU did not see is an unknown constant acceleration
 (``gap_accel_std_m_s2``, ``gap_angular_accel_std_rad_s2``; none for the CoM while the
@@ -612,13 +614,9 @@ class StateEstimator:
             z, ppv, z, z, pvv, z,
             z, z, ppv, z, z, pvv,
         ]
-        valid = (
-            max(self._t_pose_fused, com.last_fused_stamp) >= 0
-            and ppp <= self._valid_pos_var
-            and pvv <= self._valid_vel_var
-            and max(av) <= self._valid_att_var
-            and rate_var <= self._valid_rate_var
-        )
+        converged = max(self._t_pose_fused, com.last_fused_stamp) >= 0
+        attitude_valid = converged and max(av) <= self._valid_att_var and rate_var <= self._valid_rate_var
+        valid = attitude_valid and ppp <= self._valid_pos_var and pvv <= self._valid_vel_var
         return StateEstimate(
             stamp_ns=t_imu + lag_ns,
             position=[px, py, pz],
@@ -633,6 +631,7 @@ class StateEstimator:
             pos_vel_cov=cov,
             att_cov=list(av),
             valid=valid,
+            attitude_valid=attitude_valid,
         )
 
     def status(self) -> dict[str, float | str]:

@@ -22,7 +22,10 @@ supervisor turns it into a safe command and a counted event.
 
 Per tick:
 
-1. supervisor: estimate fresh and finite, upright, armed? else zero torque;
+1. supervisor: estimate fresh and finite, upright, armed? else zero torque; only its
+   attitude valid (``Supervisor.attitude_only``, e.g. an IMU gap): step 3's flight
+   attitude is upright at the held heading (no position feedback) for the
+   supervisor's bound;
 2. phase detection; at touchdown the impact error to the reference is recorded in
    the tube and the preload released; at apex the hop-energy loss is learnt;
 3. flight: predict the impact (ballistic to the last touchdown height), sample the
@@ -328,7 +331,12 @@ class LowLevelController:
             self._on_event(now_ns, ev, state, ref)
 
     def _flight_attitude(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> qt.Quat:
-        """Predict the impact, sample the reference there, the policy's impact attitude (step 3)."""
+        """Predict the impact, sample the reference there, the policy's impact attitude (step 3);
+        upright while the supervisor trusts the estimate's attitude only."""
+        if self.supervisor.attitude_only:
+            self.eta = (0.0, 0.0)
+            self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
+            return self.q_des
         g = self._g
         px, py, pz = state.position
         vx, vy, vz = state.velocity
@@ -431,11 +439,13 @@ class LowLevelController:
         return TorqueCommand(stamp_ns=now_ns, wheel_torque=[wheel[0], wheel[1], wheel[2]], foot_torque=foot, armed=True)
 
     def _on_event(self, now_ns: int, ev: PhaseEvent, s: StateEstimate, ref: ComReference | None) -> None:
+        com_valid = not self.supervisor.attitude_only  # else no impact error, no hop-energy learning from the CoM
         if ev.event == "touchdown":
-            rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
-            err = math.hypot(s.position[0] - rx, s.position[1] - ry)
-            self.last_impact_error = err
-            self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
+            if com_valid:
+                rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
+                err = math.hypot(s.position[0] - rx, s.position[1] - ry)
+                self.last_impact_error = err
+                self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
             self.foot.on_touchdown(s.foot_pos)
-        elif ev.event == "apex":
+        elif ev.event == "apex" and com_valid:
             self.foot.on_apex(s.position[2] - self.phase.touchdown_height)

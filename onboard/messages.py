@@ -91,6 +91,9 @@ class StateEstimate(Message):
     pos_vel_cov: list[float]  # 6x6 covariance of [position, velocity], row-major [m, m/s]^2
     att_cov: Vec3  # variance of the attitude error (rotation vector, body) [rad^2]
     valid: bool = True  # False while the filter has not converged or lost its inputs
+    # attitude and body rate alone within their limits: the low level may hold the body upright
+    # while the CoM estimate is not valid (an IMU gap grows the velocity's uncertainty first)
+    attitude_valid: bool = True
 
 
 PhaseEventKind = Literal["touchdown", "bottom", "liftoff", "apex"]

@@ -225,6 +225,9 @@ class EstimatorParams(_Section):
     """
 
     rate_hz: Annotated[float, within(1.0, LOOP_HZ_MAX)] = 1000.0  # [Hz] state estimate publication rate
+    # the control loop's input: scheduled above the twin / hardware exchange (70), below control (80)
+    rt_priority: RtPriority = 75  # SCHED_FIFO priority of the estimator's loop thread (0: leave the scheduler alone)
+    cpu: Cpu = -1  # CPU the loop thread is pinned to (-1: no pinning)
     robot: Name = "indoor"  # MJCF variant the robot's parameters are read from (sim_twin/models)
     input_queue: Annotated[int, within(1, 65536)] = 256  # sensor messages buffered between two ticks; the oldest dropped beyond
     # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
@@ -352,6 +355,9 @@ class ControlParams(_Section):
     tube_window: Annotated[int, within(1, 100_000)] = 100  # impacts in the published tube statistics
     # supervisor
     estimate_fault_disarm_s: Annotated[float, within(0.0, 1.0)] = 0.05  # a bad estimate for this long disarms (latched) [s]
+    # the CoM estimate not valid while its attitude is: the low level holds the body upright and
+    # hops in place (no position feedback) for at most this long, then disarms (latched) [s]
+    attitude_only_max_s: Annotated[float, within(0.0, 5.0)] = 0.5
     arm_tilt_max: Annotated[float, within(0.0, math.pi / 2)] = 0.35  # refuse to arm beyond this tilt [rad]
 
 
@@ -566,10 +572,13 @@ SECTIONS: dict[str, type] = {
 # (rate, scheduling), the robot model, or the policy design (linearized about the hop, or
 # loaded from a file), or they size the tube statistics. The control service applies a change
 # of one by restarting its loop, which it refuses while the controller is armed. Every other
-# control and safety field is applied between two ticks.
+# control and safety field is applied between two ticks. The estimator's loop thread takes
+# its rate and scheduling when it starts: a change of those needs a restart of the service
+# (refused live); every other estimator field rebuilds the filter.
 NEEDS_RESTART: dict[str, frozenset[str]] = {
     "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "policy", "mlp_weights", "hop_height",
                           "zdp_q_pos", "zdp_q_vel", "zdp_q_tilt", "zdp_r", "tube_window"}),
+    "estimator": frozenset({"rate_hz", "rt_priority", "cpu"}),
 }
 
 

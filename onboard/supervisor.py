@@ -5,7 +5,11 @@ Checks, in the order a tick meets them:
 - the state estimate: non-finite, flagged invalid, or older than
   ``SafetyLimits.estimate_stale_s`` -> this tick's command is the safe one (zero
   torque, disarmed flag); a fault lasting ``ControlParams.estimate_fault_disarm_s``
-  disarms (latched);
+  disarms (latched). Its CoM not valid while its attitude is (``attitude_valid``):
+  :attr:`Supervisor.attitude_only` -- the low level holds the body upright and hops in
+  place without position feedback (trip ``estimate_attitude_only``), for at most
+  ``ControlParams.attitude_only_max_s``, then disarms (latched, ``estimate_lost``);
+  arming needs the whole estimate valid;
 - tilt beyond ``SafetyLimits.tilt_max`` -> a fall: disarm (latched);
 - the reference: older than ``reference_stale_s``, empty or non-finite -> refused,
   the low level hops in place (this is the fallback when the planner dies);
@@ -35,7 +39,7 @@ from onboard.params import ControlParams, SafetyLimits
 NS = 1_000_000_000
 
 Vec3 = tuple[float, float, float]
-_ESTIMATE_FAULTS = ("estimate_nonfinite", "estimate_invalid", "estimate_stale")
+_ESTIMATE_FAULTS = ("estimate_nonfinite", "estimate_invalid", "estimate_stale", "estimate_attitude_only")
 
 
 _isfinite = math.isfinite
@@ -76,6 +80,8 @@ class Supervisor:
         self._checked_ref: ComReference | None = None
         self._checked_ref_usable = False
         self._fault_since_ns: int | None = None
+        self.attitude_only = False  # this tick: only the estimate's attitude and rate may be used
+        self._attitude_only_since_ns: int | None = None
         self.retune(limits, params)
 
     def retune(self, limits: SafetyLimits, params: ControlParams) -> None:
@@ -85,6 +91,7 @@ class Supervisor:
         self._estimate_stale_ns = int(limits.estimate_stale_s * NS)
         self._reference_stale_ns = int(limits.reference_stale_s * NS)
         self._fault_disarm_ns = int(params.estimate_fault_disarm_s * NS)
+        self._attitude_only_max_ns = int(params.attitude_only_max_s * NS)
 
     # --- events -------------------------------------------------------------------
 
@@ -132,12 +139,27 @@ class Supervisor:
         """True when the estimate may drive the motors this tick (and we are armed)."""
         fault = ""
         value, limit = 0.0, 0.0
+        attitude_only = False
         if not estimate_is_finite(s):
             fault = "estimate_nonfinite"
-        elif not s.valid:
+        elif not (s.valid or s.attitude_valid and self.armed):
             fault = "estimate_invalid"
         elif now_ns - s.stamp_ns > self._estimate_stale_ns:
             fault, value, limit = "estimate_stale", (now_ns - s.stamp_ns) / NS, self.limits.estimate_stale_s
+        else:
+            attitude_only = not s.valid
+        self.attitude_only = attitude_only
+        if attitude_only:
+            self._edge(now_ns, "estimate_attitude_only", True, 0.0, 0.0)
+            if self._attitude_only_since_ns is None:
+                self._attitude_only_since_ns = now_ns
+            elif now_ns - self._attitude_only_since_ns >= self._attitude_only_max_ns:
+                self.disarm(now_ns, "estimate_lost", (now_ns - self._attitude_only_since_ns) / NS,
+                            self.params.attitude_only_max_s)
+                self.attitude_only = False
+                return False
+        elif not fault:  # only a whole valid estimate ends it: a flickering one must not
+            self._attitude_only_since_ns = None
         if fault:
             if self.armed:
                 self._edge(now_ns, fault, True, value, limit)
@@ -149,7 +171,8 @@ class Supervisor:
             return False
         if self._active:
             for name in _ESTIMATE_FAULTS:
-                self._active.discard(name)
+                if not (attitude_only and name == "estimate_attitude_only"):
+                    self._active.discard(name)
         self._fault_since_ns = None
 
         tilt = qt.tilt(s.quat)

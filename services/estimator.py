@@ -13,6 +13,11 @@ variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
 :class:`services.realtime.DeadlineLoop` thread drains the queue into the estimator and
 publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
 
+Scheduling: the loop thread runs at ``EstimatorParams.rt_priority`` (SCHED_FIFO, when
+permitted) between the twin / hardware exchange and the control loop: it is the control
+loop's input, and a CPU hog at normal priority must not delay it (the log says what was
+applied).
+
 Status: the estimator's mode (``degraded`` while it has no pose, ``running`` otherwise),
 pose age, standard deviations, gyro bias, loop timing and every estimator counter
 (``est.<reason>`` in its figures); the refused inputs (future / past stamps, gated pose
@@ -29,8 +34,8 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from onboard.estimator import StateEstimator
-from onboard.params import EstimatorParams
-from services.realtime import DeadlineLoop
+from onboard.params import EstimatorParams, restart_changes
+from services.realtime import DeadlineLoop, make_realtime_from
 from services.runtime import Service
 from sim_twin.model import robot_params
 
@@ -53,7 +58,13 @@ class EstimatorService(Service):
             self._subscribe_queued(topic)
         self._state_pub = self.publisher("state")
         self._ticks = self.rate("loop")
-        self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop")
+        self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop",
+                                  on_start=lambda: self._schedule_loop(p))
+
+    def _schedule_loop(self, p: EstimatorParams) -> None:
+        """On the loop thread: scheduling is per thread."""
+        applied = make_realtime_from(p.rt_priority, p.cpu)
+        self.log.info("estimator loop scheduling", extra={"fields": applied})
 
     def _build(self, p: EstimatorParams) -> None:
         self.est = StateEstimator(p, robot_params(p.robot))
@@ -119,6 +130,12 @@ class EstimatorService(Service):
                     self.state = "running" if mode != "init" else "degraded"
         finally:
             await asyncio.to_thread(self._loop.stop, 2.0)
+
+    def accept_params(self, updated: dict[str, Any]) -> None:
+        new = updated.get("estimator")
+        fixed = restart_changes("estimator", self.params["estimator"], new) if new is not None else []
+        if fixed:
+            raise ValueError(f"{fixed} are taken when the estimator starts: restart it to change them")
 
     def on_params_changed(self, section: str) -> None:
         with self._lock:

@@ -16,7 +16,7 @@ from deploy import zenoh_configs as zc
 from services.cmd_deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
 from services.cmd_run import SERVICE_CLASSES
 from services.config import load_params
-from onboard.params import ControlParams
+from onboard.params import ControlParams, EstimatorParams, HardwareParams
 from services.supervisor import parse_unit, spec_from_unit
 
 ROBOT = ("router", "hardware", "estimator", "control", "planner", "perception", "recorder")
@@ -54,16 +54,19 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
         exec_start = one(unit, "Service", "ExecStart").split()
         assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICE_CLASSES
         assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
-        raises_itself = service in ("control", "hardware")  # the 1 kHz loop and the bus master
+        raises_itself = service in ("control", "estimator", "hardware")  # the 1 kHz loops and the bus master
         fifo_by_systemd = service == "twin"  # the hardware's stand-in
         assert (one(unit, "Service", "RestrictRealtime") == "no") == (raises_itself or fifo_by_systemd)
         assert ("LimitRTPRIO" in unit["Service"]) == raises_itself
         assert (unit["Service"].get("CPUSchedulingPolicy") == ["fifo"]) == fifo_by_systemd
     control = parsed["archer-control.service"]["Service"]
     assert control["NotifyAccess"] == ["all"] and control["AmbientCapabilities"] == ["CAP_SYS_NICE"]
-    assert parsed["archer-hardware.service"]["Service"]["AmbientCapabilities"] == ["CAP_SYS_NICE"]
+    for service in ("hardware", "estimator"):
+        assert parsed[f"archer-{service}.service"]["Service"]["AmbientCapabilities"] == ["CAP_SYS_NICE"]
     twin = spec_from_unit("twin", ["true"])
-    assert 0 < twin.fifo_priority < ControlParams().rt_priority  # physics below the control loop
+    # the sensors' source below the estimator, the estimator below the control loop it feeds
+    assert 0 < twin.fifo_priority < EstimatorParams().rt_priority < ControlParams().rt_priority
+    assert HardwareParams().rt_priority < EstimatorParams().rt_priority
     robot = one(parsed["archer.target"], "Unit", "Wants").split()
     sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
     assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)

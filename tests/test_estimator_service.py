@@ -14,6 +14,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from onboard import messages as m
 from onboard import quaternion as quat
@@ -252,3 +253,12 @@ def test_imu_samples_stamped_an_hour_away_are_refused_and_counted(zenoh_router):
     assert status.counters.get("est.pose_future") == sent["pose"], status.counters
     assert _median_error(states, truth, t0) < 0.01
     assert all(s.stamp_ns < t0 + 3 * 1_000_000_000 for s in states)  # never stamped an hour ahead
+
+
+@pytest.mark.parametrize("field, value", [("rt_priority", 10), ("cpu", 1), ("rate_hz", 500.0)])
+def test_loop_scheduling_and_rate_are_refused_live_and_named(field, value):
+    params = EstimatorParams()
+    service = EstimatorService(ns=NS_KEY, endpoint="tcp/127.0.0.1:1", params={"estimator": params}, clock=WallClock())
+    with pytest.raises(ValueError, match=f"estimator.{field}.*restart"):
+        service.set_params({f"estimator.{field}": value})
+    assert service.params["estimator"] is params

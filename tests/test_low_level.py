@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -238,6 +239,23 @@ def test_policy_places_the_foot_towards_the_reference(ctrl_factory):
                        segments=[BezierSegment(t0=0.0, duration=1.0, control_points=[[50.0, 0.0]])])
     c.step(0, estimate(0, vz=0.5), far, joints(0))
     assert math.hypot(*c.eta) <= math.sin(0.05) + 1e-12
+
+
+def test_attitude_only_estimate_keeps_the_body_upright_without_position_feedback(ctrl_factory):
+    c = ctrl_factory()
+    ref = ComReference(stamp_ns=0, t_ref_ns=0, hold=True,
+                       segments=[BezierSegment(t0=0.0, duration=1.0, control_points=[[1.0, 0.5]])])
+    c.step(0, estimate(0, vz=0.5), ref, joints(0))
+    assert math.hypot(*c.eta) > 0.0  # the policy leans towards the reference
+    tilted = qt.from_euler(0.1, 0.0, 0.0)
+    com_lost = msgspec.structs.replace(estimate(MS, vz=0.5, quat=tilted), valid=False, attitude_valid=True)
+    cmd = c.step(MS, com_lost, ref, joints(MS))
+    assert cmd.armed and c.supervisor.attitude_only
+    assert c.eta == (0.0, 0.0) and qt.tilt(c.q_des) < 1e-9
+    # the PD rights the tilted body: roll torque against the roll
+    upright = c.step(2 * MS, msgspec.structs.replace(com_lost, stamp_ns=2 * MS, quat=[1.0, 0.0, 0.0, 0.0]), ref, joints(2 * MS))
+    assert cmd.wheel_torque != upright.wheel_torque
+    assert "estimate_attitude_only" in [e.trip for e in c.drain_safety_events()]
 
 
 def test_nan_estimate_gives_zero_torque_and_a_safety_event(ctrl_factory):

@@ -90,8 +90,35 @@ def test_stale_estimate_trips_and_a_lasting_fault_disarms_latched():
 
 def test_invalid_estimate_is_refused():
     sup = armed_supervisor()
-    assert not sup.check_estimate(MS, estimate(MS, valid=False))
+    assert not sup.check_estimate(MS, estimate(MS, valid=False, attitude_valid=False))
     assert sup.counts["estimate_invalid"] == 1
+
+
+def test_attitude_only_estimate_holds_attitude_for_its_bound_then_disarms_latched():
+    sup = armed_supervisor()
+    com_lost = dict(valid=False, attitude_valid=True)
+    assert sup.check_estimate(MS, estimate(MS, **com_lost))
+    assert sup.attitude_only and sup.armed
+    assert [e.trip for e in sup.drain_events()] == ["estimate_attitude_only"]  # once per episode
+    # a whole valid tick ends the episode; a stale or invalid one in between does not
+    assert sup.check_estimate(2 * MS, estimate(2 * MS))
+    assert not sup.attitude_only
+    t = 3 * MS
+    start = t
+    bound = int(PARAMS.attitude_only_max_s * 1e9)
+    while t - start < bound - MS:
+        stamp = t if (t // MS) % 50 else t - 10 * MS  # a stale estimate now and then
+        sup.check_estimate(t, estimate(stamp, **com_lost))
+        t += MS
+    assert sup.armed
+    assert not sup.check_estimate(start + bound, estimate(start + bound, **com_lost))
+    assert not sup.armed and sup.disarm_reason == "estimate_lost"
+    assert not sup.attitude_only
+    assert sup.drain_events()[-1].trip == "estimate_lost"
+    # latched; and attitude alone never arms
+    sup.request_arm()
+    assert not sup.check_estimate(t + MS, estimate(t + MS, **com_lost))
+    assert sup.check_estimate(t + 2 * MS, estimate(t + 2 * MS))
 
 
 def test_tilt_beyond_the_limit_is_a_fall_and_disarms():
