@@ -39,6 +39,8 @@ FOOT_MOTOR_JOINT = "foot_motor"
 FOOT_ACTUATOR = "foot_motor"
 CABLE_TENDON = "cable"
 ROOT_JOINT = "root"
+FOOT_TOUCH_SENSOR = "foot_force"
+OUTDOOR_FOOT_CONTACT_SITE = "tennis_ball_contact"
 _PAYLOAD_FREEJOINT_SUFFIX = "_free"
 
 
@@ -75,8 +77,8 @@ def _fuse_welded_payload(spec: mujoco.MjSpec) -> None:
         spec.delete(eq)
         spec.delete(part)
         spec.body(name + "_mounted").name = name
-        for geom in spec.body(name).geoms:
-            geom.name = geom.name.removesuffix("_mounted")
+        for element in (*spec.body(name).geoms, *spec.body(name).sites):
+            element.name = element.name.removesuffix("_mounted")
 
 
 def load_spec(variant: str = DEFAULT_VARIANT) -> mujoco.MjSpec:
@@ -84,6 +86,7 @@ def load_spec(variant: str = DEFAULT_VARIANT) -> mujoco.MjSpec:
     spec = mujoco.MjSpec.from_file(str(model_path(variant)))
     if variant == "outdoor":
         _fuse_welded_payload(spec)
+        spec.sensor(FOOT_TOUCH_SENSOR).objname = OUTDOOR_FOOT_CONTACT_SITE  # the tennis ball touches first
     elif variant == "sim15nm":
         peak = float(_numeric(spec, "sim15nm_wheel_torque_peak").data[0])
         _numeric(spec, "wheel_torque_peak").data = [peak]

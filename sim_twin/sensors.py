@@ -222,7 +222,7 @@ class SensorSuite:
         self._foot_qv = int(model.joint(tm.FOOT_JOINT).dofadr[0])
         self._spool_qp = int(model.joint(tm.FOOT_MOTOR_JOINT).qposadr[0])
         self._accel_adr = int(model.sensor("imu_accel").adr[0])
-        self._touch_adr = int(model.sensor("foot_force").adr[0])
+        self._touch_adr = int(model.sensor(tm.FOOT_TOUCH_SENSOR).adr[0])
 
         # Depth camera: pixel ray directions in the optical frame, fixed for the run.
         w, h = p.depth_width, p.depth_height

@@ -65,7 +65,7 @@ class TruthEstimator:
         self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
         self._foot_qp = int(model.joint(tm.FOOT_JOINT).qposadr[0])
         self._foot_qv = int(model.joint(tm.FOOT_JOINT).dofadr[0])
-        self._touch = int(model.sensor("foot_force").adr[0])
+        self._touch = int(model.sensor(tm.FOOT_TOUCH_SENSOR).adr[0])
         self._c = robot.com_offset_body
         self._foot_share = robot.foot_mass / robot.total_mass
         self._seq = 0

@@ -221,3 +221,23 @@ def test_cable_pulls_but_never_pushes() -> None:
         mujoco.mj_step(m, d)
     assert d.qpos[slide] == pytest.approx(0.0, abs=1e-3)
     assert d.qpos[slide] - p.spool_radius * d.qpos[spool] > 0.01  # slack: the cable did not push
+
+
+@pytest.mark.parametrize("variant", tm.VARIANTS)
+def test_the_foot_touch_sensor_feels_whatever_part_of_the_foot_meets_the_ground(variant: str) -> None:
+    """Dropped upright on the floor, the foot's touch sensor carries the robot's weight on
+    average (it bounces on its spring; the outdoor robot lands on its tennis ball, below the
+    bare tip's site, where the sensor read nothing)."""
+    m = tm.load_model(variant)
+    d = mujoco.MjData(m)
+    params = tm.robot_params(variant)
+    root = m.joint(tm.ROOT_JOINT).qposadr[0]
+    d.qpos[root + 2] = params.leg_length + 0.005  # the foot 5 mm above the floor
+    touch = m.sensor(tm.FOOT_TOUCH_SENSOR).adr[0]
+    readings = []
+    for _ in range(int(0.5 / m.opt.timestep)):
+        d.qpos[root + 3:root + 7] = [1.0, 0.0, 0.0, 0.0]  # held upright
+        d.qvel[3:6] = 0.0
+        mujoco.mj_step(m, d)
+        readings.append(d.sensordata[touch])
+    assert np.mean(readings) > 0.5 * params.total_mass * params.gravity
