@@ -11,7 +11,7 @@ hop cycle itself: ARCHER's firmware) ``attitude_cmd`` instead
 ``ControlParams.tube_period_s``.
 
 Timing: the loop runs in a child process of its own (:class:`ControlLoop`), on a
-:class:`services.realtime.DeadlineLoop` with absolute deadlines, real-time priority and
+:class:`services.runtime.realtime.DeadlineLoop` with absolute deadlines, real-time priority and
 a pinned CPU when the kernel allows (logged and skipped when not). The child has no
 asyncio loop and no other Python thread that competes for the GIL at 1 kHz except the
 Zenoh callbacks that drop decoded messages into latest-value slots; the parent process
@@ -55,10 +55,10 @@ from onboard import zdp
 from onboard.low_level import LowLevelController
 from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.topics import TOPICS
-from services.clock import WallClock
-from services.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
-from services.runtime import LatestSlot, Service, TypedPublisher
-from services.zenoh_session import open_session
+from services.runtime.clock import WallClock
+from services.runtime.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
+from services.runtime.service import LatestSlot, Service, TypedPublisher
+from services.runtime.zenoh_session import open_session
 from sim_twin import model as twin_model
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "onboard" / "data"

@@ -10,7 +10,7 @@ the filter integrates every IMU interval.
 
 Computes: :class:`onboard.estimator.StateEstimator` (robot parameters from the MJCF
 variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
-:class:`services.realtime.DeadlineLoop` thread drains the queue into the estimator and
+:class:`services.runtime.realtime.DeadlineLoop` thread drains the queue into the estimator and
 publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
 
 Status: the estimator's mode (``degraded`` while it has no pose, ``running`` otherwise),
@@ -30,8 +30,8 @@ from typing import Any, ClassVar
 
 from onboard.estimator import StateEstimator
 from onboard.params import EstimatorParams
-from services.realtime import DeadlineLoop
-from services.runtime import Service
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import Service
 from sim_twin.model import robot_params
 
 INPUTS = ("imu", "joints", "pose")

@@ -2,7 +2,7 @@
 
 Subscribes ``torque_cmd`` (``attitude_cmd`` instead for a Teensy in attitude mode and for
 ARCHER's own firmware, which runs the attitude PD on its board) into
-latest-value slots. A :class:`~services.realtime.DeadlineLoop` thread then, every
+latest-value slots. A :class:`~services.runtime.realtime.DeadlineLoop` thread then, every
 tick: checks the command (its own watchdog: nothing newer than
 ``SafetyLimits.command_stale_s``, or not armed, means zero torque and disabled
 drives), clamps it to ``SafetyLimits``, does one batched exchange with the hardware
@@ -39,8 +39,8 @@ from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
 from onboard import messages as msgs
 from onboard.params import HardwareParams, SafetyLimits
-from services.realtime import DeadlineLoop, make_realtime_from
-from services.runtime import LatestSlot, Service
+from services.runtime.realtime import DeadlineLoop, make_realtime_from
+from services.runtime.service import LatestSlot, Service
 
 NS = 1_000_000_000
 STATUS_POLL_S = 0.2  # how often main() looks at the loop and the drivers

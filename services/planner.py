@@ -38,7 +38,7 @@ from onboard import collision as col
 from onboard import graph_planner as gp
 from onboard import messages as msgs
 from onboard.params import PlannerParams
-from services.runtime import Service
+from services.runtime.service import Service
 from sim_twin import model as twin_model
 
 CACHE_ENV = "ARCHER_CACHE_DIR"

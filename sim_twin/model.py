@@ -1,6 +1,6 @@
 """Load the ARCHER MJCF by variant name and read the robot's parameters from it.
 
-The MJCF files in ``sim_twin/models/`` are the one source of the robot's physical parameters.
+The MJCF files in ``robot_description/models/`` are the one source of the robot's physical parameters.
 Controllers and estimators get them from :func:`robot_params`, never from constants of their own.
 
 Variants:
@@ -21,7 +21,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-MODELS_DIR = Path(__file__).resolve().parent / "models"
+MODELS_DIR = Path(__file__).resolve().parents[1] / "robot_description" / "models"
 VARIANT_FILES: dict[str, str] = {
     "indoor": "archer.xml",
     "outdoor": "archer_outdoor.xml",

@@ -17,7 +17,7 @@ import pytest
 from onboard.estimator import StateEstimator
 from onboard.messages import ImuSample, JointSensors, PoseMeasurement
 from onboard.params import EstimatorParams
-from services.bench_estimator import stall_run
+from services.bench.estimator import stall_run
 from sim_twin.model import robot_params
 
 NS = 1_000_000_000

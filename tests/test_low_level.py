@@ -293,7 +293,7 @@ def test_unknown_policy_and_missing_weights_are_refused():
 
 
 def test_training_script_runs_and_its_network_drives_the_controller(tmp_path):
-    from services import train_zdp
+    from services.cli import train_zdp
 
     out = tmp_path / "tiny.npz"
     assert train_zdp.main(["--samples", "20", "--steps", "30", "--out", str(out)]) == 0

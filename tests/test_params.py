@@ -9,7 +9,7 @@ import msgspec
 import pytest
 
 from onboard import params as P
-from services.config import ConfigError, load_params
+from services.runtime.config import ConfigError, load_params
 from sim_twin import model as tm
 
 

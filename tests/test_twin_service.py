@@ -12,10 +12,10 @@ from onboard import messages as m
 from onboard.binary_messages import decode_depth
 from onboard.params import SafetyLimits, TwinParams
 from onboard.topics import TOPICS
-from services.cmd_introspect import query_status
-from services.runtime import StandInCommander
-from services.zenoh_session import open_session
-from sim_twin.twin_service import ScenarioReferenceService, TwinService
+from services.cli.introspect import query_status
+from services.runtime.service import StandInCommander
+from services.runtime.zenoh_session import open_session
+from services.twin import ScenarioReferenceService, TwinService
 from helpers import wait_for
 
 NS = "archer/twintest"

@@ -53,8 +53,8 @@ from drivers.teensy.protocol import VERSION
 from drivers import natnet
 from onboard.foot_control import FootPhysics
 from onboard.params import ArcherFirmwareParams, HardwareParams, MocapParams
-from services.config import ConfigError, load_params
-from services.realtime import DeadlineLoop, make_realtime
+from services.runtime.config import ConfigError, load_params
+from services.runtime.realtime import DeadlineLoop, make_realtime
 
 DOCS = "docs/teensy_protocol.md"
 ARCHER_FIRMWARE_DOCS = "docs/archer_firmware_protocol.md"
@@ -90,7 +90,7 @@ class TwinPlant:
         from sim_twin import model as tm
         from sim_twin.actuation import Actuation
         from sim_twin.sensors import SensorSuite
-        from sim_twin.twin_service import make_scenario
+        from services.twin import make_scenario
         from drivers.teensy.emulator import BodyState
 
         # the devices carry no camera: the smallest depth image keeps the step cheap

@@ -2,7 +2,7 @@
 
 Subscribes ``torque_cmd`` (latest value, from the one live commander: :meth:`Service.commands`) and, for its metrics only, ``reference``, ``state`` and
 ``contract``.
-A :class:`~services.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
+A :class:`~services.runtime.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
 tick it:
 
 1. takes the newest torque command; one received more than ``SafetyLimits.command_stale_s`` ago,
@@ -40,8 +40,8 @@ import mujoco
 from onboard import messages as msgs
 from onboard.binary_messages import DepthImage, encode_depth
 from onboard.params import SafetyLimits, TwinParams, as_dict, with_overrides
-from services.realtime import DeadlineLoop
-from services.runtime import Service
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import Service
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation

@@ -14,7 +14,7 @@ import zenoh
 from onboard import messages as msgs
 from onboard.binary_messages import decode_depth, decode_grid
 from onboard.topics import TOPICS, Topic, liveliness_key, namespace, status_key, topic_for_key
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 
 QUERY_TIMEOUT_S = 2.0
 

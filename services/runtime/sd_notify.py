@@ -7,9 +7,9 @@ means the Linux abstract namespace). The runtime sends:
 - ``READY=1`` once ``setup()`` has returned, so units ordered ``After=`` it start
   only when its subscriptions and publishers exist;
 - ``WATCHDOG=1`` every half ``$WATCHDOG_USEC``, but only while
-  :meth:`services.runtime.Service.progress` says the service makes progress: a
+  :meth:`services.runtime.service.Service.progress` says the service makes progress: a
   wedged event loop or a stalled hard-rate thread stops the pings and systemd (or
-  :mod:`services.supervisor`) kills and restarts the service;
+  :mod:`services.runtime.supervisor`) kills and restarts the service;
 - ``STATUS=...``, a one-line summary shown by ``systemctl status``;
 - ``STOPPING=1`` on the way out.
 
@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from services.runtime import Service
+    from services.runtime.service import Service
 
 SOCKET_ENV = "NOTIFY_SOCKET"
 WATCHDOG_USEC_ENV = "WATCHDOG_USEC"
