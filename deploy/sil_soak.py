@@ -51,7 +51,7 @@ from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losse
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key, topic_for_key
-from services.cli.introspect import query_status
+from services.runtime.peers import query_status
 from services.runtime.realtime import die_with_parent
 from services.recorder import envelope, file_metadata, read_recording, recording_files
 from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session

@@ -30,9 +30,9 @@ from typing import Any, ClassVar
 
 from onboard.estimator import StateEstimator
 from onboard.params import EstimatorParams
+from robot_description.params import robot_params
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import Service
-from sim_twin.model import robot_params
 
 INPUTS = ("imu", "joints", "pose")
 

@@ -49,7 +49,7 @@ ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
 def gear_ratios() -> tuple[float, float, float, float]:
     """Joint gear ratios (wheels direct, foot through its gearbox), from the MJCF model."""
-    from sim_twin.model import robot_params  # the one source of physical parameters
+    from robot_description.params import robot_params  # the one source of physical parameters
 
     return (1.0, 1.0, 1.0, robot_params().foot_gear_ratio)
 
@@ -308,7 +308,7 @@ class HardwareService(Service):
             self.backend = TeensyBackend(hw, self.safety)
         elif hw.backend == "archer-firmware":
             from services.archer_firmware_backend import ArcherFirmwareBackend
-            from sim_twin.model import robot_params  # the one source of physical parameters (as gear_ratios)
+            from robot_description.params import robot_params  # the one source of physical parameters (as gear_ratios)
 
             # the replies' reader stamps arrivals: it runs with the exchange thread's scheduling
             self.backend = ArcherFirmwareBackend(self.params["archer_firmware"], robot_params().wheel_axes,

@@ -16,7 +16,7 @@ import zenoh
 from deploy import zenoh_configs as zc
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key
-from services.cli.introspect import live_services, query_status
+from services.runtime.peers import live_services, query_status
 from services.runtime.service import Service
 from services.runtime.zenoh_session import free_endpoint, link_queue_config, loopback_config
 

@@ -14,7 +14,7 @@ import msgspec
 from onboard import messages as m
 from onboard.topics import TOPICS, params_key
 from services.bench.control import synthetic_state
-from services.cli.introspect import query_status
+from services.runtime.peers import query_status
 from services.control import ControlService
 from services.runtime.zenoh_session import open_session
 from helpers import wait_for

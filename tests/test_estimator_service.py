@@ -20,7 +20,7 @@ from onboard import quaternion as quat
 from onboard.params import EstimatorParams
 from onboard.topics import TOPICS
 from services.runtime.clock import WallClock
-from services.cli.introspect import query_status
+from services.runtime.peers import query_status
 from services.estimator import EstimatorService
 from services.runtime.zenoh_session import open_session
 from test_estimator_synthetic import ROBOT, synthetic_hops

@@ -17,7 +17,7 @@ from onboard.mlp import Mlp
 from onboard.params import ControlParams, SafetyLimits
 from onboard.phase import PhaseDetector
 from onboard.tube import TubeMonitor
-from services.control import build_controller
+from robot_description.controller import build_controller
 
 MS = 1_000_000
 
@@ -305,7 +305,7 @@ def test_training_script_runs_and_its_network_drives_the_controller(tmp_path):
 
 
 def test_committed_network_reproduces_the_optimal_impact_attitude():
-    from services.control import load_policy_weights
+    from robot_description.controller import load_policy_weights
 
     w = load_policy_weights(ControlParams().mlp_weights)
     assert float(w["meta_validation_rms"]) < 0.005  # [rad-ish] against held-out targets

@@ -13,7 +13,7 @@ from onboard import messages as m
 from onboard.binary_messages import CELL_OCCUPIED, decode_grid, encode_depth
 from onboard.params import PerceptionParams
 from onboard.topics import TOPICS
-from services.cli.introspect import query_status
+from services.runtime.peers import query_status
 from services.perception import PerceptionService
 from services.runtime.zenoh_session import open_session
 from test_perception_pipeline import TREES, render

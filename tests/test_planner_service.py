@@ -13,7 +13,7 @@ from onboard import collision as col
 from onboard import messages as m
 from onboard.params import PlannerParams
 from onboard.topics import TOPICS
-from services.cli.introspect import query_status
+from services.runtime.peers import query_status
 from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
 from services.runtime.zenoh_session import open_session
 from helpers import wait_for

@@ -87,6 +87,7 @@ class TwinPlant:
         import mujoco
 
         from onboard.params import SafetyLimits, TwinParams, with_overrides
+        from robot_description import params as rd
         from sim_twin import model as tm
         from sim_twin.actuation import Actuation
         from sim_twin.sensors import SensorSuite
@@ -97,7 +98,7 @@ class TwinPlant:
         tp = with_overrides(TwinParams(), {"scenario": scenario, "seed": seed, "depth_width": 2, "depth_height": 2})
         self._mujoco = mujoco
         self.scenario = make_scenario(tp)
-        robot = tm.robot_params(tp.variant)
+        robot = rd.robot_params(tp.variant)
         spec = tm.load_spec(tp.variant)
         self.scenario.build(spec)
         self.model = spec.compile()
@@ -110,8 +111,8 @@ class TwinPlant:
         self.body = BodyState()
         self.sim_s = 0.0
         self.dt_s = self.substeps * self.model.opt.timestep  # [s] one control period
-        self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
-        self._root_qp = int(self.model.joint(tm.ROOT_JOINT).qposadr[0])
+        self._spool_dof = int(self.model.joint(rd.FOOT_MOTOR_JOINT).dofadr[0])
+        self._root_qp = int(self.model.joint(rd.ROOT_JOINT).qposadr[0])
         self._lock = threading.Lock()
 
     def step(self, now_s: float, joint_torques: list[float]) -> None:
@@ -340,7 +341,7 @@ def run_natnet(params: MocapParams, plant: TwinPlant, port: int, rate_hz: float,
 
 def _board_geometry() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
     """The foot board's spring and spool and the flywheel board's wheel axes, from the MJCF model."""
-    from sim_twin.model import robot_params  # the one source of physical parameters
+    from robot_description.params import robot_params  # the one source of physical parameters
 
     r = robot_params()
     return FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel), tuple(r.wheel_axes)

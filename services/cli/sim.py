@@ -42,9 +42,9 @@ from typing import Any
 
 from drivers.udp import free_udp_port
 from onboard.params import with_overrides
+from robot_description import params as rd
 from services.runtime.config import ConfigError, load_params
 from services.runtime.service import EXIT_SIGINT
-from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.lockstep import RunConfig, run
@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
     parser.add_argument("--mode", choices=MODES, default="lockstep",
                         help="lockstep: as fast as possible, deterministic; realtime: twin + services as processes, wall time")
-    parser.add_argument("--variant", choices=tm.VARIANTS, default=tm.DEFAULT_VARIANT, help="robot model variant")
+    parser.add_argument("--variant", choices=rd.VARIANTS, default=rd.DEFAULT_VARIANT, help="robot model variant")
     parser.add_argument("--estimator", choices=st.ESTIMATORS, default="kalman",
                         help="kalman: the onboard estimator on the twin's sensors; truth: the twin's true state")
     parser.add_argument("--planner", choices=st.PLANNERS, default="auto",
@@ -202,7 +202,7 @@ class FirmwareRig:
             c = params["control"]
             self.firmware = with_overrides(self.firmware, {"kp_tilt": 2.0 * c.kp_tilt, "kp_yaw": 2.0 * c.kp_yaw,
                                                            "kd_tilt": c.kd_tilt, "kd_yaw": c.kd_yaw})
-        r = tm.robot_params(variant)
+        r = rd.robot_params(variant)
         foot = FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel)
         computer_port = free_udp_port()
         self.board = BoardEmulator(self.firmware, foot, (LOOPBACK, 0), (LOOPBACK, computer_port), time.monotonic,

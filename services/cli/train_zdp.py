@@ -33,7 +33,8 @@ import numpy as np
 from onboard import zdp
 from onboard.low_level import design_policy
 from onboard.params import ControlParams
-from services.control import DATA_DIR, hopper_model
+from robot_description.controller import DATA_DIR
+from robot_description.params import hopper_model
 
 HIDDEN = 256
 GRID_RINGS = 4  # polar grid: rings x spokes, plus the origin

@@ -22,10 +22,26 @@ import asyncio
 import os
 import socket
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from services.runtime.service import Service
+
+
+class Counts(Protocol):
+    def get(self, name: str) -> int: ...
+
+
+class Service(Protocol):
+    """What the notifier reads of a service (:class:`services.runtime.service.Service`); a
+    protocol, so that the service base imports this module and not the other way round."""
+
+    state: str
+    counters: Counts
+    last_error: str
+
+    def rates_hz(self) -> dict[str, float]: ...
+
+    def progress(self) -> bool: ...
+
 
 SOCKET_ENV = "NOTIFY_SOCKET"
 WATCHDOG_USEC_ENV = "WATCHDOG_USEC"
