@@ -212,8 +212,16 @@ def _walk_bodies(node: ET.Element, childclass: str | None = None):
 
 
 def _quat_matrix(wxyz: np.ndarray) -> np.ndarray:
-    w, x, y, z = wxyz / np.linalg.norm(wxyz)
-    return pin.Quaternion(w, x, y, z).toRotationMatrix()
+    """Rotation of a unit quaternion, computed as MuJoCo does (mju_normalize4, mju_quat2Mat), so that
+    round-off matches the twin's bit for bit (an exact 0 in the wheel axes stays exactly 0)."""
+    norm = math.sqrt(float(wxyz @ wxyz))
+    q = wxyz / norm if abs(norm - 1.0) > 1e-15 else wxyz
+    w, x, y, z = (float(v) for v in q)
+    return np.array([
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+    ])
 
 
 def _geom_pose(attrs: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
@@ -276,7 +284,6 @@ def _robot(variant: str) -> _Robot:
     data = model.createData()
     pin.forwardKinematics(model, data, pin.neutral(model))
     pin.updateFramePlacements(model, data)
-    pin.computeJointJacobians(model, data, pin.neutral(model))
     return _Robot(xml, model, data)
 
 
@@ -334,9 +341,22 @@ def robot_params(variant: str = DEFAULT_VARIANT) -> RobotParams:
     torso_inertia = rot @ np.diag(_floats(inertial.get("diaginertia"))) @ rot.T
 
     wheels = [r.joint_id(name) for name in WHEEL_JOINTS]
-    wheel_axes = [data.J[3:6, model.joints[j].idx_v] for j in wheels]
+    # Each wheel body hangs off the torso, which is upright at the origin: its rotation is its own quat.
+    wheel_axes = []
+    for name in WHEEL_JOINTS:
+        body = next(b for b, _ in _walk_bodies(torso_body) if b.find("joint") is not None and b.find("joint").get("name") == name)
+        joint = _named(xml, "joint", name, defaults)
+        axis = _floats(joint.get("axis", "0 0 1"))
+        rot = _quat_matrix(_floats(body.get("quat"))) if "quat" in body.attrib else np.eye(3)
+        wheel_axes.append(rot @ (axis / np.linalg.norm(axis)))
     wheel = r.inertia(wheels[:1])
-    wheel_spin_inertia = float(wheel_axes[0] @ wheel.inertia @ wheel_axes[0])
+    # About the spin axis, from the principal moments the file states (as MuJoCo reads them).
+    wheel_body = next(b for b, _ in _walk_bodies(torso_body) if b.find("joint") is not None and b.find("joint").get("name") == WHEEL_JOINTS[0])
+    wheel_inertial = wheel_body.find("inertial")
+    if "quat" in wheel_inertial.attrib:
+        raise ValueError("a wheel's inertial must be principal in its body frame")
+    spin_local = _floats(_named(xml, "joint", WHEEL_JOINTS[0], defaults).get("axis", "0 0 1"))
+    wheel_spin_inertia = float(_floats(wheel_inertial.get("diaginertia")) @ np.abs(spin_local / np.linalg.norm(spin_local)))
 
     # Collision geoms of the robot (every body under the torso), with their world poses.
     collision: list[tuple[dict[str, str], np.ndarray, np.ndarray, bool]] = []  # attrs, centre, rotation, on the foot

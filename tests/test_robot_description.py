@@ -19,15 +19,6 @@ from robot_description import params as rd
 from sim_twin import model as tm
 
 
-def _mat3(a: np.ndarray) -> Mat3:
-    a = np.asarray(a, dtype=float).reshape(3, 3)
-    return tuple(tuple(float(v) for v in row) for row in a)  # type: ignore[return-value]
-
-
-def _vec3(a: np.ndarray) -> Vec3:
-    return tuple(float(v) for v in np.asarray(a, dtype=float).reshape(3))  # type: ignore[return-value]
-
-
 def _numeric_value(model: mujoco.MjModel, name: str) -> float:
     nid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
     if nid < 0:
@@ -132,12 +123,12 @@ def params_from_model(model: mujoco.MjModel, variant: str) -> rd.RobotParams:
         foot_mass=foot_mass,
         sprung_mass=total_mass - foot_mass,
         torso_mass=float(model.body_mass[torso]),
-        torso_inertia=_mat3(data.ximat[torso].reshape(3, 3) @ np.diag(model.body_inertia[torso]) @ data.ximat[torso].reshape(3, 3).T),
+        torso_inertia=rd._mat3(data.ximat[torso].reshape(3, 3) @ np.diag(model.body_inertia[torso]) @ data.ximat[torso].reshape(3, 3).T),
         wheel_mass=float(model.body_subtreemass[wheel_body]),
         wheel_spin_inertia=wheel_spin_inertia,
-        wheel_axes=_mat3(np.array(wheel_axes)),
-        com_offset_body=_vec3(com - data.xpos[torso]),
-        inertia_com=_mat3(inertia),
+        wheel_axes=rd._mat3(np.array(wheel_axes)),
+        com_offset_body=rd._vec3(com - data.xpos[torso]),
+        inertia_com=rd._mat3(inertia),
         leg_length=float(data.xpos[torso][2] - lowest),
         footprint_radius=footprint,
         foot_radius=foot_radius,
@@ -217,7 +208,7 @@ def _assert_same(ours: object, theirs: object) -> None:
         if isinstance(a, str):
             assert a == b, f.name
         else:
-            assert np.allclose(a, b, rtol=1e-9, atol=1e-12), f"{f.name}: {a} != {b} (MuJoCo)"
+            assert np.allclose(a, b, rtol=1e-12, atol=1e-15), f"{f.name}: {a} != {b} (MuJoCo)"  # round-off of another summation order
 
 
 @pytest.mark.parametrize("variant", rd.VARIANTS)
