@@ -4,7 +4,7 @@
     archer soak --duration 90 --fault stall@30:target=control/child,duration=0.2 --out /tmp/soak
 
 Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every service its own
-process under :mod:`services.supervisor`) on a free loopback endpoint and its own namespace,
+process under :mod:`services.runtime.supervisor`) on a free loopback endpoint and its own namespace,
 with the flight recorder. An operator thread re-sends a tour of goals every second (so that a
 restarted planner picks the current one up). At the schedule's times (seconds after the twin
 started; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
@@ -17,7 +17,7 @@ status queries (polled every ``STATUS_HOT_S`` around a fault, else every ``STATU
 twin's every ``TWIN_STATUS_S``: its status costs its loop a percentile of 65k ticks), the exit
 of a killed process; afterwards the flight recording gives messages lost per topic. When the
 twin's physics reports a fall, the soak puts the robot back (``twin.seed``, see
-:mod:`sim_twin.twin_service`), rebuilds the estimator and asks control to arm once the
+:mod:`services.twin`), rebuilds the estimator and asks control to arm once the
 estimate has settled, so that one fault's fall does not spoil the rest of the run (``--no-put-back``:
 leave it lying).
 
@@ -51,10 +51,10 @@ from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losse
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key, topic_for_key
-from services.cmd_introspect import query_status
-from services.realtime import die_with_parent
+from services.runtime.peers import query_status
+from services.runtime.realtime import die_with_parent
 from services.recorder import envelope, file_metadata, read_recording, recording_files
-from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
+from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
 
 NS_DEFAULT = "archer/soak"
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
@@ -258,7 +258,7 @@ class Soak:
         config = self.out / "sil.toml"
         config.write_text(_sil_config(Path(self.args.config), rec_dir))
         wall_minus_mono = time.time_ns() - time.monotonic_ns()  # the recorder stamps receipt on the wall clock
-        cmd = [sys.executable, "-m", "services.cli", "sim", "--mode", "realtime", "--scenario", self.args.scenario,
+        cmd = [sys.executable, "-m", "services.cli.main", "sim", "--mode", "realtime", "--scenario", self.args.scenario,
                "--planner", "graph", "--services", ",".join(self.services), "--duration", str(self.duration_s),
                "--keep-going", "--json", "--quiet", "--config", str(config), "--endpoint", self.endpoint, "--namespace", self.ns]
         parent = os.getpid()
@@ -478,7 +478,7 @@ class Soak:
             "recording_files": len(files),
         }
         if files and not self.args.no_plot:
-            plot = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec_dir), "--out", str(self.out / "plots")],
+            plot = subprocess.run([sys.executable, "-m", "services.cli.main", "plot", str(rec_dir), "--out", str(self.out / "plots")],
                                   capture_output=True, text=True)
             summary["plot"] = json.loads(plot.stdout.strip().splitlines()[-1]) if plot.returncode == 0 else plot.stderr[-2000:]
         return summary

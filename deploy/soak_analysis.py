@@ -1,6 +1,6 @@
 """What each injected fault did to the stack, from what the soak observed (pure: no I/O, no clock).
 
-Every time is ``CLOCK_MONOTONIC`` in ns, the stack's own clock (:class:`services.clock.WallClock`),
+Every time is ``CLOCK_MONOTONIC`` in ns, the stack's own clock (:class:`services.runtime.clock.WallClock`),
 so a ``safety`` event's stamp and the soak's receipt times compare directly.
 
 Per fault (:func:`analyze`):

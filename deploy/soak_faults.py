@@ -230,7 +230,7 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
 
     from onboard import messages as m
     from onboard.topics import TOPICS
-    from services.zenoh_session import open_session
+    from services.runtime.zenoh_session import open_session
 
     session = open_session(endpoint, "client")
     sent = {t: 0 for t in topics}
@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--duration", type=float, required=True)
         p.add_argument("--parent", type=int, required=True, help="die with this process")
     args = ap.parse_args(argv)
-    from services.realtime import die_with_parent
+    from services.runtime.realtime import die_with_parent
 
     die_with_parent(args.parent)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))  # ended early: close the Zenoh session on the way out

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from onboard.topics import SERVICES, TOPICS, liveliness_key, params_key, status_key
-from services.zenoh_session import link_queue_config
+from services.runtime.zenoh_session import link_queue_config
 
 NS_PATTERN = "archer/*"  # every robot's namespace
 ALL_KEYS = "archer/**"

@@ -11,7 +11,7 @@ Interface (used by the ``control`` service and by the twin's lockstep runner):
     ctrl.retune(control_params, safety_limits)  # new gains and limits, between two ticks
     sp = ctrl.step_attitude(now_ns, state, reference)  # -> AttitudeSetpoint (ControlParams.output = "attitude")
 
-``services.control.build_controller(variant, ...)`` builds one from the MJCF (the
+``robot_description.controller.build_controller(variant, ...)`` builds one from the MJCF (the
 robot's parameters and the reduced hopper model) and the policy weights file; use
 it rather than the constructor. ``step`` takes the clock time ``now_ns`` [ns], the
 latest :class:`~onboard.messages.StateEstimate`, the latest

@@ -10,7 +10,7 @@ come as arrays (the caller reads the ``.npz`` file: this package does no I/O):
 
 For the ZDP the input is the error of the predicted impact state to the reference,
 ``(x, y, vx, vy)`` [m, m/s], and the output the impact attitude ``(a_x, a_y)``
-(:mod:`onboard.zdp`). ``services/train_zdp.py`` trains and writes the weights.
+(:mod:`onboard.zdp`). ``services/cli/train_zdp.py`` trains and writes the weights.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """The one place for limits and tunable parameters.
 
 The robot's physical parameters (masses, inertias, spring, travel) live in the MJCF
-model ``sim_twin/models/archer.xml`` and nowhere else. What is here is what an
+model ``robot_description/models/archer.xml`` and nowhere else. What is here is what an
 engineer tunes or what safety depends on. Each layer owns one frozen dataclass; a
-config file (TOML, see :mod:`services.config`) overrides fields by section name,
+config file (TOML, see :mod:`services.runtime.config`) overrides fields by section name,
 and :func:`with_overrides` validates every override.
 
 Every field declares its type and its range in its annotation
@@ -228,7 +228,7 @@ class EstimatorParams(_Section):
     # the control loop's input: scheduled above the twin / hardware exchange (70), below control (80)
     rt_priority: RtPriority = 75  # SCHED_FIFO priority of the estimator's loop thread (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop thread is pinned to (-1: no pinning)
-    robot: Name = "indoor"  # MJCF variant the robot's parameters are read from (sim_twin/models)
+    robot: Name = "indoor"  # MJCF variant the robot's parameters are read from (robot_description/models)
     input_queue: Annotated[int, within(1, 65536)] = 256  # sensor messages buffered between two ticks; the oldest dropped beyond
     # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
     pose_delay_s: Annotated[float, within(0.0, 0.25)] = 0.025  # [s] fusion horizon: covers the pose sensor's latency (0.25 s attitude history)
@@ -311,7 +311,7 @@ class ControlParams(_Section):
 
     rate_hz: Annotated[float, within(100.0, LOOP_HZ_MAX)] = 1000.0  # control loop rate [Hz]
     auto_arm: bool = True  # arm on the first valid estimate (else wait for an arm request)
-    robot: Name = "indoor"  # MJCF variant the parameters are read from (sim_twin/models)
+    robot: Name = "indoor"  # MJCF variant the parameters are read from (robot_description/models)
     rt_priority: RtPriority = 80  # SCHED_FIFO priority of the loop process (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop process is pinned to (-1: no pinning)
     tube_period_s: Annotated[float, above(0.0, 60.0)] = 0.5  # publish the measured tube this often [s]
@@ -409,7 +409,7 @@ class TwinParams(_Section):
     # Real-time twin service (``archer run twin``): what it simulates and what it tells the stack
     scenario: Name = "hop-in-place"  # sim_twin.scenarios name
     seed: Seed = 0  # seeds the scenario and the sensor noise
-    variant: Name = "indoor"  # MJCF variant (sim_twin/models)
+    variant: Name = "indoor"  # MJCF variant (robot_description/models)
     obstacles: Annotated[int, within(-1, 10_000)] = -1  # forest: number of obstacles (-1: the scenario's default)
     publish_world: bool = True  # publish the scenario's goal and ground-truth obstacle polytopes
     world_period_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] goal and polytopes are re-published this often (late joiners)

@@ -10,7 +10,7 @@ the filter integrates every IMU interval.
 
 Computes: :class:`onboard.estimator.StateEstimator` (robot parameters from the MJCF
 variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
-:class:`services.realtime.DeadlineLoop` thread drains the queue into the estimator and
+:class:`services.runtime.realtime.DeadlineLoop` thread drains the queue into the estimator and
 publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
 
 Scheduling: the loop thread runs at ``EstimatorParams.rt_priority`` (SCHED_FIFO, when
@@ -35,9 +35,9 @@ from typing import Any, ClassVar
 
 from onboard.estimator import StateEstimator
 from onboard.params import EstimatorParams, restart_changes
-from services.realtime import DeadlineLoop, make_realtime_from
-from services.runtime import Service
-from sim_twin.model import robot_params
+from robot_description.params import robot_params
+from services.runtime.realtime import DeadlineLoop, make_realtime_from
+from services.runtime.service import Service
 
 INPUTS = ("imu", "joints", "pose")
 

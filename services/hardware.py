@@ -2,7 +2,7 @@
 
 Subscribes ``torque_cmd`` (``attitude_cmd`` instead for a Teensy in attitude mode and for
 ARCHER's own firmware, which runs the attitude PD on its board) into
-latest-value slots. A :class:`~services.realtime.DeadlineLoop` thread then, every
+latest-value slots. A :class:`~services.runtime.realtime.DeadlineLoop` thread then, every
 tick: checks the command (its own watchdog: nothing newer than
 ``SafetyLimits.command_stale_s``, or not armed, means zero torque and disabled
 drives), clamps it to ``SafetyLimits``, does one batched exchange with the hardware
@@ -39,8 +39,8 @@ from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
 from onboard import messages as msgs
 from onboard.params import HardwareParams, SafetyLimits
-from services.realtime import DeadlineLoop, make_realtime_from
-from services.runtime import LatestSlot, Service
+from services.runtime.realtime import DeadlineLoop, make_realtime_from
+from services.runtime.service import LatestSlot, Service
 
 NS = 1_000_000_000
 STATUS_POLL_S = 0.2  # how often main() looks at the loop and the drivers
@@ -49,7 +49,7 @@ ZERO4 = (0.0, 0.0, 0.0, 0.0)
 
 def gear_ratios() -> tuple[float, float, float, float]:
     """Joint gear ratios (wheels direct, foot through its gearbox), from the MJCF model."""
-    from sim_twin.model import robot_params  # the one source of physical parameters
+    from robot_description.params import robot_params  # the one source of physical parameters
 
     return (1.0, 1.0, 1.0, robot_params().foot_gear_ratio)
 
@@ -308,7 +308,7 @@ class HardwareService(Service):
             self.backend = TeensyBackend(hw, self.safety)
         elif hw.backend == "archer-firmware":
             from services.archer_firmware_backend import ArcherFirmwareBackend
-            from sim_twin.model import robot_params  # the one source of physical parameters (as gear_ratios)
+            from robot_description.params import robot_params  # the one source of physical parameters (as gear_ratios)
 
             # the replies' reader stamps arrivals: it runs with the exchange thread's scheduling
             self.backend = ArcherFirmwareBackend(self.params["archer_firmware"], robot_params().wheel_axes,

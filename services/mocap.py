@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 from drivers import natnet
 from onboard import messages as m
 from onboard.params import MocapParams
-from services.runtime import Service
+from services.runtime.service import Service
 
 SYSTEMS = ("optitrack", "vicon", "qualisys", "vrpn")
 NATNET_COMMAND_PORT = 1510  # Motive's default

@@ -21,7 +21,7 @@ from onboard import messages as m
 from onboard.binary_messages import DepthImage, encode_grid
 from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.pipeline import MODES, Perception, polytopes_of_grid
-from services.runtime import Service
+from services.runtime.service import Service
 
 RATE_MIN_HZ = 4.0  # the band for the publication rate
 RATE_MAX_HZ = 20.0

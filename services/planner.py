@@ -38,8 +38,8 @@ from onboard import collision as col
 from onboard import graph_planner as gp
 from onboard import messages as msgs
 from onboard.params import PlannerParams
-from services.runtime import Service
-from sim_twin import model as twin_model
+from robot_description import params as rd
+from services.runtime.service import Service
 
 CACHE_ENV = "ARCHER_CACHE_DIR"
 REFERENCE_KEEPALIVE_NS = 100_000_000  # an unchanged reference is republished every 0.1 s (staleness is 0.5 s)
@@ -88,9 +88,9 @@ def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.
     return graph, False
 
 
-def robot_footprint_radius(variant: str = twin_model.DEFAULT_VARIANT) -> float:
+def robot_footprint_radius(variant: str = rd.DEFAULT_VARIANT) -> float:
     """Radius [m] of the robot's collision shapes about its spine, from the MJCF (via ``RobotParams``)."""
-    return twin_model.robot_params(variant).footprint_radius
+    return rd.robot_params(variant).footprint_radius
 
 
 # --- the service ------------------------------------------------------------------------------

@@ -45,7 +45,8 @@ from mcap.writer import CompressionType, Writer
 from onboard import messages as m
 from onboard.params import RecorderParams
 from onboard.topics import TOPICS, Topic, all_keys, status_key, topic_for_key
-from services.runtime import Service
+from services.runtime.peers import live_services, query_status
+from services.runtime.service import Service
 
 BINARY_ENCODING = "archer-binary-v1"  # MCAP message encoding of onboard.binary_messages layouts
 METADATA_NAME = "archer.recorder"
@@ -332,8 +333,6 @@ class RecorderService(Service):
         }
 
     async def main(self) -> None:
-        from services.cmd_introspect import live_services, query_status
-
         period = self.params["recorder"].status_period_s
 
         def poll() -> None:

@@ -19,7 +19,7 @@ import mujoco
 
 from onboard.messages import TorqueCommand
 from onboard.params import SafetyLimits
-from sim_twin import model as tm
+from robot_description import params as rd
 
 NS = 1_000_000_000
 AT_LIMIT = 0.999  # a wheel command within 0.1 % of the available torque counts as saturated
@@ -28,15 +28,15 @@ AT_LIMIT = 0.999  # a wheel command within 0.1 % of the available torque counts 
 class Actuation:
     """Applies torque commands to one model; counts what it refused or clipped."""
 
-    def __init__(self, model: mujoco.MjModel, robot: tm.RobotParams, safety: SafetyLimits) -> None:
+    def __init__(self, model: mujoco.MjModel, robot: rd.RobotParams, safety: SafetyLimits) -> None:
         self.robot = robot
         self.safety = safety
-        self._wheel_act = [int(model.actuator(n).id) for n in tm.WHEEL_ACTUATORS]
-        self._foot_act = int(model.actuator(tm.FOOT_ACTUATOR).id)
+        self._wheel_act = [int(model.actuator(n).id) for n in rd.WHEEL_ACTUATORS]
+        self._foot_act = int(model.actuator(rd.FOOT_ACTUATOR).id)
         acts = self._wheel_act + [self._foot_act]
         # one slice write per tick when the actuators are contiguous (they are in the MJCF)
         self._acts = slice(acts[0], acts[0] + 4) if acts == list(range(acts[0], acts[0] + 4)) else acts
-        self._wheel_dof = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
+        self._wheel_dof = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
         self._stale_ns = int(safety.command_stale_s * NS)
         self._wheel_max = min(safety.wheel_torque_max, robot.wheel_torque_peak)
         self._foot_max = min(safety.foot_torque_max, robot.foot_torque_peak)

@@ -31,6 +31,7 @@ import mujoco
 from onboard import messages as m
 from onboard.params import SafetyLimits, TwinParams, with_overrides
 from onboard.topics import TOPICS
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import perception_plug
 from sim_twin import scenarios as sc
@@ -48,7 +49,7 @@ class RunConfig:
     scenario: str
     seed: int = 0
     duration_s: float | None = None  # None: the scenario's default
-    variant: str = tm.DEFAULT_VARIANT
+    variant: str = rd.DEFAULT_VARIANT
     estimator: str = "truth"
     planner: str = "auto"
     controller: str = "lowlevel"
@@ -79,7 +80,7 @@ class LockstepRunner:
     def __init__(self, cfg: RunConfig) -> None:
         self.cfg = cfg
         self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles)
-        self.robot = tm.robot_params(cfg.variant)
+        self.robot = rd.robot_params(cfg.variant)
         safety = cfg.safety or SafetyLimits()
         if cfg.safety is None and cfg.variant == "sim15nm":  # the thesis's raised simulation limit
             safety = with_overrides(safety, {"wheel_torque_max": self.robot.wheel_torque_peak})

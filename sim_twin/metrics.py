@@ -29,7 +29,7 @@ import numpy as np
 
 from onboard import messages as m
 from onboard.params import SafetyLimits
-from sim_twin import model as tm
+from robot_description import params as rd
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
 from sim_twin.stack import TruthEstimator
@@ -56,8 +56,8 @@ class ContactClassifier:
     """Which geoms are robot, foot, ground (floor / terrain) and obstacles."""
 
     def __init__(self, model: mujoco.MjModel) -> None:
-        torso = model.body(tm.TORSO).id
-        foot = model.body(tm.FOOT).id
+        torso = model.body(rd.TORSO).id
+        foot = model.body(rd.FOOT).id
         n = model.ngeom
         robot, feet, ground, obstacle = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
         for g in range(n):
@@ -116,8 +116,8 @@ class PhysicsMetrics:
         self.truth = truth
         self.safety = safety
         self.contacts = ContactClassifier(model)
-        self.wheel_dof = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
-        self.qp_root = int(model.joint(tm.ROOT_JOINT).qposadr[0])
+        self.wheel_dof = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
+        self.qp_root = int(model.joint(rd.ROOT_JOINT).qposadr[0])
         self.cos_tilt_max = math.cos(safety.tilt_max)
         self.target = scenario.target()
         self.trace = Trace()

@@ -12,7 +12,7 @@ from __future__ import annotations
 from onboard import messages as m
 from onboard.params import PerceptionParams
 from onboard.perception.pipeline import PerceptionLoop
-from sim_twin import model as tm
+from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 from sim_twin.stack import GraphPlannerPlug
 
@@ -22,7 +22,7 @@ PERCEPTIONS = ("truth", "depth")
 class PerceivedGraphPlannerPlug(GraphPlannerPlug):
     name = "graph+perception"
 
-    def __init__(self, scenario: Scenario, robot: tm.RobotParams, params: object | None = None,
+    def __init__(self, scenario: Scenario, robot: rd.RobotParams, params: object | None = None,
                  perception_params: PerceptionParams | None = None) -> None:
         super().__init__(scenario, robot, params)
         self.planner.set_obstacles([])  # nothing is known before the first view
@@ -51,7 +51,7 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
         return super().update(now_ns, state)
 
 
-def make_planner(name: str, perception: str, scenario: Scenario, robot: tm.RobotParams, params: object | None = None,
+def make_planner(name: str, perception: str, scenario: Scenario, robot: rd.RobotParams, params: object | None = None,
                  perception_params: PerceptionParams | None = None):
     """The planner the runner asks for, on ground truth or on perception."""
     from sim_twin.stack import make_planner as make_truth_planner

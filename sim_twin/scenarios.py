@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from onboard import messages as m
-from sim_twin import model as tm
+from robot_description import params as rd
 
 OBSTACLE_PREFIX = "obstacle_"
 TERRAIN_PREFIX = "terrain_"
@@ -161,10 +161,10 @@ class Scenario:
             spec.worldbody.add_geom(name=f"{OBSTACLE_PREFIX}{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
                                     contype=1, conaffinity=2, group=0, rgba=WORLD_RGBA)
 
-    def initialize(self, model: mujoco.MjModel, data: mujoco.MjData, robot: tm.RobotParams) -> None:
+    def initialize(self, model: mujoco.MjModel, data: mujoco.MjData, robot: rd.RobotParams) -> None:
         """Upright at rest over the start, foot ``START_DROP`` above the ground."""
         mujoco.mj_resetData(model, data)
-        adr = int(model.joint(tm.ROOT_JOINT).qposadr[0])
+        adr = int(model.joint(rd.ROOT_JOINT).qposadr[0])
         data.qpos[adr:adr + 3] = [self.start[0], self.start[1], self.start_ground + robot.leg_length + START_DROP]
         data.qpos[adr + 3:adr + 7] = [1.0, 0.0, 0.0, 0.0]
         mujoco.mj_forward(model, data)
@@ -287,7 +287,7 @@ class Push(Scenario):
         self.pushes_applied = 0
 
     def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
-        torso = model.body(tm.TORSO).id
+        torso = model.body(rd.TORSO).id
         k = int((t_s - self.FIRST) // self.EVERY)
         active = t_s >= self.FIRST and (t_s - self.FIRST - k * self.EVERY) < self.PUSH_TIME
         if active:

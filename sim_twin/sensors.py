@@ -38,7 +38,7 @@ import numpy as np
 from onboard import messages as m
 from onboard.binary_messages import DepthImage
 from onboard.params import TwinParams
-from sim_twin import model as tm
+from robot_description import params as rd
 
 NS = 1_000_000_000
 _BLOCK = 4096  # noise samples drawn per refill: per-tick work stays a list index
@@ -212,17 +212,17 @@ class SensorSuite:
         self.capture_depth = True
 
         # Addresses into qpos / qvel / sensordata / actuator_force.
-        root = model.joint(tm.ROOT_JOINT)
+        root = model.joint(rd.ROOT_JOINT)
         self._qp = int(root.qposadr[0])
         self._qv = int(root.dofadr[0])
-        self._wheel_qp = [int(model.joint(n).qposadr[0]) for n in tm.WHEEL_JOINTS]
-        self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
-        self._wheel_act = [int(model.actuator(n).id) for n in tm.WHEEL_ACTUATORS]
-        self._foot_qp = int(model.joint(tm.FOOT_JOINT).qposadr[0])
-        self._foot_qv = int(model.joint(tm.FOOT_JOINT).dofadr[0])
-        self._spool_qp = int(model.joint(tm.FOOT_MOTOR_JOINT).qposadr[0])
+        self._wheel_qp = [int(model.joint(n).qposadr[0]) for n in rd.WHEEL_JOINTS]
+        self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
+        self._wheel_act = [int(model.actuator(n).id) for n in rd.WHEEL_ACTUATORS]
+        self._foot_qp = int(model.joint(rd.FOOT_JOINT).qposadr[0])
+        self._foot_qv = int(model.joint(rd.FOOT_JOINT).dofadr[0])
+        self._spool_qp = int(model.joint(rd.FOOT_MOTOR_JOINT).qposadr[0])
         self._accel_adr = int(model.sensor("imu_accel").adr[0])
-        self._touch_adr = int(model.sensor(tm.FOOT_TOUCH_SENSOR).adr[0])
+        self._touch_adr = int(model.sensor(rd.FOOT_TOUCH_SENSOR).adr[0])
 
         # Depth camera: pixel ray directions in the optical frame, fixed for the run.
         w, h = p.depth_width, p.depth_height

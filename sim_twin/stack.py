@@ -11,7 +11,7 @@ lockstep run exercises the same code as the robot:
   ``graph`` = :class:`onboard.graph_planner.GraphPlanner` on the ground-truth obstacles at its
   replanning / refinement rates; ``auto`` = graph when the scenario has obstacles;
 - controller: ``lowlevel`` = :class:`onboard.low_level.LowLevelController` as
-  :func:`services.control.build_controller` builds it; ``passive`` = no torque at all (the
+  :func:`robot_description.controller.build_controller` builds it; ``passive`` = no torque at all (the
   physics alone, for checks of the model).
 
 Adapters expose ``feed(topic, msg, now_ns)`` (``now_ns``: when the message arrived) / ``estimate(now_ns, data)``, ``update(now_ns, state)`` and
@@ -28,7 +28,7 @@ import numpy as np
 
 from onboard import messages as m
 from onboard.params import SafetyLimits
-from sim_twin import model as tm
+from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 
 NS = 1_000_000_000
@@ -59,13 +59,13 @@ class TruthEstimator:
 
     name = "truth"
 
-    def __init__(self, model: mujoco.MjModel, robot: tm.RobotParams) -> None:
-        root = model.joint(tm.ROOT_JOINT)
+    def __init__(self, model: mujoco.MjModel, robot: rd.RobotParams) -> None:
+        root = model.joint(rd.ROOT_JOINT)
         self._qp, self._qv = int(root.qposadr[0]), int(root.dofadr[0])
-        self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in tm.WHEEL_JOINTS]
-        self._foot_qp = int(model.joint(tm.FOOT_JOINT).qposadr[0])
-        self._foot_qv = int(model.joint(tm.FOOT_JOINT).dofadr[0])
-        self._touch = int(model.sensor(tm.FOOT_TOUCH_SENSOR).adr[0])
+        self._wheel_qv = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
+        self._foot_qp = int(model.joint(rd.FOOT_JOINT).qposadr[0])
+        self._foot_qv = int(model.joint(rd.FOOT_JOINT).dofadr[0])
+        self._touch = int(model.sensor(rd.FOOT_TOUCH_SENSOR).adr[0])
         self._c = robot.com_offset_body
         self._foot_share = robot.foot_mass / robot.total_mass
         self._seq = 0
@@ -131,7 +131,7 @@ class KalmanEstimator:
 
     name = "kalman"
 
-    def __init__(self, robot: tm.RobotParams, params: object | None = None) -> None:
+    def __init__(self, robot: rd.RobotParams, params: object | None = None) -> None:
         from onboard.estimator import StateEstimator
         from onboard.params import EstimatorParams
 
@@ -150,7 +150,7 @@ class KalmanEstimator:
         return dict(getattr(self.est, "counters", {}))
 
 
-def make_estimator(name: str, model: mujoco.MjModel, robot: tm.RobotParams, params: object | None = None) -> Estimator:
+def make_estimator(name: str, model: mujoco.MjModel, robot: rd.RobotParams, params: object | None = None) -> Estimator:
     if name == "truth":
         return TruthEstimator(model, robot)
     if name == "kalman":
@@ -190,7 +190,7 @@ class GraphPlannerPlug:
     name = "graph"
     REPLAN_DEVIATION_M = 0.3  # [m] off the path by more than this: search again
 
-    def __init__(self, scenario: Scenario, robot: tm.RobotParams, params: object | None = None) -> None:
+    def __init__(self, scenario: Scenario, robot: rd.RobotParams, params: object | None = None) -> None:
         from onboard.graph_planner import GraphPlanner
         from onboard.params import PlannerParams
 
@@ -242,7 +242,7 @@ class GraphPlannerPlug:
         return list(drain()) if drain else []
 
 
-def make_planner(name: str, scenario: Scenario, robot: tm.RobotParams, params: object | None = None):
+def make_planner(name: str, scenario: Scenario, robot: rd.RobotParams, params: object | None = None):
     if name == "auto":
         name = "graph" if scenario.obstacles else "scenario"
     if name == "scenario":
@@ -277,7 +277,7 @@ class LowLevelPlug:
     name = "lowlevel"
 
     def __init__(self, variant: str, safety: SafetyLimits, params: object | None = None) -> None:
-        from services.control import build_controller
+        from robot_description.controller import build_controller
 
         self.ctrl = build_controller(variant, params, safety)
         self.ctrl.request_arm()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.zenoh_session import free_endpoint, open_session
+from services.runtime.zenoh_session import free_endpoint, open_session
 
 
 @pytest.fixture

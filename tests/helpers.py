@@ -21,7 +21,7 @@ async def wait_for(predicate, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
         await asyncio.sleep(POLL_S)
 
 
-EMULATE = [sys.executable, "-m", "services.cli", "emulate"]
+EMULATE = [sys.executable, "-m", "services.cli.main", "emulate"]
 
 
 def start_emulator(*args: str) -> tuple[subprocess.Popen, dict]:

@@ -16,9 +16,9 @@ import zenoh
 from deploy import zenoh_configs as zc
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key
-from services.cmd_introspect import live_services, query_status
-from services.runtime import Service
-from services.zenoh_session import free_endpoint, link_queue_config, loopback_config
+from services.runtime.peers import live_services, query_status
+from services.runtime.service import Service
+from services.runtime.zenoh_session import free_endpoint, link_queue_config, loopback_config
 
 NS = "archer/acltest"
 DELIVERY_S = 0.5  # generous time for a put to cross the router on loopback

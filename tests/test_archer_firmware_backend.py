@@ -109,9 +109,9 @@ def test_the_hardware_service_drives_the_board_through_this_backend(zenoh_router
     from onboard.params import HardwareParams, SafetyLimits
     from onboard.topics import TOPICS
     from services.hardware import HardwareService
-    from services.realtime import DeadlineLoop
-    from services.runtime import StandInCommander
-    from services.zenoh_session import open_session
+    from services.runtime.realtime import DeadlineLoop
+    from services.runtime.service import StandInCommander
+    from services.runtime.zenoh_session import open_session
 
     ns = "archer/fwtest"
     computer_port = free_port()

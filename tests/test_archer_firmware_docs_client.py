@@ -36,7 +36,7 @@ class Emulator:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))  # a free port: the emulator's only accepted peer
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "emulate", "archer-firmware", "--peer-port", str(self.sock.getsockname()[1])],
+            [sys.executable, "-m", "services.cli.main", "emulate", "archer-firmware", "--peer-port", str(self.sock.getsockname()[1])],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         self.info = json.loads(self.proc.stdout.readline())

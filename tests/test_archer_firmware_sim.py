@@ -10,7 +10,7 @@ import subprocess
 import sys
 import uuid
 
-from services.zenoh_session import free_endpoint
+from services.runtime.zenoh_session import free_endpoint
 from test_twin_cli import REQUIRED
 
 DURATION_S = 6.0
@@ -18,7 +18,7 @@ TIMEOUT_S = 40.0  # service start-up (controller build, planner-free) + the run 
 
 
 def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
-    argv = [sys.executable, "-m", "services.cli", "sim", "--mode", "realtime", "--hardware", "archer-firmware",
+    argv = [sys.executable, "-m", "services.cli.main", "sim", "--mode", "realtime", "--hardware", "archer-firmware",
             "--scenario", "hop-in-place", "--duration", str(DURATION_S), "--json", "--quiet",
             "--endpoint", free_endpoint(), "--namespace", f"archer/fw{uuid.uuid4().hex[:8]}"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)

@@ -39,7 +39,7 @@ def fly(config: str | None = None) -> tuple[list[c.BoardState], ArcherBoard, dic
     """Send the upright setpoint for HOLD_S; the states seen, the device, the emulator's counters."""
     params = ArcherFirmwareParams()
     computer_port = free_port()
-    cmd = [sys.executable, "-m", "services.cli", "emulate", "archer-firmware", "--twin", "hop-in-place", "--peer-port", str(computer_port)]
+    cmd = [sys.executable, "-m", "services.cli.main", "emulate", "archer-firmware", "--twin", "hop-in-place", "--peer-port", str(computer_port)]
     if config is not None:
         cmd += ["--config", config]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

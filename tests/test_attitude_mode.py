@@ -14,7 +14,8 @@ from onboard import quaternion as qt
 from onboard.messages import BezierSegment, ComReference
 from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.topics import TOPICS
-from services.control import ControlLoop, LoopConfig, build_controller
+from robot_description.controller import build_controller
+from services.control import ControlLoop, LoopConfig
 from test_low_level import MS, estimate, joints
 
 ATTITUDE = dataclasses.replace(ControlParams(), output="attitude")

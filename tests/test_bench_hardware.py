@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.bench_hardware import window_figures
+from services.bench.hardware import window_figures
 
 NS = 1_000_000_000
 BITRATE = 1_000_000

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 import pytest
 
-from services.bench_messaging import arrival_figures, measure, rate_over_span
+from services.bench.messaging import arrival_figures, measure, rate_over_span
 
 MS = 1_000_000
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from onboard.perception import decomposition
-from services.bench_perception import measure
+from services.bench.perception import measure
 
 SMALL = argparse.Namespace(maps="rooms,clutter", seeds=1, repeat=1, size=100)
 

@@ -11,9 +11,9 @@ import time
 
 from onboard import messages as m
 from onboard.topics import TOPICS
-from services.cli import main
-from services.router import RouterService
-from services.zenoh_session import open_session
+from services.cli.main import main
+from services.runtime.router import RouterService
+from services.runtime.zenoh_session import open_session
 
 NS = "archer/clitest"
 
@@ -39,14 +39,14 @@ def test_echo_and_status_see_a_running_service(zenoh_router):
             assert time.monotonic() < deadline
             time.sleep(0.05)
         status = subprocess.run(
-            [sys.executable, "-m", "services.cli", "status", "--json", "--endpoint", zenoh_router, "--namespace", NS],
+            [sys.executable, "-m", "services.cli.main", "status", "--json", "--endpoint", zenoh_router, "--namespace", NS],
             capture_output=True, text=True, timeout=30,
         )
         assert status.returncode == 0, status.stderr
         assert json.loads(status.stdout)["router"]["state"] == "running"
 
         echo = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "echo", "goal", "--count", "1", "--timeout", "20",
+            [sys.executable, "-m", "services.cli.main", "echo", "goal", "--count", "1", "--timeout", "20",
              "--endpoint", zenoh_router, "--namespace", NS],
             stdout=subprocess.PIPE, text=True,
         )

@@ -13,10 +13,10 @@ import msgspec
 
 from onboard import messages as m
 from onboard.topics import TOPICS, params_key
-from services.bench_control import synthetic_state
-from services.cmd_introspect import query_status
+from services.bench.control import synthetic_state
+from services.runtime.peers import query_status
 from services.control import ControlService
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 from helpers import wait_for
 
 NS = "archer/test-control"

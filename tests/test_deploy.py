@@ -13,11 +13,11 @@ import pytest
 import zenoh
 
 from deploy import zenoh_configs as zc
-from services.cmd_deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
-from services.cmd_run import SERVICE_CLASSES
-from services.config import load_params
+from services.cli.deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
+from services.cli.run import SERVICE_CLASSES
+from services.runtime.config import load_params
 from onboard.params import ControlParams, EstimatorParams, HardwareParams
-from services.supervisor import parse_unit, spec_from_unit
+from services.runtime.supervisor import parse_unit, spec_from_unit
 
 ROBOT = ("router", "hardware", "estimator", "control", "planner", "perception", "recorder")
 HARDENING = {
@@ -137,7 +137,7 @@ def test_install_writes_everything_and_keeps_edits_and_passwords(tmp_path):
 
 def test_cli_dry_run(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "services.cli", "deploy", "install", "--prefix", str(tmp_path), "--dry-run", "--archer", FAKE_ARCHER],
+        [sys.executable, "-m", "services.cli.main", "deploy", "install", "--prefix", str(tmp_path), "--dry-run", "--archer", FAKE_ARCHER],
         capture_output=True, text=True, check=True,
     ).stdout
     assert "would write" in out and "archer-control.service" in out and "systemctl enable --now archer.target" in out

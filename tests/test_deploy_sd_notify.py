@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from services.runtime import Service
-from services.sd_notify import Notifier, socket_address
+from services.runtime.service import Service
+from services.runtime.sd_notify import Notifier, socket_address
 
 WATCHDOG_USEC = 100_000  # pings every 50 ms
 READY_TIMEOUT_S = 10.0
@@ -127,7 +127,7 @@ class CostlyStatus(Service):
 
 def test_the_status_line_leaves_status_extra_alone():
     """systemd's STATUS goes out every second: it must not run a service's costly extras."""
-    from services.sd_notify import status_line
+    from services.runtime.sd_notify import status_line
 
     service = CostlyStatus(ns="archer/test")
     service.rate("tick").tick()

@@ -17,8 +17,8 @@ import pytest
 from onboard.estimator import StateEstimator
 from onboard.messages import ImuSample, JointSensors, PoseMeasurement
 from onboard.params import EstimatorParams
-from services.bench_estimator import stall_run
-from sim_twin.model import robot_params
+from robot_description.params import robot_params
+from services.bench.estimator import stall_run
 
 NS = 1_000_000_000
 INSIDE = 0.95

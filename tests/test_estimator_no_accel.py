@@ -11,7 +11,7 @@ from onboard import quaternion as qt
 from onboard.estimator import StateEstimator
 from onboard.messages import ImuSample, JointSensors, PoseMeasurement
 from onboard.params import EstimatorParams
-from sim_twin.model import robot_params
+from robot_description.params import robot_params
 
 ROBOT = robot_params("indoor")
 MS = 1_000_000

@@ -20,10 +20,10 @@ from onboard import messages as m
 from onboard import quaternion as quat
 from onboard.params import EstimatorParams
 from onboard.topics import TOPICS
-from services.clock import WallClock
-from services.cmd_introspect import query_status
+from services.runtime.clock import WallClock
+from services.runtime.peers import query_status
 from services.estimator import EstimatorService
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 from test_estimator_synthetic import ROBOT, synthetic_hops
 from helpers import wait_for
 

@@ -22,7 +22,7 @@ from onboard.com_filter import make_com_filter
 from onboard.estimator import StateEstimator
 from onboard.messages import ImuSample, JointSensors, PoseMeasurement
 from onboard.params import EstimatorParams
-from sim_twin.model import robot_params
+from robot_description.params import robot_params
 
 NS = 1_000_000_000
 DT_NS = 1_000_000  # 1 kHz

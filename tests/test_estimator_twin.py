@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from onboard.params import EstimatorParams, TwinParams
-from services.bench_estimator import Faults, MeasuredEstimator, run_twin
+from services.bench.estimator import Faults, MeasuredEstimator, run_twin
 
 TWIN = dataclasses.replace(TwinParams(), pose_latency_s=0.020, pose_dropout=0.10)
 DURATION_S = 3.0

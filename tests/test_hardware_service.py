@@ -25,10 +25,10 @@ from drivers.teensy.emulator import TeensyEmulator
 from onboard import messages as m
 from onboard.params import HardwareParams, SafetyLimits
 from onboard.topics import TOPICS, params_key, status_key
-from services.bench_hardware import budget
+from services.bench.hardware import budget
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
-from services.runtime import StandInCommander
-from services.zenoh_session import open_session
+from services.runtime.service import StandInCommander
+from services.runtime.zenoh_session import open_session
 
 NS = "archer/hwtest"
 SAFETY = SafetyLimits()
@@ -258,7 +258,7 @@ def test_service_with_the_teensy_publishes_imu_and_reports_a_vanished_port(zenoh
 
 def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None:
     """The CI-sized version of ``archer bench hardware`` (60 s): processes as on the robot."""
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "emulate", "drives"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "emulate", "drives"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     info = json.loads(proc.stdout.readline())
     bus = info["bus"]
     params = HardwareParams(can_interface=bus["interface"], can_channel=bus["channel"], can_host=bus["host"], can_port=bus["port"])

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from onboard.topics import liveliness_key
-from services.runtime import EXIT_CONFLICT, EXIT_SIGINT
-from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
+from services.runtime.service import EXIT_CONFLICT, EXIT_SIGINT
+from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
 
 STACK_UP_TIMEOUT_S = 90.0  # services start one after another on a loaded 2-core machine
 STOP_BOUND_S = 3.0  # SIGINT / SIGTERM: every process gone by then
@@ -76,7 +76,7 @@ def _kill_all(pids: set[int]) -> None:
 
 
 def _archer(*argv: str) -> list[str]:
-    return [sys.executable, "-m", "services.cli", *argv]
+    return [sys.executable, "-m", "services.cli.main", *argv]
 
 
 class RealtimeSim:

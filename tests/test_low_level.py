@@ -18,7 +18,7 @@ from onboard.mlp import Mlp
 from onboard.params import ControlParams, SafetyLimits
 from onboard.phase import PhaseDetector
 from onboard.tube import TubeMonitor
-from services.control import build_controller
+from robot_description.controller import build_controller
 
 MS = 1_000_000
 
@@ -311,7 +311,7 @@ def test_unknown_policy_and_missing_weights_are_refused():
 
 
 def test_training_script_runs_and_its_network_drives_the_controller(tmp_path):
-    from services import train_zdp
+    from services.cli import train_zdp
 
     out = tmp_path / "tiny.npz"
     assert train_zdp.main(["--samples", "20", "--steps", "30", "--out", str(out)]) == 0
@@ -323,7 +323,7 @@ def test_training_script_runs_and_its_network_drives_the_controller(tmp_path):
 
 
 def test_committed_network_reproduces_the_optimal_impact_attitude():
-    from services.control import load_policy_weights
+    from robot_description.controller import load_policy_weights
 
     w = load_policy_weights(ControlParams().mlp_weights)
     assert float(w["meta_validation_rms"]) < 0.005  # [rad-ish] against held-out targets

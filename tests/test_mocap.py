@@ -21,7 +21,7 @@ from onboard import messages as m
 from onboard.params import MocapParams
 from onboard.topics import TOPICS
 from services.mocap import MocapService, pose_of
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 from helpers import start_emulator, stop_emulator
 
 NS_KEY = "archer/test-mocap"
@@ -169,7 +169,7 @@ def test_mocap_service_publishes_the_twins_pose_with_its_capture_time(zenoh_rout
 
 
 def test_estimator_on_natnet_poses_is_within_2x_of_the_direct_path() -> None:
-    from services.bench_mocap import run_path
+    from services.bench.mocap import run_path
 
     runs = {path: run_path(path, "hop-in-place", 0, 2.0, 0.02) for path in ("direct", "natnet", "natnet_uncompensated")}
     assert runs["natnet"]["natnet_frames"] > 150  # 100 Hz poses for 2 s went through NatNet and motioncapture

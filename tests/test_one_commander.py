@@ -16,9 +16,9 @@ from onboard import messages as m
 from onboard.commander import FOREIGN_COMMANDER, NO_LIVE_COMMANDER, UNKNOWN_COMMANDER, CommanderLatch
 from onboard.params import SafetyLimits, TwinParams
 from onboard.topics import TOPICS, liveliness_key
-from services.runtime import EXIT_CONFLICT, StandInCommander
-from services.zenoh_session import open_session
-from sim_twin.twin_service import TwinService
+from services.runtime.service import EXIT_CONFLICT, StandInCommander
+from services.runtime.zenoh_session import open_session
+from services.twin import TwinService
 from helpers import wait_for
 
 START_TIMEOUT_S = 60.0
@@ -50,7 +50,7 @@ def test_the_latch_obeys_only_the_live_identified_commander() -> None:
 
 def test_a_second_control_service_is_refused_naming_the_first(zenoh_router) -> None:
     ns = f"archer/twice{os.getpid()}"
-    argv = [sys.executable, "-m", "services.cli", "run", "control", "--endpoint", zenoh_router, "--namespace", ns, "--log-level", "WARNING"]
+    argv = [sys.executable, "-m", "services.cli.main", "run", "control", "--endpoint", zenoh_router, "--namespace", ns, "--log-level", "WARNING"]
     first = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     session = open_session(zenoh_router, "client")
     try:

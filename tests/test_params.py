@@ -9,8 +9,8 @@ import msgspec
 import pytest
 
 from onboard import params as P
-from services.config import ConfigError, load_params
-from sim_twin import model as tm
+from robot_description import params as rd
+from services.runtime.config import ConfigError, load_params
 
 
 def test_an_int_field_refuses_a_float_and_a_bool():
@@ -98,7 +98,7 @@ def test_every_number_has_a_range_and_every_field_a_type(section: str):
 
 
 def test_ceilings_are_those_of_the_robot_description():
-    robots = [tm.robot_params(v) for v in tm.VARIANTS]
+    robots = [rd.robot_params(v) for v in rd.VARIANTS]
     assert P.WHEEL_TORQUE_PEAK == max(r.wheel_torque_peak for r in robots)
     assert P.FOOT_TORQUE_PEAK == max(r.foot_torque_peak for r in robots)
     assert all(P.WHEEL_NO_LOAD_SPEED == r.wheel_no_load_speed for r in robots)

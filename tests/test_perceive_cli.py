@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from onboard.perception import maps
-from services.cli import main
+from services.cli.main import main
 
 RES = 0.05
 ORIGIN = (1.0, -2.0)
@@ -117,13 +117,13 @@ def test_entry_point_runs_as_a_process(tmp_path):
     path = tmp_path / "grid.npy"
     np.save(path, maps.clutter(size=80, seed=3).occupied)
     done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "perceive", "--grid", str(path), "--resolution", "0.05", "--origin", "0", "0", "--json"],
+        [sys.executable, "-m", "services.cli.main", "perceive", "--grid", str(path), "--resolution", "0.05", "--origin", "0", "0", "--json"],
         capture_output=True, text=True, timeout=120,
     )
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout.strip().splitlines()[-1])["mode"] == "free"
     bad = subprocess.run(
-        [sys.executable, "-m", "services.cli", "perceive", "--grid", str(tmp_path / "nope.npy"), "--resolution", "0.05", "--origin", "0", "0"],
+        [sys.executable, "-m", "services.cli.main", "perceive", "--grid", str(tmp_path / "nope.npy"), "--resolution", "0.05", "--origin", "0", "0"],
         capture_output=True, text=True, timeout=120,
     )
     assert bad.returncode == 2 and "archer perceive:" in bad.stderr

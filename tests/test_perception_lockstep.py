@@ -31,9 +31,9 @@ def test_planner_world_comes_from_the_depth_camera():
 def test_unknown_perception_or_planner_refused():
     runner_cfg = RunConfig("forest", seed=0)
     scenario = LockstepRunner(runner_cfg).scenario
-    from sim_twin import model as tm
+    from robot_description import params as rd
 
-    robot = tm.robot_params()
+    robot = rd.robot_params()
     with pytest.raises(ValueError, match="perception"):
         make_planner("auto", "lidar", scenario, robot)
     with pytest.raises(ValueError, match="graph planner"):

@@ -13,9 +13,9 @@ from onboard import messages as m
 from onboard.binary_messages import CELL_OCCUPIED, decode_grid, encode_depth
 from onboard.params import PerceptionParams
 from onboard.topics import TOPICS
-from services.cmd_introspect import query_status
+from services.runtime.peers import query_status
 from services.perception import PerceptionService
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 from test_perception_pipeline import TREES, render
 from helpers import wait_for
 

@@ -13,6 +13,7 @@ from onboard.params import PerceptionParams, TwinParams
 from onboard.perception.geometry import ConvexPolygon, polygon_from_points
 from onboard.perception.pipeline import Perception
 from onboard.perception.pointcloud import depth_to_points
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.sensors import SensorSuite
@@ -43,10 +44,10 @@ def _views(seed: int):
     scen.build(spec)
     model = spec.compile()
     data = mujoco.MjData(model)
-    robot = tm.robot_params()
+    robot = rd.robot_params()
     scen.initialize(model, data, robot)
     sensors = SensorSuite(model, TwinParams(), seed=seed)  # with the twin's depth noise
-    adr = int(model.joint(tm.ROOT_JOINT).qposadr[0])
+    adr = int(model.joint(rd.ROOT_JOINT).qposadr[0])
     truth = [polygon_from_points(np.array(p.vertices)) for p in scen.polytopes().polytopes]
     images = []
     k = 0

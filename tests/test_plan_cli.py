@@ -16,7 +16,7 @@ from onboard import bezier as bz
 from onboard import collision as col
 from onboard import messages as m
 from onboard.topics import TOPICS
-from services.cmd_plan import SceneError, parse_scene
+from services.cli.plan import SceneError, parse_scene
 
 WALL_WITH_GAP = [
     [[2.9, 0.0], [3.1, 0.0], [3.1, 3.9], [2.9, 3.9]],
@@ -33,7 +33,7 @@ def _scene(**kw) -> dict:
 
 def _archer(args: list[str], tmp_path, stdin: str | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ, ARCHER_CACHE_DIR=str(tmp_path / "cache"))
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], input=stdin, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "services.cli.main", *args], input=stdin, capture_output=True, text=True,
                           env=env, timeout=120, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 

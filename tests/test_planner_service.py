@@ -13,9 +13,9 @@ from onboard import collision as col
 from onboard import messages as m
 from onboard.params import PlannerParams
 from onboard.topics import TOPICS
-from services.cmd_introspect import query_status
+from services.runtime.peers import query_status
 from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 from helpers import wait_for
 
 NS = "archer/planner-test"
@@ -162,5 +162,5 @@ def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
 
 
 def test_footprint_radius_comes_from_the_mjcf():
-    # The housing is a 0.13 m cylinder about the spine (sim_twin/models/archer.xml).
+    # The housing is a 0.13 m cylinder about the spine (robot_description/models/archer.xml).
     assert robot_footprint_radius() == pytest.approx(0.13)

@@ -12,7 +12,7 @@ import pytest
 from onboard import messages as m
 from onboard.params import RecorderParams
 from onboard.topics import TOPICS, status_key
-from services.cmd_plot import topic_name
+from services.cli.plot import topic_name
 from services.recorder import RotatingMcap, _json_schema, schema_for
 
 NS = "archer/plottest"
@@ -68,7 +68,7 @@ def test_archer_plot_writes_pngs_and_figures(tmp_path):
     write_recording(rec)
     assert len(list(rec.glob("*.mcap"))) >= 2  # rotated: the plot reads the directory
     out = tmp_path / "plots"
-    result = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(rec), "--out", str(out)], capture_output=True, text=True, check=True)
+    result = subprocess.run([sys.executable, "-m", "services.cli.main", "plot", str(rec), "--out", str(out)], capture_output=True, text=True, check=True)
     summary = json.loads(result.stdout.strip().splitlines()[-1])
     names = {"path.png", "tracking.png", "attitude.png", "wheels.png", "torques.png", "timing.png"}
     assert {Path(p).name for p in summary["plots"]} == names
@@ -90,5 +90,5 @@ def test_a_recording_without_state_is_a_clear_error(tmp_path):
     files = RotatingMcap(tmp_path, RecorderParams())
     files.write(TOPICS["goal"].key(NS), schema_for(TOPICS["goal"]), 1, 1, 1, m.encode(m.Goal(stamp_ns=1, position=[1.0, 0.0])))
     files.finish({})
-    result = subprocess.run([sys.executable, "-m", "services.cli", "plot", str(tmp_path)], capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "services.cli.main", "plot", str(tmp_path)], capture_output=True, text=True)
     assert result.returncode == 2 and "no state estimates" in result.stderr

@@ -17,9 +17,9 @@ from mcap.reader import make_reader
 from onboard import messages as m
 from onboard.params import RecorderParams
 from onboard.topics import TOPICS
-from services.cmd_introspect import live_services
+from services.runtime.peers import live_services
 from services.recorder import PART_SUFFIX, RecorderService, SeqStats, file_metadata, read_recording
-from services.zenoh_session import open_session
+from services.runtime.zenoh_session import open_session
 
 NS = "archer/rectest"
 START_TIMEOUT_S = 20.0
@@ -118,7 +118,7 @@ def _start_recorder(tmp_path: Path, endpoint: str, **overrides) -> subprocess.Po
     lines = [f'directory = "{tmp_path / "rec"}"'] + [f"{k} = {v}" for k, v in overrides.items()]
     config.write_text("[recorder]\n" + "\n".join(lines) + "\n")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "run", "recorder", "--endpoint", endpoint, "--namespace", NS, "--config", str(config)],
+        [sys.executable, "-m", "services.cli.main", "run", "recorder", "--endpoint", endpoint, "--namespace", NS, "--config", str(config)],
         stderr=subprocess.DEVNULL,
     )
     client = open_session(endpoint, "peer")

@@ -13,9 +13,9 @@ import pytest
 
 from onboard import messages as m
 from onboard.topics import TOPICS, liveliness_key, params_key, status_key
-from services.cmd_introspect import live_services, query_status
-from services.runtime import LazyLatestSlot, Service
-from services.zenoh_session import endpoint_in_use, free_endpoint, open_session
+from services.runtime.peers import live_services, query_status
+from services.runtime.service import LazyLatestSlot, Service
+from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
 from helpers import wait_for
 
 NS = "archer/test"
@@ -151,7 +151,7 @@ def test_sigterm_stops_a_service_process():
     """`archer run router` serves the endpoint; a client finds it; SIGTERM ends it cleanly."""
     endpoint = free_endpoint()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "run", "router", "--endpoint", endpoint, "--namespace", NS],
+        [sys.executable, "-m", "services.cli.main", "run", "router", "--endpoint", endpoint, "--namespace", NS],
         stderr=subprocess.DEVNULL,
     )
     deadline = time.monotonic() + TIMEOUT_S

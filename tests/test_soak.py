@@ -22,7 +22,7 @@ from deploy.soak_schedule import (
 )
 from onboard import messages as m
 from onboard.topics import TOPICS
-from services.zenoh_session import free_endpoint
+from services.runtime.zenoh_session import free_endpoint
 
 NS = 1_000_000_000
 MS = 1_000_000

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from services.realtime import make_realtime
-from services.supervisor import SUPERVISOR_RT_PRIORITY, Supervisor, UnitSpec, parse_timespan, parse_unit, sim_specs, spec_from_unit
-from services.zenoh_session import free_endpoint
+from services.runtime.realtime import make_realtime
+from services.runtime.supervisor import SUPERVISOR_RT_PRIORITY, Supervisor, UnitSpec, parse_timespan, parse_unit, sim_specs, spec_from_unit
+from services.runtime.zenoh_session import free_endpoint
 
 REPO = Path(__file__).resolve().parent.parent
 TIMEOUT_S = 20.0
@@ -24,7 +24,7 @@ TIMEOUT_S = 20.0
 UNIT_SCRIPT = f"""
 import os, subprocess, sys, time
 sys.path.insert(0, {str(REPO)!r})
-from services.sd_notify import Notifier
+from services.runtime.sd_notify import Notifier
 mode = sys.argv[1]
 n = Notifier()
 if mode == "child-ready":

@@ -81,7 +81,7 @@ def test_crc_and_cobs_as_the_docs_state() -> None:
 
 @pytest.fixture
 def emulated_teensy():
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "emulate", "teensy"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "emulate", "teensy"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         info = json.loads(proc.stdout.readline())
         yield info

@@ -9,7 +9,7 @@ from mcap.reader import make_reader
 
 from onboard import messages as msgs
 from onboard.topics import TOPICS, namespace
-from services.cli import main
+from services.cli.main import main
 
 REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_factor", "hops", "falls", "recoveries", "collisions",
             "goal_reached", "final_goal_error_m", "rms_tracking_error_m", "max_tracking_error_m", "max_wheel_speed_rad_s",
@@ -54,7 +54,7 @@ def test_sim_rejects_bad_arguments(capsys) -> None:
 
 
 def test_sim_realtime_runs_the_twin_on_wall_time(capsys) -> None:
-    from services.zenoh_session import free_endpoint
+    from services.runtime.zenoh_session import free_endpoint
 
     rc = main(["sim", "--scenario", "setpoint", "--mode", "realtime", "--duration", "1.5", "--services", "none",
                "--endpoint", free_endpoint(), "--namespace", "archer/clitest", "--json", "--quiet"])

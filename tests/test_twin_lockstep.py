@@ -9,6 +9,7 @@ import pytest
 
 from onboard import messages as msgs
 from onboard.params import SafetyLimits, TwinParams
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
@@ -41,7 +42,7 @@ def test_passive_robot_bounces_and_stays_up() -> None:
     assert mt["commands_refused"].get("disarmed", 0) >= 3999  # passive: never armed, zero torque
     # The drop bounces; each rebound keeps (m_s / M)^2 of the apex (test_twin_model), and a flight
     # counts as a hop when it lasts MIN_FLIGHT_S, i.e. an apex of g (MIN_FLIGHT_S / 2)^2 / 2.
-    robot = tm.robot_params()
+    robot = rd.robot_params()
     ratio = (robot.sprung_mass / robot.total_mass) ** 2
     h_min = robot.gravity * (MIN_FLIGHT_S / 2) ** 2 / 2
     predicted = math.floor(math.log(h_min / sc.START_DROP) / math.log(ratio))
@@ -129,7 +130,7 @@ def test_runner_rejects_bad_configuration() -> None:
 def _actuation(variant: str = "indoor") -> tuple[mujoco.MjModel, mujoco.MjData, Actuation]:
     model = tm.load_model(variant)
     data = mujoco.MjData(model)
-    return model, data, Actuation(model, tm.robot_params(variant), SafetyLimits())
+    return model, data, Actuation(model, rd.robot_params(variant), SafetyLimits())
 
 
 def _cmd(stamp_ns: int, wheel=(0.5, -0.5, 0.2), foot=3.0, armed=True) -> msgs.TorqueCommand:
@@ -155,7 +156,7 @@ def test_actuation_clamps_to_limits_and_motor_curve() -> None:
     safety = SafetyLimits()
     act.apply(_cmd(0, wheel=(9.0, -9.0, 0.0), foot=50.0), 0, data)
     assert list(data.ctrl) == pytest.approx([safety.wheel_torque_max, -safety.wheel_torque_max, 0.0, safety.foot_torque_max])
-    robot = tm.robot_params()
+    robot = rd.robot_params()
     dof = model.joint("wheel_x").dofadr[0]
     data.qvel[dof] = 0.5 * (robot.wheel_speed_knee + robot.wheel_no_load_speed)
     act.apply(_cmd(0, wheel=(1.4, 0.0, 0.0)), 0, data)

@@ -9,12 +9,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from robot_description import params as rd
 from sim_twin import model as tm
 
 
 def _pinocchio(variant: str, tmp_path) -> pin.Model:
     if variant == "indoor":
-        return pin.buildModelFromMJCF(str(tm.model_path("indoor")))  # the very same file
+        return pin.buildModelFromMJCF(str(rd.model_path("indoor")))  # the very same file
     path = tmp_path / f"archer_{variant}.xml"
     path.write_text(tm.pinocchio_xml(variant))
     return pin.buildModelFromMJCF(str(path))
@@ -26,11 +27,11 @@ def _q_mj_to_pin(q: np.ndarray) -> np.ndarray:
 
 
 def test_variant_masses_and_params() -> None:
-    indoor, outdoor, fast = (tm.robot_params(v) for v in ("indoor", "outdoor", "sim15nm"))
+    indoor, outdoor, fast = (rd.robot_params(v) for v in ("indoor", "outdoor", "sim15nm"))
     assert indoor.total_mass == pytest.approx(5.92)
     assert outdoor.total_mass == pytest.approx(8.25)
     # Loaded raw (payload held by welds rather than fused), the outdoor file weighs the same.
-    raw = mujoco.MjModel.from_xml_path(str(tm.model_path("outdoor")))
+    raw = mujoco.MjModel.from_xml_path(str(rd.model_path("outdoor")))
     assert raw.body_subtreemass[0] == pytest.approx(8.25)
     assert indoor.spring_stiffness == 11700.0 and indoor.foot_travel == pytest.approx(0.1)
     assert indoor.foot_mass == pytest.approx(0.4)
@@ -46,7 +47,7 @@ def test_variant_masses_and_params() -> None:
 
 
 def test_wheel_speed_torque_curve() -> None:
-    p = tm.robot_params()
+    p = rd.robot_params()
     assert p.wheel_torque_available(0.0, 5.0) == pytest.approx(p.wheel_torque_peak)
     assert p.wheel_torque_available(500.0, 1.0) == pytest.approx(1.0)
     half = 0.5 * (p.wheel_speed_knee + p.wheel_no_load_speed)
@@ -69,7 +70,7 @@ def test_pinocchio_agrees_with_mujoco(variant: str, tmp_path) -> None:
     assert [pm.names[i] for i in range(1, pm.njoints)] == [m.joint(j).name for j in range(m.njnt)]
     assert sum(inertia.mass for inertia in pm.inertias) == pytest.approx(m.body_subtreemass[0], rel=1e-12)
 
-    params = tm.robot_params(variant)
+    params = rd.robot_params(variant)
     rng = np.random.default_rng(7)
     for k in range(4):
         q = m.qpos0.copy()
@@ -107,7 +108,7 @@ def test_pinocchio_agrees_with_mujoco(variant: str, tmp_path) -> None:
 
 
 def _upright(m: mujoco.MjModel, d: mujoco.MjData, tip_height: float) -> None:
-    p = tm.robot_params()
+    p = rd.robot_params()
     d.qpos[:] = m.qpos0
     d.qpos[2] = p.leg_length + tip_height
     d.qvel[:] = 0.0
@@ -122,7 +123,7 @@ def test_passive_drop_matches_spring_and_impact_model() -> None:
     at full extension the stop jerks the foot along, a perfectly inelastic m_s-m_f collision, so
     the rebound apex is h (m_s / M)^2.
     """
-    p = tm.robot_params()
+    p = rd.robot_params()
     m = tm.load_model()
     d = mujoco.MjData(m)
     h = 0.30
@@ -168,7 +169,7 @@ def test_wheel_torque_spins_body_by_momentum_conservation() -> None:
     """In free fall (no gravity torque about the CoM), torque tau on wheel i for T seconds gives the
     body -tau T / (I_ii - J) and the wheel tau T / J + tau T / (I_ii - J), where I is the whole
     robot's inertia about its CoM (wheels locked) and J the wheel's spin inertia."""
-    p = tm.robot_params()
+    p = rd.robot_params()
     m = tm.load_model()
     d = mujoco.MjData(m)
     inertia = np.array(p.inertia_com)
@@ -198,7 +199,7 @@ def test_wheel_torque_spins_body_by_momentum_conservation() -> None:
 def test_cable_pulls_but_never_pushes() -> None:
     """Hanging in zero gravity, spool torque T compresses the spring to T / (r k); a negative torque
     only unwinds the spool and leaves the foot extended."""
-    p = tm.robot_params()
+    p = rd.robot_params()
     m = tm.load_model()
     m.opt.gravity[:] = 0.0
     d = mujoco.MjData(m)
@@ -223,17 +224,17 @@ def test_cable_pulls_but_never_pushes() -> None:
     assert d.qpos[slide] - p.spool_radius * d.qpos[spool] > 0.01  # slack: the cable did not push
 
 
-@pytest.mark.parametrize("variant", tm.VARIANTS)
+@pytest.mark.parametrize("variant", rd.VARIANTS)
 def test_the_foot_touch_sensor_feels_whatever_part_of_the_foot_meets_the_ground(variant: str) -> None:
     """Dropped upright on the floor, the foot's touch sensor carries the robot's weight on
     average (it bounces on its spring; the outdoor robot lands on its tennis ball, below the
     bare tip's site, where the sensor read nothing)."""
     m = tm.load_model(variant)
     d = mujoco.MjData(m)
-    params = tm.robot_params(variant)
-    root = m.joint(tm.ROOT_JOINT).qposadr[0]
+    params = rd.robot_params(variant)
+    root = m.joint(rd.ROOT_JOINT).qposadr[0]
     d.qpos[root + 2] = params.leg_length + 0.005  # the foot 5 mm above the floor
-    touch = m.sensor(tm.FOOT_TOUCH_SENSOR).adr[0]
+    touch = m.sensor(rd.FOOT_TOUCH_SENSOR).adr[0]
     readings = []
     for _ in range(int(0.5 / m.opt.timestep)):
         d.qpos[root + 3:root + 7] = [1.0, 0.0, 0.0, 0.0]  # held upright

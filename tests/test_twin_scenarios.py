@@ -8,6 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 
@@ -19,7 +20,7 @@ def _compiled(scn: sc.Scenario) -> tuple[mujoco.MjModel, mujoco.MjData]:
     scn.build(spec)
     model = spec.compile()
     data = mujoco.MjData(model)
-    scn.initialize(model, data, tm.robot_params())
+    scn.initialize(model, data, rd.robot_params())
     return model, data
 
 
@@ -47,7 +48,7 @@ def test_scenario_builds_and_starts_clear(name: str) -> None:
     assert math.dist(x0, scn.start) < 1e-9
     end = sc.sample_reference(ref.segments, 1e6)
     assert math.dist(end, scn.target()) < 1e-9
-    robot = tm.robot_params()
+    robot = rd.robot_params()
     foot_z = data.qpos[2] - robot.leg_length
     assert foot_z == pytest.approx(_ground_height(model, data, *scn.start) + sc.START_DROP, abs=1e-6)
     # obstacles: geoms named obstacle_k whose footprint is the ground-truth polygon
@@ -109,7 +110,7 @@ def test_push_delivers_its_impulse() -> None:
     model, data = _compiled(push)
     model.opt.gravity[:] = 0.0
     data.qpos[2] = 3.0
-    mass = tm.robot_params().total_mass
+    mass = rd.robot_params().total_mass
     dt = model.opt.timestep
     while data.time < push.FIRST + push.PUSH_TIME + 0.05:
         push.before_step(data.time, model, data)

@@ -12,6 +12,7 @@ import pytest
 from onboard import messages as msgs
 from onboard.binary_messages import decode_depth, encode_depth
 from onboard.params import TwinParams
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin.sensors import SensorSuite
 
@@ -21,7 +22,7 @@ MS = 1_000_000
 def _standing(noise: bool, **overrides) -> tuple[mujoco.MjModel, mujoco.MjData, SensorSuite]:
     model = tm.load_model()
     data = mujoco.MjData(model)
-    p = tm.robot_params()
+    p = rd.robot_params()
     q_eq = p.sprung_mass * p.gravity / p.spring_stiffness  # standing at the spring's equilibrium
     data.qpos[2] = p.leg_length - q_eq
     data.qpos[model.joint("foot_slide").qposadr[0]] = q_eq
@@ -55,7 +56,7 @@ def test_truth_without_noise() -> None:
     # standing still: specific force is +g along body z
     assert np.allclose(imu.accel, [0.0, 0.0, 9.81], atol=0.05)
     assert joints.foot_contact and joints.foot_pos == pytest.approx(data.qpos[model.joint("foot_slide").qposadr[0]])
-    assert joints.foot_pos == pytest.approx(tm.robot_params().sprung_mass * 9.81 / 11700, rel=0.05)
+    assert joints.foot_pos == pytest.approx(rd.robot_params().sprung_mass * 9.81 / 11700, rel=0.05)
     assert np.allclose(pose.position, data.qpos[:3], atol=1e-4)  # 10 ms old, nearly still
     # messages are valid wire messages
     for msg in (imu, joints, pose):

@@ -12,10 +12,10 @@ from onboard import messages as m
 from onboard.binary_messages import decode_depth
 from onboard.params import SafetyLimits, TwinParams
 from onboard.topics import TOPICS
-from services.cmd_introspect import query_status
-from services.runtime import StandInCommander
-from services.zenoh_session import open_session
-from sim_twin.twin_service import ScenarioReferenceService, TwinService
+from services.runtime.peers import query_status
+from services.runtime.service import StandInCommander
+from services.runtime.zenoh_session import open_session
+from services.twin import ScenarioReferenceService, TwinService
 from helpers import wait_for
 
 NS = "archer/twintest"
@@ -88,7 +88,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
 
 def test_setting_the_seed_puts_a_fallen_robot_back_and_other_twin_parameters_are_refused(zenoh_router) -> None:
     from onboard.topics import params_key
-    from sim_twin import model as tm
+    from robot_description import params as rd
 
     async def scenario() -> None:
         twin = TwinService(ns=NS, endpoint=zenoh_router, params={"twin": TwinParams(noise=False), "safety": SafetyLimits()})
@@ -120,7 +120,7 @@ def test_setting_the_seed_puts_a_fallen_robot_back_and_other_twin_parameters_are
             assert reply.error == "" and reply.params["twin.seed"] == 3
             await wait_for(lambda: twin.counters.get("put_back") == 1, timeout_s=5.0)
             await asyncio.sleep(0.05)  # a few ticks of no command: at rest over the start
-            root = twin.model.joint(tm.ROOT_JOINT).qposadr[0]
+            root = twin.model.joint(rd.ROOT_JOINT).qposadr[0]
             qpos = twin.data.qpos[root:root + 7]
             assert abs(qpos[0]) < 0.01 and abs(qpos[1]) < 0.01 and qpos[3] > 0.999  # upright over the start
             assert twin.metrics.falls == 1 and twin.sensors is not None  # the fall stays counted

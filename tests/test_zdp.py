@@ -11,7 +11,8 @@ import pytest
 import scipy.linalg
 
 from onboard import zdp
-from services.control import hopper_model
+from robot_description import params as rd
+from robot_description.params import hopper_model
 from sim_twin import model as tm
 
 
@@ -118,7 +119,7 @@ def hopper() -> zdp.HopperModel:
 
 
 def test_hopper_model_is_read_from_the_mjcf(hopper):
-    robot = tm.robot_params("indoor")
+    robot = rd.robot_params("indoor")
     assert hopper.mass == pytest.approx(robot.total_mass)
     assert hopper.mass_foot == pytest.approx(robot.foot_mass)
     assert hopper.spring_k == robot.spring_stiffness
@@ -158,18 +159,18 @@ class TwinImpactMap:
 
     def __init__(self, preload: float, hop_height: float):
         self.model = tm.load_model("indoor")
-        self.robot = tm.robot_params("indoor")
+        self.robot = rd.robot_params("indoor")
         self.preload = preload
         self.vz = -math.sqrt(2 * self.robot.gravity * hop_height)
         m = self.model
-        self.root_q = int(m.joint(tm.ROOT_JOINT).qposadr[0])
-        self.root_v = int(m.joint(tm.ROOT_JOINT).dofadr[0])
-        self.slide_q = int(m.joint(tm.FOOT_JOINT).qposadr[0])
-        self.spool_q = int(m.joint(tm.FOOT_MOTOR_JOINT).qposadr[0])
-        self.spool_v = int(m.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
+        self.root_q = int(m.joint(rd.ROOT_JOINT).qposadr[0])
+        self.root_v = int(m.joint(rd.ROOT_JOINT).dofadr[0])
+        self.slide_q = int(m.joint(rd.FOOT_JOINT).qposadr[0])
+        self.spool_q = int(m.joint(rd.FOOT_MOTOR_JOINT).qposadr[0])
+        self.spool_v = int(m.joint(rd.FOOT_MOTOR_JOINT).dofadr[0])
         self.touch = int(m.sensor("foot_force").adr[0])
-        self.foot_act = int(m.actuator(tm.FOOT_ACTUATOR).id)
-        self.torso = m.body(tm.TORSO).id
+        self.foot_act = int(m.actuator(rd.FOOT_ACTUATOR).id)
+        self.torso = m.body(rd.TORSO).id
 
     def com(self, data) -> tuple[np.ndarray, np.ndarray]:
         mujoco.mj_subtreeVel(self.model, data)
@@ -191,7 +192,7 @@ class TwinImpactMap:
         data.qpos[self.spool_q] = self.preload / r.spool_radius
         # place the foot's contact point 1 mm above the floor, then set the CoM state
         mujoco.mj_forward(m, data)
-        foot_bottom = data.xpos[m.body(tm.FOOT).id][2] - r.foot_radius
+        foot_bottom = data.xpos[m.body(rd.FOOT).id][2] - r.foot_radius
         data.qpos[self.root_q + 2] -= foot_bottom - 1e-3
         mujoco.mj_forward(m, data)
         c, _ = self.com(data)

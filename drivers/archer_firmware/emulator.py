@@ -2,7 +2,7 @@
 
 :meth:`BoardEmulator.tick` is one millisecond of the board's loop, run from the
 board's own clock (``archer emulate archer-firmware`` drives it with a
-:class:`~services.realtime.DeadlineLoop`):
+:class:`~services.runtime.realtime.DeadlineLoop`):
 
 1. read every datagram waiting; from the configured peer only, 40 bytes, finite, a
    unit quaternion: a setpoint is stored, a reset packet stops the motors; each

@@ -34,7 +34,7 @@ from pathlib import Path
 
 from deploy import zenoh_configs as zc
 
-DEPLOY_DIR = Path(__file__).resolve().parent.parent / "deploy"
+DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 UNIT_DIR = DEPLOY_DIR / "systemd"
 EXAMPLE_CONFIG_DIR = DEPLOY_DIR / "config"
 ZENOH_DIR = DEPLOY_DIR / "zenoh"

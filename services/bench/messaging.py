@@ -24,10 +24,10 @@ import numpy as np
 
 from onboard import messages as msgs
 from onboard.topics import TOPICS, namespace
-from services.clock import WallClock
-from services.realtime import DeadlineLoop
-from services.runtime import TypedPublisher
-from services.zenoh_session import free_endpoint, open_session
+from services.runtime.clock import WallClock
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import TypedPublisher
+from services.runtime.zenoh_session import free_endpoint, open_session
 
 WARMUP_S = 1.0  # let the peers link before the first counted message
 DRAIN_S = 0.5  # wait for the last messages in flight
@@ -138,7 +138,7 @@ def measure(args: argparse.Namespace) -> dict:
     try:
         sub = router.declare_subscriber(TOPICS["state"].key(ns), on_sample)
         child = subprocess.Popen(
-            [sys.executable, "-m", "services.bench_messaging", endpoint, ns, str(args.duration), str(args.rate)],
+            [sys.executable, "-m", "services.bench.messaging", endpoint, ns, str(args.duration), str(args.rate)],
             stdout=subprocess.PIPE,
             text=True,
         )

@@ -236,7 +236,7 @@ def add_goal_arguments(parser: argparse.ArgumentParser) -> None:
 def run_goal(args: argparse.Namespace) -> int:
     import zenoh
 
-    from services.zenoh_session import open_session
+    from services.runtime.zenoh_session import open_session
 
     if not (math.isfinite(args.x) and math.isfinite(args.y)) or not (math.isfinite(args.tolerance) and args.tolerance >= 0):
         print("archer goal: X, Y and the tolerance must be finite (tolerance >= 0)", file=sys.stderr)

@@ -53,8 +53,8 @@ from drivers.teensy.protocol import VERSION
 from drivers import natnet
 from onboard.foot_control import FootPhysics
 from onboard.params import ArcherFirmwareParams, HardwareParams, MocapParams
-from services.config import ConfigError, load_params
-from services.realtime import DeadlineLoop, make_realtime
+from services.runtime.config import ConfigError, load_params
+from services.runtime.realtime import DeadlineLoop, make_realtime
 
 DOCS = "docs/teensy_protocol.md"
 ARCHER_FIRMWARE_DOCS = "docs/archer_firmware_protocol.md"
@@ -87,17 +87,18 @@ class TwinPlant:
         import mujoco
 
         from onboard.params import SafetyLimits, TwinParams, with_overrides
+        from robot_description import params as rd
         from sim_twin import model as tm
         from sim_twin.actuation import Actuation
         from sim_twin.sensors import SensorSuite
-        from sim_twin.twin_service import make_scenario
+        from services.twin import make_scenario
         from drivers.teensy.emulator import BodyState
 
         # the devices carry no camera: the smallest depth image keeps the step cheap
         tp = with_overrides(TwinParams(), {"scenario": scenario, "seed": seed, "depth_width": 2, "depth_height": 2})
         self._mujoco = mujoco
         self.scenario = make_scenario(tp)
-        robot = tm.robot_params(tp.variant)
+        robot = rd.robot_params(tp.variant)
         spec = tm.load_spec(tp.variant)
         self.scenario.build(spec)
         self.model = spec.compile()
@@ -110,8 +111,8 @@ class TwinPlant:
         self.body = BodyState()
         self.sim_s = 0.0
         self.dt_s = self.substeps * self.model.opt.timestep  # [s] one control period
-        self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
-        self._root_qp = int(self.model.joint(tm.ROOT_JOINT).qposadr[0])
+        self._spool_dof = int(self.model.joint(rd.FOOT_MOTOR_JOINT).dofadr[0])
+        self._root_qp = int(self.model.joint(rd.ROOT_JOINT).qposadr[0])
         self._lock = threading.Lock()
 
     def step(self, now_s: float, joint_torques: list[float]) -> None:
@@ -340,7 +341,7 @@ def run_natnet(params: MocapParams, plant: TwinPlant, port: int, rate_hz: float,
 
 def _board_geometry() -> tuple[FootPhysics, tuple[tuple[float, float, float], ...]]:
     """The foot board's spring and spool and the flywheel board's wheel axes, from the MJCF model."""
-    from sim_twin.model import robot_params  # the one source of physical parameters
+    from robot_description.params import robot_params  # the one source of physical parameters
 
     r = robot_params()
     return FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel), tuple(r.wheel_axes)

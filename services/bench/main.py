@@ -14,16 +14,16 @@ import sys
 
 BENCHES: dict[str, tuple[str, str]] = {
     # subject: (module, one-line help)
-    "perception": ("services.bench_perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
-    "zdp": ("services.bench_zdp", "clipped ZDP vs plain LQR, Raibert and the MLP on a 2 m setpoint in the twin (thesis Fig. 5.22)"),
-    "control": ("services.bench_control", "the 1 kHz control loop in its own process with the other core busy: tick time, period jitter, overruns"),
-    "messaging": ("services.bench_messaging", "Zenoh latency and loss between two processes at 1 kHz"),
-    "hardware": ("services.bench_hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
-    "mpc": ("services.bench_mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
-    "planner": ("services.bench_planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
-    "estimator": ("services.bench_estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
-    "mocap": ("services.bench_mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),
-    "twin": ("sim_twin.bench", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
+    "perception": ("services.bench.perception", "Algorithm 4 on 200 x 200 grids: time, coverage, soundness"),
+    "zdp": ("services.bench.zdp", "clipped ZDP vs plain LQR, Raibert and the MLP on a 2 m setpoint in the twin (thesis Fig. 5.22)"),
+    "control": ("services.bench.control", "the 1 kHz control loop in its own process with the other core busy: tick time, period jitter, overruns"),
+    "messaging": ("services.bench.messaging", "Zenoh latency and loss between two processes at 1 kHz"),
+    "hardware": ("services.bench.hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
+    "mpc": ("services.bench.mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
+    "planner": ("services.bench.planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
+    "estimator": ("services.bench.estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
+    "mocap": ("services.bench.mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),
+    "twin": ("services.bench.twin", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
 }
 
 

@@ -15,18 +15,18 @@ import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
-    "run": ("services.cmd_run", "run one service until SIGINT/SIGTERM"),
-    "topics": ("services.cmd_introspect", "print the topic table"),
-    "echo": ("services.cmd_introspect", "print decoded live messages of one topic"),
-    "status": ("services.cmd_introspect", "list live services and their status"),
-    "emulate": ("services.cmd_emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
-    "sim": ("sim_twin.cmd_sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
-    "bench": ("services.bench", "measure speed and print figures"),
-    "plot": ("services.cmd_plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
-    "deploy": ("services.cmd_deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),
-    "perceive": ("services.cmd_perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
-    "plan": ("services.cmd_plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
-    "goal": ("services.cmd_plan", "send the robot a goal position X Y [m]"),
+    "run": ("services.cli.run", "run one service until SIGINT/SIGTERM"),
+    "topics": ("services.cli.introspect", "print the topic table"),
+    "echo": ("services.cli.introspect", "print decoded live messages of one topic"),
+    "status": ("services.cli.introspect", "list live services and their status"),
+    "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
+    "sim": ("services.cli.sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
+    "bench": ("services.bench.main", "measure speed and print figures"),
+    "plot": ("services.cli.plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
+    "deploy": ("services.cli.deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),
+    "perceive": ("services.cli.perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
+    "plan": ("services.cli.plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
+    "goal": ("services.cli.plan", "send the robot a goal position X Y [m]"),
     "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),
 }
 

@@ -6,7 +6,7 @@ needed. ``archer sim`` opens one itself; on the robot it runs as ``archer-router
 
 from __future__ import annotations
 
-from services.runtime import Service
+from services.runtime.service import Service
 
 
 class RouterService(Service):

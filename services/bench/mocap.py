@@ -21,7 +21,7 @@ from typing import Any
 
 from drivers import natnet
 from onboard.params import EstimatorParams, MocapParams, TwinParams
-from services.bench_estimator import MeasuredEstimator
+from services.bench.estimator import MeasuredEstimator
 from services.mocap import pose_of
 from sim_twin import lockstep as ls
 

@@ -26,11 +26,11 @@ import time
 from onboard import messages as msgs
 from onboard.params import ControlParams, SafetyLimits
 from onboard.topics import TOPICS, namespace
-from services.clock import WallClock
+from services.runtime.clock import WallClock
 from services.control import LoopConfig, LoopProcess
-from services.realtime import DeadlineLoop
-from services.runtime import TypedPublisher
-from services.zenoh_session import free_endpoint, open_session
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import TypedPublisher
+from services.runtime.zenoh_session import free_endpoint, open_session
 
 G = 9.81
 HOP_VZ = 1.4  # [m/s] lift-off speed of the synthetic hop

@@ -9,14 +9,13 @@ import sys
 import time
 
 import msgspec
-import zenoh
 
 from onboard import messages as msgs
 from onboard.binary_messages import decode_depth, decode_grid
-from onboard.topics import TOPICS, Topic, liveliness_key, namespace, status_key, topic_for_key
-from services.zenoh_session import open_session
+from onboard.topics import TOPICS, Topic, namespace, topic_for_key
+from services.runtime.peers import live_services, query_status
+from services.runtime.zenoh_session import open_session
 
-QUERY_TIMEOUT_S = 2.0
 
 
 def _add_connection(parser: argparse.ArgumentParser) -> None:
@@ -111,22 +110,6 @@ def run_echo(args: argparse.Namespace) -> int:
 def add_status_arguments(parser: argparse.ArgumentParser) -> None:
     _add_connection(parser)
     parser.add_argument("--json", action="store_true")
-
-
-def live_services(session: zenoh.Session, ns: str) -> list[str]:
-    prefix = liveliness_key(ns, "")
-    names = []
-    for reply in session.liveliness().get(liveliness_key(ns, "*"), timeout=QUERY_TIMEOUT_S):
-        if reply.ok is not None:
-            names.append(str(reply.ok.key_expr).removeprefix(prefix))
-    return sorted(set(names))
-
-
-def query_status(session: zenoh.Session, ns: str, service: str) -> msgs.ServiceStatus | None:
-    for reply in session.get(status_key(ns, service), timeout=QUERY_TIMEOUT_S):
-        if reply.ok is not None:
-            return msgs.decode(reply.ok.payload.to_bytes(), msgs.ServiceStatus)
-    return None
 
 
 def run_status(args: argparse.Namespace) -> int:

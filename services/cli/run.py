@@ -14,16 +14,16 @@ import os
 import signal
 import sys
 
-from services.config import ConfigError, load_params
-from services.realtime import die_with_parent
-from services.runtime import Service, add_service_arguments, run_service, setup_logging
-from services.supervisor import SUPERVISOR_PID_ENV
+from services.runtime.config import ConfigError, load_params
+from services.runtime.realtime import die_with_parent
+from services.runtime.service import Service, add_service_arguments, run_service, setup_logging
+from services.runtime.supervisor import SUPERVISOR_PID_ENV
 
 SERVICE_CLASSES: dict[str, str] = {
-    "twin": "sim_twin.twin_service:TwinService",
-    "scenario_reference": "sim_twin.twin_service:ScenarioReferenceService",
+    "twin": "services.twin:TwinService",
+    "scenario_reference": "services.twin:ScenarioReferenceService",
     "perception": "services.perception:PerceptionService",
-    "router": "services.router:RouterService",
+    "router": "services.runtime.router:RouterService",
     "hardware": "services.hardware:HardwareService",
     "mocap": "services.mocap:MocapService",
     "control": "services.control:ControlService",

@@ -6,7 +6,7 @@ unit in ``deploy/systemd/`` (so a run on a workstation exercises what the robot
 does):
 
 - ``Type=notify``: a unit is *active* once its process sent ``READY=1`` over the
-  notify socket (``$NOTIFY_SOCKET``, the protocol of :mod:`services.sd_notify`);
+  notify socket (``$NOTIFY_SOCKET``, the protocol of :mod:`services.runtime.sd_notify`);
   units listed in ``After=`` start only when those are active, as systemd orders
   them. The sender is identified by ``SCM_CREDENTIALS``; ``NotifyAccess=all``
   accepts any process of the unit's process group, ``main`` only the main one.
@@ -44,18 +44,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from services.realtime import make_realtime
+from services.runtime.realtime import make_realtime
 
 log = logging.getLogger("archer.supervisor")
 
-UNIT_DIR = Path(__file__).resolve().parent.parent / "deploy" / "systemd"
+UNIT_DIR = Path(__file__).resolve().parents[2] / "deploy" / "systemd"
 POLL_S = 0.05  # supervision tick for exits and timeouts (notifications wake it at once)
 CLEAN_SIGNALS = frozenset({signal.SIGHUP, signal.SIGINT, signal.SIGTERM, signal.SIGPIPE})
 WATCHDOG_SIGNAL = signal.SIGABRT  # systemd's default WatchdogSignal=
 SUPERVISOR_RT_PRIORITY = 20  # SCHED_FIFO of the supervision thread: above normal tasks, below control loops
 KILL_GRACE_S = 1.0  # after SIGKILL, a group still there holds only zombies
 PR_SET_CHILD_SUBREAPER = 36  # prctl(2)
-SUPERVISOR_PID_ENV = "ARCHER_SUPERVISOR_PID"  # a unit's process dies with this process (services/cmd_run.py)
+SUPERVISOR_PID_ENV = "ARCHER_SUPERVISOR_PID"  # a unit's process dies with this process (services/cli/run.py)
 _UCRED = struct.Struct("3i")  # pid, uid, gid
 _TIME_UNITS = {"us": 1e-6, "ms": 1e-3, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 
@@ -182,7 +182,7 @@ def spec_from_unit(service: str, argv: list[str], unit_dir: Path = UNIT_DIR, **o
 
 def service_argv(service: str, endpoint: str, ns: str, config: str | None = None, log_level: str = "WARNING") -> list[str]:
     """``archer run SERVICE`` with this interpreter, on the sim's endpoint and namespace."""
-    argv = [sys.executable, "-m", "services.cli", "run", service, "--endpoint", endpoint, "--namespace", ns, "--log-level", log_level]
+    argv = [sys.executable, "-m", "services.cli.main", "run", service, "--endpoint", endpoint, "--namespace", ns, "--log-level", log_level]
     if config:
         argv += ["--config", config]
     return argv

@@ -41,10 +41,10 @@ from drivers.elmo import codec as c
 from onboard import messages as msgs
 from onboard.params import HardwareParams
 from onboard.topics import TOPICS, namespace, status_key
-from services.clock import WallClock
-from services.realtime import DeadlineLoop
-from services.runtime import StandInCommander, TypedPublisher
-from services.zenoh_session import free_endpoint, open_session
+from services.runtime.clock import WallClock
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import StandInCommander, TypedPublisher
+from services.runtime.zenoh_session import free_endpoint, open_session
 
 START_TIMEOUT_S = 30.0  # emulator + service start-up (configuration over SDO)
 STATUS_TIMEOUT_S = 5.0
@@ -150,7 +150,7 @@ def measure(args: argparse.Namespace) -> dict:
     endpoint = free_endpoint()
     ns = namespace()
     env = dict(os.environ, ARCHER_NAMESPACE=ns)
-    archer = [sys.executable, "-m", "services.cli"]
+    archer = [sys.executable, "-m", "services.cli.main"]
     emulator = subprocess.Popen(archer + ["emulate", "drives", "--rt-priority", str(EMULATOR_RT_PRIORITY)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     service = None
     config = None

@@ -22,7 +22,7 @@ from onboard.params import MessagingParams
 ENDPOINT_ENV = "ARCHER_ZENOH_ENDPOINT"
 CONFIG_ENV = "ARCHER_ZENOH_CONFIG"
 LOOPBACK = "127.0.0.1"
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "deploy" / "zenoh"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
 TCP_LISTEN = "0A"  # socket state in /proc/net/tcp
 
 Mode = Literal["router", "peer", "client"]

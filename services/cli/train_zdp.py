@@ -1,6 +1,6 @@
 """Train the neural Zero Dynamics Policy offline and write ``onboard/data/zdp_mlp.npz``.
 
-    python -m services.train_zdp [--samples 3000] [--steps 6000] [--out PATH]
+    python -m services.cli.train_zdp [--samples 3000] [--steps 6000] [--out PATH]
 
 What is regressed (thesis 2733-2745 trains with iLQR through the impact map; this is a
 cheaper relative of it, computable here): for each sampled impact-state error
@@ -33,7 +33,8 @@ import numpy as np
 from onboard import zdp
 from onboard.low_level import design_policy
 from onboard.params import ControlParams
-from services.control import DATA_DIR, hopper_model
+from robot_description.controller import DATA_DIR
+from robot_description.params import hopper_model
 
 HIDDEN = 256
 GRID_RINGS = 4  # polar grid: rings x spokes, plus the origin

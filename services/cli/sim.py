@@ -3,17 +3,17 @@
 ``--mode lockstep`` (default) steps physics and stack together on simulated time, as fast as the
 machine goes, deterministically per seed.
 
-``--mode realtime`` is software in the loop: the twin service (:mod:`sim_twin.twin_service`) runs in
+``--mode realtime`` is software in the loop: the twin service (:mod:`services.twin`) runs in
 this process paced to wall time, and every other service of the stack (``estimator``, ``control``,
 ``planner``; whichever ``archer run`` knows) runs as its own process (``archer run NAME``) on the
 same Zenoh endpoint, exactly as on the robot with the twin in place of the hardware. With
 ``--planner scenario`` (or ``auto`` in a scenario without obstacles) the scenario's own reference is
-published by :class:`sim_twin.twin_service.ScenarioReferenceService` instead of the planner.
+published by :class:`services.twin.ScenarioReferenceService` instead of the planner.
 
 ``--hardware archer-firmware`` (realtime) runs the robot as it is built: the twin sits behind
 emulated ARCHER boards (flywheel board with its attitude PD, foot board with its hop cycle; UDP,
 ``docs/archer_firmware_protocol.md``) and an OptiTrack NatNet stream of its pose, all on
-127.0.0.1 with free ports (:class:`sim_twin.twin_service.FirmwareTwinService`); the stack adds the
+127.0.0.1 with free ports (:class:`services.twin.FirmwareTwinService`); the stack adds the
 ``hardware`` service (``hardware.backend = "archer-firmware"``) and the ``mocap`` service, and
 control runs in attitude mode (``control.output = "attitude"``). The services get these settings
 (and the ports) in a generated config file next to ``--config``'s. The physics metrics are the
@@ -42,9 +42,9 @@ from typing import Any
 
 from drivers.udp import free_udp_port
 from onboard.params import with_overrides
-from services.config import ConfigError, load_params
-from services.runtime import EXIT_SIGINT
-from sim_twin import model as tm
+from robot_description import params as rd
+from services.runtime.config import ConfigError, load_params
+from services.runtime.service import EXIT_SIGINT
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.lockstep import RunConfig, run
@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the scenario's)")
     parser.add_argument("--mode", choices=MODES, default="lockstep",
                         help="lockstep: as fast as possible, deterministic; realtime: twin + services as processes, wall time")
-    parser.add_argument("--variant", choices=tm.VARIANTS, default=tm.DEFAULT_VARIANT, help="robot model variant")
+    parser.add_argument("--variant", choices=rd.VARIANTS, default=rd.DEFAULT_VARIANT, help="robot model variant")
     parser.add_argument("--estimator", choices=st.ESTIMATORS, default="kalman",
                         help="kalman: the onboard estimator on the twin's sensors; truth: the twin's true state")
     parser.add_argument("--planner", choices=st.PLANNERS, default="auto",
@@ -169,7 +169,7 @@ def run_lockstep(args: argparse.Namespace) -> dict:
 def _take_twin_priority() -> None:
     """This process runs the twin: give it the twin unit's scheduling before any thread
     starts, so that its Zenoh threads share it (the supervised services get their own)."""
-    from services.supervisor import apply_unit_scheduling, spec_from_unit
+    from services.runtime.supervisor import apply_unit_scheduling, spec_from_unit
 
     for what, detail in apply_unit_scheduling(spec_from_unit("twin", []), 0):
         log.warning("twin scheduling refused", extra={"fields": {"event": what, "detail": detail}})
@@ -202,7 +202,7 @@ class FirmwareRig:
             c = params["control"]
             self.firmware = with_overrides(self.firmware, {"kp_tilt": 2.0 * c.kp_tilt, "kp_yaw": 2.0 * c.kp_yaw,
                                                            "kd_tilt": c.kd_tilt, "kd_yaw": c.kd_yaw})
-        r = tm.robot_params(variant)
+        r = rd.robot_params(variant)
         foot = FootPhysics(r.total_mass, r.gravity, r.spring_stiffness, r.spool_radius, r.foot_travel)
         computer_port = free_udp_port()
         self.board = BoardEmulator(self.firmware, foot, (LOOPBACK, 0), (LOOPBACK, computer_port), time.monotonic,
@@ -232,12 +232,12 @@ class FirmwareRig:
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
-    from services.cmd_run import SERVICE_CLASSES
-    from services.runtime import exit_by_deadline, stop_signal_exit_code
-    from services.supervisor import Supervisor, sim_specs
-    from services.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
+    from services.cli.run import SERVICE_CLASSES
+    from services.runtime.service import exit_by_deadline, stop_signal_exit_code
+    from services.runtime.supervisor import Supervisor, sim_specs
+    from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.topics import namespace
-    from sim_twin.twin_service import FirmwareTwinService, ScenarioReferenceService, TwinService
+    from services.twin import FirmwareTwinService, ScenarioReferenceService, TwinService
 
     if args.estimator != "kalman" or args.controller != "lowlevel":
         raise ValueError("realtime mode runs the estimator and control services: --estimator kalman --controller lowlevel only")
@@ -296,7 +296,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
         if planner == "scenario":
             local.append(ScenarioReferenceService(ns=ns, endpoint=endpoint, params={"twin": twin_params}))
         tasks: list[asyncio.Task] = []
-        # Each service its own process under its systemd unit's policy (services/supervisor.py), a
+        # Each service its own process under its systemd unit's policy (services/runtime/supervisor.py), a
         # router first unless one serves the endpoint already; the twin's physics starts once all
         # are up, as a robot is switched on under a running stack.
         units = [n for n in wanted if n in SERVICE_CLASSES]

@@ -37,9 +37,9 @@ from onboard.binary_messages import ENCODING as BINARY_ENCODING
 from onboard.commander import UNKNOWN_COMMANDER, CommanderLatch
 from onboard.params import SECTIONS, as_dict, with_overrides
 from onboard.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
-from services import sd_notify
-from services.clock import Clock, WallClock
-from services.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_client_session, open_session
+from services.runtime import sd_notify
+from services.runtime.clock import Clock, WallClock
+from services.runtime.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_client_session, open_session
 
 JSON_ENCODING = "application/json"
 REJECT_LOG_INTERVAL_S = 1.0  # one log line per burst of rejections per topic

@@ -7,9 +7,9 @@ means the Linux abstract namespace). The runtime sends:
 - ``READY=1`` once ``setup()`` has returned, so units ordered ``After=`` it start
   only when its subscriptions and publishers exist;
 - ``WATCHDOG=1`` every half ``$WATCHDOG_USEC``, but only while
-  :meth:`services.runtime.Service.progress` says the service makes progress: a
+  :meth:`services.runtime.service.Service.progress` says the service makes progress: a
   wedged event loop or a stalled hard-rate thread stops the pings and systemd (or
-  :mod:`services.supervisor`) kills and restarts the service;
+  :mod:`services.runtime.supervisor`) kills and restarts the service;
 - ``STATUS=...``, a one-line summary shown by ``systemctl status``;
 - ``STOPPING=1`` on the way out.
 
@@ -22,10 +22,26 @@ import asyncio
 import os
 import socket
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from services.runtime import Service
+
+
+class Counts(Protocol):
+    def get(self, name: str) -> int: ...
+
+
+class Service(Protocol):
+    """What the notifier reads of a service (:class:`services.runtime.service.Service`); a
+    protocol, so that the service base imports this module and not the other way round."""
+
+    state: str
+    counters: Counts
+    last_error: str
+
+    def rates_hz(self) -> dict[str, float]: ...
+
+    def progress(self) -> bool: ...
+
 
 SOCKET_ENV = "NOTIFY_SOCKET"
 WATCHDOG_USEC_ENV = "WATCHDOG_USEC"

@@ -17,6 +17,7 @@ import time
 
 import mujoco
 
+from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin.lockstep import RunConfig, run
 
@@ -30,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _mj_step_us(steps: int = 5000) -> float:
     model = tm.load_model()
     data = mujoco.MjData(model)
-    data.qpos[2] = tm.robot_params().leg_length + 0.1  # drops and bounces: contacts come and go
+    data.qpos[2] = rd.robot_params().leg_length + 0.1  # drops and bounces: contacts come and go
     t0 = time.perf_counter()
     for _ in range(steps):
         mujoco.mj_step(model, data)

@@ -2,7 +2,7 @@
 
 Subscribes ``torque_cmd`` (latest value, from the one live commander: :meth:`Service.commands`) and, for its metrics only, ``reference``, ``state`` and
 ``contract``.
-A :class:`~services.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
+A :class:`~services.runtime.realtime.DeadlineLoop` thread runs at ``TwinParams.control_rate_hz``; every
 tick it:
 
 1. takes the newest torque command; one received more than ``SafetyLimits.command_stale_s`` ago,
@@ -40,8 +40,9 @@ import mujoco
 from onboard import messages as msgs
 from onboard.binary_messages import DepthImage, encode_depth
 from onboard.params import SafetyLimits, TwinParams, as_dict, with_overrides
-from services.realtime import DeadlineLoop
-from services.runtime import Service
+from robot_description import params as rd
+from services.runtime.realtime import DeadlineLoop
+from services.runtime.service import Service
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
@@ -62,7 +63,7 @@ def make_scenario(tp: TwinParams) -> sc.Scenario:
 def twin_safety(safety: SafetyLimits, variant: str) -> SafetyLimits:
     """The sim15nm variant runs with the thesis's raised wheel torque limit."""
     if variant == "sim15nm":
-        return with_overrides(safety, {"wheel_torque_max": tm.robot_params(variant).wheel_torque_peak})
+        return with_overrides(safety, {"wheel_torque_max": rd.robot_params(variant).wheel_torque_peak})
     return safety
 
 
@@ -84,7 +85,7 @@ class TwinService(Service):
     async def setup(self) -> None:
         tp: TwinParams = self.params["twin"]
         self.scenario = make_scenario(tp)
-        self.robot = tm.robot_params(tp.variant)
+        self.robot = rd.robot_params(tp.variant)
         self.safety = twin_safety(self.params["safety"], tp.variant)
         spec = tm.load_spec(tp.variant)
         self.scenario.build(spec)
@@ -291,8 +292,8 @@ class FirmwareTwinService(TwinService):
         self.board.body = BodyState()
         self.board.motors = [InertiaLoad() for _ in range(4)]  # positions and speeds written from the twin's sensors
         self.board.on_step = self._on_board_step
-        self._spool_dof = int(self.model.joint(tm.FOOT_MOTOR_JOINT).dofadr[0])
-        self._root_qp = int(self.model.joint(tm.ROOT_JOINT).qposadr[0])
+        self._spool_dof = int(self.model.joint(rd.FOOT_MOTOR_JOINT).dofadr[0])
+        self._root_qp = int(self.model.joint(rd.ROOT_JOINT).qposadr[0])
         self._ticks_per_frame = max(1, round(self.params["twin"].control_rate_hz / self.mocap.rate_hz))
         self._latency_ns = round(self.mocap.latency_s * NS)
 

@@ -1,0 +1,1 @@
+"""``archer bench SUBJECT``: one module per measured subject (``main`` dispatches)."""

@@ -1,0 +1,1 @@
+"""The ``archer`` command line: one module per command (``main`` dispatches)."""
