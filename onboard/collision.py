@@ -33,7 +33,6 @@ The numba kernels are compiled on first use and cached next to this module by nu
 from __future__ import annotations
 
 import math
-import os
 import types
 from dataclasses import dataclass
 
@@ -41,11 +40,6 @@ import numba as nb
 import numpy as np
 import osqp
 import scipy.sparse as sp
-
-# Idle OpenMP threads that spin steal the core the other thread needs on a small, shared
-# machine (a 2-thread cut took longer than a 1-thread one); passive waiting fixes that.
-# Must be set before numba starts its threads; an explicit setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 POLYGON_AREA_TOL = 1e-9  # [m^2] below this a polygon is degenerate
 VERTEX_MERGE_TOL = 1e-9  # [m] consecutive vertices closer than this are a repeated vertex

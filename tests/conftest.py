@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-import pytest
+from services.runtime.process_env import prepare_environment
 
-from services.runtime.zenoh_session import free_endpoint, open_session
+prepare_environment()  # as the archer entry point does, before a test module loads numba
+
+import pytest  # noqa: E402
+
+from services.runtime.zenoh_session import free_endpoint, open_session  # noqa: E402
 
 
 @pytest.fixture

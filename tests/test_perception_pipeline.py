@@ -213,14 +213,18 @@ def test_scene_to_polytopes_against_ground_truth(mode):
             centre = p.vertices.mean(axis=0)
             assert min(math.hypot(centre[0] - tx, centre[1] - ty) - r for tx, ty, r, _ in TREES) < 0.1
     else:
-        # No free polygon enters a trunk, seen side or not (lattice of points in each).
+        # No free polygon enters a trunk, seen side or not (lattice of points in each), beyond
+        # the grid's own resolution: a cell that a ray crosses beside a trunk is free although
+        # the trunk's disc clips its corner (a polygon may reach that corner; the planner's
+        # margin is more than a cell).
+        cell_diagonal = PARAMS.resolution_m * math.sqrt(2.0)
         for p in polys:
             xmin, ymin, xmax, ymax = p.bbox()
             gx, gy = np.meshgrid(np.arange(xmin, xmax, 0.005), np.arange(ymin, ymax, 0.005))
             pts = np.column_stack([gx.ravel(), gy.ravel()])
             pts = pts[p.contains(pts)]
             for tx, ty, r, _ in TREES:
-                assert np.all(np.hypot(pts[:, 0] - tx, pts[:, 1] - ty) >= r)
+                assert np.all(np.hypot(pts[:, 0] - tx, pts[:, 1] - ty) >= r - cell_diagonal)
         assert any(p.contains(np.array([[0.0, 0.0]]))[0] for p in polys)
         assert stats["groups"] == 1
 

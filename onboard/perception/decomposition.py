@@ -45,6 +45,7 @@ import numpy as np
 
 from onboard.params import PerceptionParams
 from onboard.perception import _kernels as K
+from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon
 
 FLIP_RADIUS_FACTOR = 3.0  # R of the sphere flip, relative to the farthest point (Katz et al.)
@@ -52,7 +53,6 @@ MARGIN_CELLS = 1e-6  # halfplanes stop this short of a blocked square [cells]
 ELLIPSE_REGULARISATION_CELLS = 1.0  # keeps a one-cell-wide cluster's ellipse from collapsing
 INTERIOR_TOL_CELLS = 1e-3  # "strictly inside": a cell centre this far within every face
 OVERLAP_TOL_CELLS = 1e-6  # polygons share more than this to count as overlapping
-_KMEANS_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
 
 
 @dataclass
@@ -261,9 +261,7 @@ def _kmeans_label_image(target: np.ndarray, k: int, params: PerceptionParams) ->
         block_labels = np.zeros(len(br), dtype=np.int32)
     else:
         pts = np.column_stack([(bc + 0.5) * f, (br + 0.5) * f]).astype(np.float32)
-        cv2.setRNGSeed(params.seed)
-        _, block_labels, _ = cv2.kmeans(pts, k, None, _KMEANS_CRITERIA, 1, cv2.KMEANS_PP_CENTERS)
-        block_labels = block_labels.ravel()
+        block_labels = kmeans_labels(pts, k, np.random.default_rng(params.seed))
     coarse = np.full((rc, cc_), -1, dtype=np.int64)
     coarse[br, bc] = block_labels
     full = np.repeat(np.repeat(coarse, f, axis=0), f, axis=1)[:rows, :cols]

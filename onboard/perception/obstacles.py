@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 
 from onboard.params import PerceptionParams
+from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon
 
 _SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.int32)
-_KMEANS_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.1)
 
 
 def obstacles_from_mask(
@@ -40,11 +40,11 @@ def obstacles_from_mask(
     order = np.argsort(lab, kind="stable")
     groups = np.split(order, np.cumsum(np.bincount(lab, minlength=n))[:-1])[1:]
     cells = np.column_stack([cc, rr]).astype(np.int32)  # lower-left corners, cell units
-    cv2.setRNGSeed(params.seed)
+    rng = np.random.default_rng(params.seed)
     pieces: list[np.ndarray] = []
     budget = params.obstacles_max - len(groups)
     for g in groups:
-        budget = _split(cells[g], params, params.obstacle_split_depth, budget, pieces)
+        budget = _split(cells[g], params, params.obstacle_split_depth, budget, pieces, rng)
     o = np.asarray(origin, dtype=float)
     out = []
     for corners in pieces:
@@ -62,16 +62,16 @@ def _squares_hull_area(cells: np.ndarray) -> float:
     return float(cv2.contourArea(hull)) + float(hi[0] - lo[0]) + float(hi[1] - lo[1]) + 1.0
 
 
-def _split(cells: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray]) -> int:
+def _split(cells: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray],
+           rng: np.random.Generator) -> int:
     """Append ``cells`` (int lower-left corners) or its K-means halves to ``out``; returns the budget left."""
     if depth > 0 and budget > 0 and len(cells) >= params.obstacle_split_min_cells:
         if len(cells) < params.obstacle_solidity_min * _squares_hull_area(cells):
-            _, lab, _ = cv2.kmeans(cells.astype(np.float32), 2, None, _KMEANS_CRITERIA, 1, cv2.KMEANS_PP_CENTERS)
-            lab = lab.ravel()
+            lab = kmeans_labels(cells, 2, rng)
             if 0 < int(lab.sum()) < len(lab):
                 budget -= 1
-                budget = _split(cells[lab == 0], params, depth - 1, budget, out)
-                return _split(cells[lab == 1], params, depth - 1, budget, out)
+                budget = _split(cells[lab == 0], params, depth - 1, budget, out, rng)
+                return _split(cells[lab == 1], params, depth - 1, budget, out, rng)
     out.append(cells)
     return budget
 

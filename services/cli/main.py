@@ -13,6 +13,8 @@ import argparse
 import importlib
 import sys
 
+from services.runtime.process_env import prepare_environment
+
 COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
     "run": ("services.cli.run", "run one service until SIGINT/SIGTERM"),
@@ -54,6 +56,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    prepare_environment()  # before a command's module loads numba
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(argv).parse_args(argv)
     try:
