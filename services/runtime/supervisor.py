@@ -46,6 +46,7 @@ from typing import IO
 
 from services.runtime.realtime import make_realtime
 
+STDERR_FD = 2
 log = logging.getLogger("archer.supervisor")
 
 UNIT_DIR = Path(__file__).resolve().parents[2] / "deploy" / "systemd"
@@ -362,8 +363,11 @@ class Supervisor:
             if unit.log_file is None:
                 unit.log_file = open(self._log_dir / f"{spec.name}.log", "ab")
             out = unit.log_file
+        # without a log file a unit's stdout joins our stderr: our stdout is the caller's report
+        # (`archer sim --json`), and a library in a unit may print (the NatNet client does)
         unit.proc = subprocess.Popen(
-            list(spec.argv), env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out, start_new_session=True
+            list(spec.argv), env=env, stdin=subprocess.DEVNULL, stdout=out if out is not None else STDERR_FD, stderr=out,
+            start_new_session=True
         )
         unit.pidfd = _pidfd(unit.proc.pid)
         self._apply_scheduling(unit)
