@@ -50,8 +50,10 @@ from onboard.topics import TOPICS
 from robot_description.controller import build_controller
 from services.runtime.clock import WallClock
 from services.runtime.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
-from services.runtime.service import LatestSlot, Service, TypedPublisher
+from services.runtime.service import LatestSlot, Service, TypedPublisher, check_publisher
 from services.runtime.zenoh_session import open_session
+
+LOOP_READS = ("state", "reference", "joints")  # what the loop process subscribes to (latest values)
 
 STATS_PERIOD_S = 0.5  # child -> parent report period [s]
 START_TIMEOUT_S = 30.0  # building the controller (linearization) and opening Zenoh [s]
@@ -88,10 +90,10 @@ class ControlLoop:
         self.session = open_session(cfg.endpoint, "peer", cfg.zenoh_config)
         self.rejected: dict[str, int] = {}
         self.received: dict[str, int] = {}
-        self.slots = {name: self._latest(name) for name in ("state", "reference", "joints")}
+        self.slots = {name: self._latest(name) for name in LOOP_READS}
         self.attitude_mode = cfg.control.output == "attitude"
         self.command_topic = "attitude_cmd" if self.attitude_mode else "torque_cmd"
-        self.pubs = {name: TypedPublisher(self.session, TOPICS[name], cfg.ns, self.clock)
+        self.pubs = {name: TypedPublisher(self.session, check_publisher(ControlService.name, name), cfg.ns, self.clock)
                      for name in (self.command_topic, "phase", "safety", "tube")}
         self._tube_every = max(1, int(cfg.control.tube_period_s * cfg.control.rate_hz))
         self._ticks = 0
@@ -347,6 +349,7 @@ class LoopProcess:
 class ControlService(Service):
     name: ClassVar[str] = "control"
     params_sections: ClassVar[tuple[str, ...]] = ("control", "safety")
+    subscribes: ClassVar[tuple[str, ...]] = LOOP_READS  # read by the loop process
     # parameter state, read by the parameter queryable from the moment run() declares it
     _loop_proc: LoopProcess | None = None
     _restart_pending = False  # a restart for new parameters is accepted and not done yet

@@ -45,6 +45,7 @@ INPUTS = ("imu", "joints", "pose")
 class EstimatorService(Service):
     name: ClassVar[str] = "estimator"
     params_sections: ClassVar[tuple[str, ...]] = ("estimator",)
+    subscribes: ClassVar[tuple[str, ...]] = INPUTS
 
     async def setup(self) -> None:
         p: EstimatorParams = self.params["estimator"]

@@ -276,6 +276,7 @@ class CommandGate:
 class HardwareService(Service):
     name = "hardware"
     params_sections = ("hardware", "safety", "archer_firmware")
+    subscribes = ("torque_cmd", "attitude_cmd")
 
     def __init__(self, *args: Any, backend: Backend | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)

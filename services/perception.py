@@ -34,6 +34,7 @@ def to_message(poly: ConvexPolygon) -> m.Polytope:
 class PerceptionService(Service):
     name = "perception"
     params_sections = ("perception",)
+    subscribes = ("depth", "state", "goal")
 
     async def setup(self) -> None:
         self.view = self._new_view()

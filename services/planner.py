@@ -143,6 +143,7 @@ def polygons_from_message(msg: msgs.PolytopeSet) -> list[np.ndarray]:
 class PlannerService(Service):
     name = "planner"
     params_sections = ("planner",)
+    subscribes = ("goal", "polytopes", "state", "tube")
 
     def __init__(self, *, robot_radius: float | None = None, cache_dir: Path | None | bool = True, **kw: Any) -> None:
         super().__init__(**kw)

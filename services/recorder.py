@@ -46,7 +46,7 @@ from onboard import messages as m
 from onboard.params import RecorderParams
 from onboard.topics import TOPICS, Topic, all_keys, status_key, topic_for_key
 from services.runtime.peers import live_services, query_status
-from services.runtime.service import Service
+from services.runtime.service import EVERY_TOPIC, Service
 
 BINARY_ENCODING = "archer-binary-v1"  # MCAP message encoding of onboard.binary_messages layouts
 METADATA_NAME = "archer.recorder"
@@ -245,6 +245,7 @@ def default_directory(params: RecorderParams) -> Path:
 class RecorderService(Service):
     name = "recorder"
     params_sections = ("recorder",)
+    subscribes = EVERY_TOPIC
 
     async def setup(self) -> None:
         params: RecorderParams = self.params["recorder"]

@@ -70,6 +70,7 @@ def twin_safety(safety: SafetyLimits, variant: str) -> SafetyLimits:
 class TwinService(Service):
     name = "twin"
     params_sections = ("twin", "safety")
+    subscribes = ("torque_cmd", "reference", "state", "contract")
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)

@@ -235,4 +235,5 @@ class PhysicsMetrics:
             "wheel_speed_over_limit_ticks": self.wheel_over_limit,
             "torque_saturation_fraction": round(actuation.saturation_fraction, 5),
             "commands_refused": {k: v for k, v in actuation.counters.items() if k != "applied" and v},
+            "world": self.scenario.world_summary(),
         }

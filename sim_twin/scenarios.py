@@ -178,6 +178,10 @@ class Scenario:
         """Where the robot should end: the goal, or the start for in-place scenarios."""
         return self.goal_xy if self.goal_xy is not None else self.start
 
+    def world_summary(self) -> dict:
+        """What was placed (for a run's report)."""
+        return {"obstacles": len(self.obstacles), "goal": list(self.goal_xy) if self.goal_xy is not None else None}
+
     def reference(self, t_ref_ns: int = 0) -> m.ComReference:
         hold = self.goal_xy is None and len(self.segments) == 1 and len(self.segments[0].control_points) == 1
         return m.ComReference(t_ref_ns=t_ref_ns, segments=list(self.segments), hold=hold)
@@ -344,26 +348,51 @@ class Ramp(Scenario):
 @register
 class Forest(Scenario):
     name = "forest"
-    description = "random convex obstacles between the start and a goal beyond them (--obstacles N)"
+    description = ("random convex obstacles between the start and a goal beyond them (--obstacles N; a count "
+                   "the field cannot hold at the minimum gap grows the field, and the goal moves beyond it)")
     default_duration_s = 60.0
     DEFAULT_COUNT = 10
     REGION = ((0.8, 5.0), (-1.5, 1.5))  # [m] x and y range of obstacle centres
     BLOCKER_X = (2.0, 4.0)  # [m] x range of the first obstacle, placed on the start-goal line
     RADIUS = (0.15, 0.35)  # [m] circumradius range
     GAP = 0.45  # [m] minimum free gap between obstacles (the robot is 0.26 m wide)
-    GOAL = (6.0, 0.0)
+    GOAL_BEYOND = 1.0  # [m] the goal stands this far past the field's far edge, on the x axis
+    PLACEMENT_TRIES = 20000  # random centres tried in one field before it grows
+    FIELD_GROWTH = 1.1  # each growth stretches the field's length and width by this
+    FIELD_GROWTHS_MAX = 20
+    COUNT_MAX = 200  # a forest, not a wall: the field holds this many within its growths
 
     def setup(self, obstacles: int | None) -> None:
         count = self.DEFAULT_COUNT if obstacles is None else obstacles
-        if count < 0:
-            raise ValueError("obstacle count must be >= 0")
+        if not 0 <= count <= self.COUNT_MAX:
+            raise ValueError(f"forest obstacle count must be within 0..{self.COUNT_MAX}, got {count}")
+        region = self.REGION
+        for _ in range(self.FIELD_GROWTHS_MAX + 1):
+            placed = self._place(count, region)
+            if placed is not None:
+                break
+            (x0, x1), (y0, y1) = region
+            region = ((x0, x0 + (x1 - x0) * self.FIELD_GROWTH), (y0 * self.FIELD_GROWTH, y1 * self.FIELD_GROWTH))
+        else:
+            raise ValueError(f"cannot place {count} obstacles with {self.GAP} m gaps even in a field "
+                             f"{self.FIELD_GROWTH}^{self.FIELD_GROWTHS_MAX} times the default")
+        self.region = region
+        self.obstacles = placed
+        self.goal_xy = (round(region[0][1] + self.GOAL_BEYOND, 6), 0.0)
+        # the default duration covers the default walk; a grown field's longer walk takes longer
+        self.default_duration_s = type(self).default_duration_s * self.goal_xy[0] / (self.REGION[0][1] + self.GOAL_BEYOND)
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+    def _place(self, count: int, region: tuple[tuple[float, float], tuple[float, float]]) -> list[Obstacle] | None:
+        """``count`` obstacles in ``region`` at least ``GAP`` apart, or None when they do not fit."""
         placed: list[tuple[float, float, float]] = []
-        (x0, x1), (y0, y1) = self.REGION
+        out: list[Obstacle] = []
+        (x0, x1), (y0, y1) = region
         tries = 0
         while len(placed) < count:
             tries += 1
-            if tries > 20000:
-                raise ValueError(f"cannot place {count} obstacles with {self.GAP} m gaps in the forest region")
+            if tries > self.PLACEMENT_TRIES:
+                return None
             r = float(self.rng.uniform(*self.RADIUS))
             if not placed:  # the first one stands on the straight line to the goal: a path must go around
                 cx, cy = float(self.rng.uniform(*self.BLOCKER_X)), float(self.rng.uniform(-0.05, 0.05))
@@ -376,9 +405,14 @@ class Forest(Scenario):
             nv = int(self.rng.integers(3, 7)) if len(placed) > 1 else 6  # the blocker: a fat hexagon
             ang = (np.arange(nv) + self.rng.uniform(-0.3, 0.3, nv)) * (2 * math.pi / nv) + self.rng.uniform(0, 2 * math.pi)
             pts = np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1)
-            self.obstacles.append(Obstacle(_ccw_hull(pts)))
-        self.goal_xy = self.GOAL
-        self.segments = straight_reference(self.start, self.goal_xy)
+            out.append(Obstacle(_ccw_hull(pts)))
+        return out
+
+    def world_summary(self) -> dict:
+        (x0, x1), (y0, y1) = self.region
+        area = (x1 - x0) * (y1 - y0)
+        return {**super().world_summary(), "field_m": [[round(x0, 3), round(x1, 3)], [round(y0, 3), round(y1, 3)]], "min_gap_m": self.GAP,
+                "obstacles_per_m2": round(len(self.obstacles) / area, 3)}
 
 
 @register

@@ -14,7 +14,7 @@ import zenoh
 
 from deploy import zenoh_configs as zc
 from services.cli.deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
-from services.cli.run import SERVICE_CLASSES
+from services.table import SERVICES
 from services.runtime.config import load_params
 from onboard.params import ControlParams, EstimatorParams, HardwareParams
 from services.runtime.supervisor import parse_unit, spec_from_unit
@@ -52,7 +52,7 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
         assert {"AF_UNIX", "AF_INET"} <= set(families)
         assert ("AF_CAN" in families) == (service == "hardware")  # only the drives' bus
         exec_start = one(unit, "Service", "ExecStart").split()
-        assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICE_CLASSES
+        assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICES
         assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
         raises_itself = service in ("control", "estimator", "hardware")  # the 1 kHz loops and the bus master
         fifo_by_systemd = service == "twin"  # the hardware's stand-in

@@ -71,7 +71,7 @@ def test_seed_changes_every_random_choice() -> None:
     a, b, c = sc.make("forest", seed=5), sc.make("forest", seed=5), sc.make("forest", seed=6)
     assert a.obstacles == b.obstacles and a.obstacles != c.obstacles
     assert len(sc.make("forest", seed=2, obstacles=4).obstacles) == 4
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="within 0..200"):
         sc.make("forest", seed=0, obstacles=500)
     for seed in range(20):  # the first forest obstacle blocks the straight line to the goal
         ys = [v[1] for v in sc.make("forest", seed=seed).obstacles[0].vertices]
@@ -80,6 +80,25 @@ def test_seed_changes_every_random_choice() -> None:
     assert sc.make("setpoint", seed=0).goal_xy == (2.0, 0.0)
     g = sc.make("setpoint", seed=9).goal_xy
     assert math.hypot(*g) == pytest.approx(2.0) and g != (2.0, 0.0)
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+def test_a_dense_forest_is_placed_whole_in_a_grown_field_and_reported(factor: int) -> None:
+    default = sc.make("forest", seed=4)
+    for seed in range(5):
+        f = sc.make("forest", seed=seed, obstacles=factor * sc.Forest.DEFAULT_COUNT)
+        world = f.world_summary()
+        assert world["obstacles"] == len(f.obstacles) == factor * sc.Forest.DEFAULT_COUNT
+        # denser than the default forest, and the goal beyond the field, reached in proportion
+        assert world["obstacles_per_m2"] > default.world_summary()["obstacles_per_m2"]
+        (x0, x1), (y0, y1) = world["field_m"]
+        assert f.goal_xy[0] > x1 and f.default_duration_s > default.default_duration_s
+        centres = [np.mean(ob.vertices, axis=0) for ob in f.obstacles]
+        assert all(x0 - 0.4 <= cx <= x1 + 0.4 and y0 - 0.4 <= cy <= y1 + 0.4 for cx, cy in centres)
+        for i, a in enumerate(f.obstacles):  # the minimum gap holds (circumradius bound)
+            for b in f.obstacles[i + 1:]:
+                gap = min(math.dist(p, q) for p in a.vertices for q in b.vertices)
+                assert gap >= sc.Forest.GAP - 1e-9
 
 
 def test_terrain_heights() -> None:

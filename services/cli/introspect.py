@@ -1,4 +1,4 @@
-"""``archer topics``, ``archer echo`` and ``archer status``: look at a running stack."""
+"""``archer topics``, ``archer services``, ``archer echo`` and ``archer status``: the tables, and a running stack."""
 
 from __future__ import annotations
 
@@ -47,11 +47,30 @@ def run_topics(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(rows))
         return 0
-    print(f"{'name':<13}{'key':<34}{'type':<17}{'rate':>6}  {'publishers':<20}{'qos'}")
+    print(f"{'name':<13}{'key':<34}{'type':<17}{'rate':>6}  {'publishers':<24}{'qos'}")
     for r in rows:
         qos = f"{r['reliability']}/{r['congestion']}/{r['priority']}"
         rate = f"{r['rate_hz']:g}" if r["rate_hz"] else "event"
-        print(f"{r['name']:<13}{r['key']:<34}{r['type']:<17}{rate:>6}  {','.join(r['publishers']):<20}{qos}")
+        print(f"{r['name']:<13}{r['key']:<34}{r['type']:<17}{rate:>6}  {','.join(r['publishers']):<24}{qos}")
+    return 0
+
+
+def add_services_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true")
+
+
+def run_services(args: argparse.Namespace) -> int:
+    from services.table import SERVICES
+
+    rows = [row.describe() for row in SERVICES.values()]
+    if args.json:
+        print(json.dumps(rows))
+        return 0
+    for r in rows:
+        where = "robot" if r["on_robot"] else "sim"
+        print(f"{r['process']:<19}{where:<6}{r['unit'] or '-':<27}{r['class']}")
+        print(f"{'':<19}params {', '.join(r['params']) or '-'}; reads {', '.join(r['subscribes']) or '-'}; "
+              f"writes {', '.join(r['publishes']) or '-'}")
     return 0
 
 

@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
     "run": ("services.cli.run", "run one service until SIGINT/SIGTERM"),
     "topics": ("services.cli.introspect", "print the topic table"),
+    "services": ("services.cli.introspect", "print the service table: class, unit, parameters, what each reads and writes"),
     "echo": ("services.cli.introspect", "print decoded live messages of one topic"),
     "status": ("services.cli.introspect", "list live services and their status"),
     "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),

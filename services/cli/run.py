@@ -9,7 +9,6 @@ units, sets nothing).
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import signal
 import sys
@@ -18,28 +17,14 @@ from services.runtime.config import ConfigError, load_params
 from services.runtime.realtime import die_with_parent
 from services.runtime.service import Service, add_service_arguments, run_service, setup_logging
 from services.runtime.supervisor import SUPERVISOR_PID_ENV
-
-SERVICE_CLASSES: dict[str, str] = {
-    "twin": "services.twin:TwinService",
-    "scenario_reference": "services.twin:ScenarioReferenceService",
-    "perception": "services.perception:PerceptionService",
-    "router": "services.runtime.router:RouterService",
-    "hardware": "services.hardware:HardwareService",
-    "mocap": "services.mocap:MocapService",
-    "control": "services.control:ControlService",
-    "planner": "services.planner:PlannerService",
-    "estimator": "services.estimator:EstimatorService",
-    "recorder": "services.recorder:RecorderService",
-}
-
+from services.table import SERVICES
 
 def service_class(name: str) -> type[Service]:
-    module_name, _, class_name = SERVICE_CLASSES[name].partition(":")
-    return getattr(importlib.import_module(module_name), class_name)
+    return SERVICES[name].service_class()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("service", choices=sorted(SERVICE_CLASSES))
+    parser.add_argument("service", choices=sorted(SERVICES))
     add_service_arguments(parser)
 
 

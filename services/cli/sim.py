@@ -232,7 +232,7 @@ class FirmwareRig:
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
-    from services.cli.run import SERVICE_CLASSES
+    from services.table import SERVICES
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
     from services.runtime.supervisor import Supervisor, sim_specs
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
@@ -266,10 +266,10 @@ def run_realtime(args: argparse.Namespace) -> dict:
             wanted = [*FIRMWARE_SERVICES, *wanted]
     else:
         wanted = [s for s in args.services.split(",") if s and s != "none"]
-        unknown = [s for s in wanted if s not in SERVICE_CLASSES]
+        unknown = [s for s in wanted if s not in SERVICES]
         if unknown:
-            raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICE_CLASSES)}")
-    missing = [s for s in wanted if s not in SERVICE_CLASSES]
+            raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICES)}")
+    missing = [s for s in wanted if s not in SERVICES]
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
     _take_twin_priority()
@@ -299,7 +299,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
         # Each service its own process under its systemd unit's policy (services/runtime/supervisor.py), a
         # router first unless one serves the endpoint already; the twin's physics starts once all
         # are up, as a robot is switched on under a running stack.
-        units = [n for n in wanted if n in SERVICE_CLASSES]
+        units = [n for n in wanted if n in SERVICES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
         sup = Supervisor(sim_specs(units, endpoint, ns, rig.config_path if rig is not None else args.config))
         wall0 = time.perf_counter()

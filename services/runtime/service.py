@@ -233,11 +233,24 @@ class TypedPublisher(Generic[M]):
         self._pub.undeclare()
 
 
+EVERY_TOPIC = ("*",)  # Service.subscribes of a service that reads every topic (the flight recorder)
+
+
+def check_publisher(service: str, topic_name: str) -> Topic:
+    """The topic, if ``service`` is one of its publishers in the topic table; the robot's
+    access control (generated from the same column) would deny anything else."""
+    topic = TOPICS[topic_name]
+    if service not in topic.publishers:
+        raise ValueError(f"{service} may not publish {topic_name!r}: the topic table lists {list(topic.publishers)}")
+    return topic
+
+
 class Service:
     """Base class of every service; see the module docstring."""
 
     name: ClassVar[str] = "service"
     params_sections: ClassVar[tuple[str, ...]] = ()
+    subscribes: ClassVar[tuple[str, ...]] = ()  # the topics it reads (EVERY_TOPIC: all); a subscription to another is refused
     zenoh_mode: ClassVar[Mode] = "peer"
 
     def __init__(
@@ -313,7 +326,7 @@ class Service:
     # --- messaging ----------------------------------------------------------------
 
     def publisher(self, topic_name: str) -> TypedPublisher:
-        pub = TypedPublisher(self.session, TOPICS[topic_name], self.ns, self.clock)
+        pub = TypedPublisher(self.session, check_publisher(self.name, topic_name), self.ns, self.clock)
         self._declared.append(pub)
         return pub
 
@@ -334,13 +347,19 @@ class Service:
             total = self.counters.get(counter)
             self.log.warning("rejected message", extra={"fields": {"topic": topic.name, "error": str(exc), "counter": counter, "rejected_total": total}})
 
+    def _reads(self, topic_name: str) -> Topic:
+        if self.subscribes != EVERY_TOPIC and topic_name not in self.subscribes:
+            raise ValueError(f"{self.name} subscribes to {topic_name!r}, which its declared reads {list(self.subscribes)} "
+                             "do not list (Service.subscribes, shown by `archer services`)")
+        return TOPICS[topic_name]
+
     def on_message(self, topic_name: str, deliver: Callable[[Any], None]) -> None:
         """Call ``deliver(msg)`` on a Zenoh thread for every message that decodes.
 
         ``deliver`` must not block (append to a deque, fill a slot, hand over to a
         loop). Rejected payloads are counted and logged here, never delivered.
         """
-        topic = TOPICS[topic_name]
+        topic = self._reads(topic_name)
         decode = self._decoder(topic)
         rate = self.rate(f"rx.{topic_name}")
 
@@ -369,7 +388,7 @@ class Service:
         payload that fails to decode is counted and logged as usual, and the read
         returns the last good value.
         """
-        topic = TOPICS[topic_name]
+        topic = self._reads(topic_name)
         rate = self.rate(f"rx.{topic_name}")
         slot = LazyLatestSlot(self._decoder(topic), lambda exc: self._reject(topic, exc))
 

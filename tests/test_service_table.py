@@ -1,0 +1,50 @@
+"""The service table (services/table.py): every process has a row, every robot unit a
+process, and the runtime holds each service to what its row says it reads and writes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from onboard.topics import TOPICS
+from services.runtime.clock import WallClock
+from services.runtime.service import EVERY_TOPIC, Service
+from services.runtime.supervisor import parse_unit
+from services.table import SERVICES
+
+UNITS = Path(__file__).resolve().parent.parent / "deploy" / "systemd"
+
+
+def test_every_unit_runs_a_row_and_every_row_with_a_unit_has_one():
+    unit_files = {p.name for p in UNITS.glob("*.service")}
+    rows_with_units = {row.unit for row in SERVICES.values() if row.unit}
+    assert unit_files == rows_with_units
+    for row in SERVICES.values():
+        if row.unit:
+            exec_start = parse_unit((UNITS / row.unit).read_text())["Service"]["ExecStart"][-1].split()
+            assert exec_start[1:3] == ["run", row.process], row.unit
+
+
+@pytest.mark.parametrize("process", sorted(SERVICES))
+def test_each_row_reads_and_writes_known_topics(process):
+    row = SERVICES[process].describe()
+    cls = SERVICES[process].service_class()
+    assert cls.subscribes == EVERY_TOPIC or set(cls.subscribes) <= set(TOPICS)
+    assert set(row["publishes"]) <= set(TOPICS)
+    assert row["params"] == list(cls.params_sections)
+
+
+class _Planner(Service):
+    name = "planner"
+    subscribes = ("goal",)
+
+
+def test_the_runtime_refuses_a_publisher_or_a_subscription_the_row_does_not_list():
+    service = _Planner(ns="archer/test_table", endpoint="tcp/127.0.0.1:1", params={}, clock=WallClock())
+    with pytest.raises(ValueError, match="planner may not publish 'torque_cmd'"):
+        service.publisher("torque_cmd")  # the access control would deny it on the robot
+    with pytest.raises(ValueError, match="planner subscribes to 'imu'"):
+        service.on_message("imu", lambda msg: None)
+    with pytest.raises(ValueError, match="planner subscribes to 'state'"):
+        service.latest_sampled("state")
