@@ -229,7 +229,7 @@ class EstimatorParams(_Section):
     rt_priority: RtPriority = 75  # SCHED_FIFO priority of the estimator's loop thread (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop thread is pinned to (-1: no pinning)
     robot: Name = "indoor"  # MJCF variant the robot's parameters are read from (robot_description/models)
-    input_queue: Annotated[int, within(1, 65536)] = 256  # sensor messages buffered between two ticks; the oldest dropped beyond
+    input_queue: Annotated[int, within(1, 65536)] = 256  # sensor messages of each input topic buffered between two ticks (Zenoh ring buffer); the oldest dropped beyond
     # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
     pose_delay_s: Annotated[float, within(0.0, 0.25)] = 0.025  # [s] fusion horizon: covers the pose sensor's latency (0.25 s attitude history)
     compensate_latency: bool = True  # False: fuse each pose as if it were current
@@ -578,7 +578,7 @@ SECTIONS: dict[str, type] = {
 NEEDS_RESTART: dict[str, frozenset[str]] = {
     "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "policy", "mlp_weights", "hop_height",
                           "zdp_q_pos", "zdp_q_vel", "zdp_q_tilt", "zdp_r", "tube_window"}),
-    "estimator": frozenset({"rate_hz", "rt_priority", "cpu"}),
+    "estimator": frozenset({"rate_hz", "rt_priority", "cpu", "input_queue"}),
 }
 
 

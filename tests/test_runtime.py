@@ -25,7 +25,8 @@ TIMEOUT_S = 10.0
 class RelayService(Service):
     """Relays IMU gyro z into a torque command: enough to exercise every runtime path."""
 
-    name = "relay"
+    name = "control"  # a torque commander: its row in the topic table may publish torque_cmd
+    subscribes = ("imu",)
     params_sections = ("safety",)
 
     async def setup(self) -> None:
@@ -77,19 +78,19 @@ def test_service_relays_rejects_and_reports(zenoh_router):
 
             async def token_seen() -> bool:
                 names[:] = await asyncio.to_thread(live_services, client, NS)
-                return "relay" in names
+                return "control" in names
 
             for _ in range(10):
                 if await token_seen():
                     break
-            assert "relay" in names
-            status = await asyncio.to_thread(query_status, client, NS, "relay")
+            assert "control" in names
+            status = await asyncio.to_thread(query_status, client, NS, "control")
             assert status.state == "running"
             assert status.counters["relayed"] == 2 and status.counters["rejected.imu"] == 6
 
             # parameters: a valid set applies, an invalid one is refused whole
             def ask(payload: bytes) -> m.ParamReply:
-                replies = list(client.get(params_key(NS, "relay"), payload=payload, timeout=5.0))
+                replies = list(client.get(params_key(NS, "control"), payload=payload, timeout=5.0))
                 return msgspec.json.decode(replies[0].ok.payload.to_bytes(), type=m.ParamReply)
 
             reply = await asyncio.to_thread(ask, b'{"set": {"safety.wheel_torque_max": 1.0}}')
@@ -106,7 +107,7 @@ def test_service_relays_rejects_and_reports(zenoh_router):
             # the token is gone once the service stopped
             names = await asyncio.to_thread(live_services, client, NS)
             client.close()
-        assert "relay" not in names
+        assert "control" not in names
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
 
