@@ -6,7 +6,7 @@ bounded per axis (``PlannerParams.v_max``, ``a_max``).
 
 Pipeline (Algorithm 3):
 
-1. **Build** (:func:`build_graph`): ``N`` nodes over position and velocity (uniform
+1. **Build** (:func:`onboard.bezier_graph.build_graph`): ``N`` nodes over position and velocity (uniform
    random or grid), plus a lattice of nodes at rest (``rest_grid``: between two resting
    nodes the curve is a straight segment, so narrow gaps are passable stop-and-go);
    candidate pairs come from a k-d tree over positions and velocities
@@ -15,14 +15,14 @@ Pipeline (Algorithm 3):
    the Bezier reachability test ``F [x_i; x_j] <= G`` of :mod:`onboard.reachability`
    holds (Theorem 6.2). Each edge carries its position control points and its cost,
    the path-length bound of Property 2.49. The graph depends only on
-   :class:`GraphSpec`; :meth:`GraphSpec.key` names it for an on-disk cache, and
+   :class:`~onboard.bezier_graph.GraphSpec`; :meth:`GraphSpec.key` names it for an on-disk cache, and
    :meth:`BezierGraph.to_arrays` / :meth:`BezierGraph.from_arrays` convert it for the
    caller, who does the file I/O.
 2. **Cut** (:mod:`onboard.collision`): edges whose control-point hull comes within
    ``robot_radius + tube`` of a convex obstacle are removed (exact separating-axis
    test), or, with free cells, edges not inside one cell. Edges leaving the planning
    region are removed too.
-3. **Search** (:func:`search`): A* (admissible straight-line heuristic) over the
+3. **Search** (:func:`onboard.bezier_graph.search`): A* (admissible straight-line heuristic) over the
    path-length bound plus ``time_weight`` times each segment's duration (0 is the
    thesis's cost; a little of it stops the search from preferring slow, short paths) from the
    current state to the goal at rest. The start is the state itself, joined to the
@@ -58,409 +58,40 @@ and :meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O, n
 
 from __future__ import annotations
 
-import hashlib
-import heapq
-import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 
 import msgspec
-import numba as nb
 import numpy as np
 from scipy.spatial import cKDTree
 
 from onboard import bezier as bz
-from onboard.bezier_mpc import BezierMpc, MpcWeights
 from onboard import collision as col
 from onboard import messages as msgs
 from onboard import reachability as reach
+from onboard.bezier_graph import (
+    DIM,
+    PRUNE_SLACK,
+    BezierGraph,
+    GraphSpec,
+    PlanningError,
+    SearchResult,
+    build_graph,
+    chain_tail,
+    path_states,
+    reach_scale,
+    search,
+    spec_from_params,
+)
+from onboard.bezier_mpc import BezierMpc, MpcWeights
 from onboard.params import PlannerParams
 
-GRAPH_FORMAT = 1  # bump when the arrays or the build change meaning (invalidates caches)
-GAMMA = 2  # relative degree of the double integrator
-DIM = 2  # horizontal plane
-PRUNE_SLACK = 1e-9  # relative slack on the k-d tree radius (pairs exactly at the reach)
-SAMPLING = ("uniform", "grid")
 MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
 START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its clearance less this
-MAX_LATTICE = 200_000  # rest-lattice nodes at most (memory)
 # MPC cost (eq. 7.2): stay near the graph path, but prefer a shorter, smoother curve
 # (thesis: "path length cost was scaled significantly higher than tracking cost").
 MPC_WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
 MPC_MIN_RADIUS = 2e-4  # [m, m/s] initial-state radii below this become equalities (MPC margin)
-
-
-class PlanningError(ValueError):
-    """Invalid planner input (bad obstacle, state outside the planning model, ...)."""
-
-
-# --- graph --------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class GraphSpec:
-    """Everything that shapes a graph; two equal specs give the same graph."""
-
-    bounds: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax of node positions [m]
-    nodes: int
-    v_max: float  # [m/s]
-    a_max: float  # [m/s^2]
-    tau: float  # [s] segment duration
-    sampling: str = "uniform"
-    seed: int = 0
-    grid_velocities: int = 3
-    rest_grid: float = 0.0  # [m] spacing of extra nodes at rest on a lattice (0: none)
-
-    def __post_init__(self) -> None:
-        xmin, ymin, xmax, ymax = self.bounds
-        values = (*self.bounds, self.v_max, self.a_max, self.tau)
-        if not all(math.isfinite(v) for v in values):
-            raise PlanningError("graph spec has a non-finite value")
-        if not (xmax > xmin and ymax > ymin):
-            raise PlanningError(f"empty planning region {self.bounds}")
-        if self.nodes < 2 or self.v_max <= 0 or self.a_max <= 0 or self.tau <= 0:
-            raise PlanningError("need nodes >= 2 and positive v_max, a_max, tau")
-        if self.sampling not in SAMPLING:
-            raise PlanningError(f"sampling must be one of {SAMPLING}, got {self.sampling!r}")
-        if self.grid_velocities < 1:
-            raise PlanningError("grid_velocities must be >= 1")
-        if not (math.isfinite(self.rest_grid) and self.rest_grid >= 0):
-            raise PlanningError("rest_grid must be finite and >= 0")
-        if self.rest_grid and self.lattice_size() > MAX_LATTICE:
-            raise PlanningError(f"rest_grid {self.rest_grid} m gives more than {MAX_LATTICE} lattice nodes")
-
-    def lattice_size(self) -> int:
-        """Nodes of the rest lattice (0 without one)."""
-        if not self.rest_grid:
-            return 0
-        xmin, ymin, xmax, ymax = self.bounds
-        return (int((xmax - xmin) // self.rest_grid) + 1) * (int((ymax - ymin) // self.rest_grid) + 1)
-
-    @property
-    def total_nodes(self) -> int:
-        return self.nodes + self.lattice_size()
-
-    def key(self) -> str:
-        """Cache key: a hash of every field and the format version."""
-        blob = json.dumps({"format": GRAPH_FORMAT, **asdict(self)}, sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()[:24]
-
-    def reachability(self) -> reach.BezierReachability:
-        """The edge test: velocity box ``v_max`` and input bound ``a_max`` over segments of ``tau``.
-
-        Positions are not limited here: the planning region and the obstacles are
-        handled by the cut, so the graph does not depend on them or on the tube.
-        """
-        model = reach.double_integrator(DIM)
-        inf = math.inf
-        limits = reach.box_limits(model, self.a_max, [-inf, -inf, -self.v_max, -self.v_max],
-                                  [inf, inf, self.v_max, self.v_max])
-        return reach.BezierReachability(model, limits, self.tau)
-
-
-def spec_from_params(params: PlannerParams, bounds: tuple[float, float, float, float],
-                     nodes: int | None = None, seed: int | None = None) -> GraphSpec:
-    return GraphSpec(bounds=tuple(float(b) for b in bounds), nodes=int(params.nodes if nodes is None else nodes),
-                     v_max=params.v_max, a_max=params.a_max, tau=params.segment_s, sampling=params.sampling,
-                     seed=int(params.seed if seed is None else seed), grid_velocities=params.grid_velocities,
-                     rest_grid=params.rest_grid)
-
-
-@dataclass(frozen=True, eq=False)
-class BezierGraph:
-    """Directed graph of Bezier segments; edges sorted by source (CSR via ``indptr``)."""
-
-    spec: GraphSpec
-    nodes: np.ndarray  # (N, 4) [px, py, vx, vy]
-    src: np.ndarray  # (E,) int64
-    dst: np.ndarray  # (E,) int64
-    indptr: np.ndarray  # (N + 1,) edges of node i are indptr[i]:indptr[i+1]
-    control_points: np.ndarray  # (E, p + 1, 2) position control points [m]
-    cost: np.ndarray  # (E,) path-length bound [m] (Property 2.49)
-    reachability: reach.BezierReachability = field(repr=False)
-    hulls: col.HullSet = field(repr=False)
-
-    @property
-    def n_nodes(self) -> int:
-        return len(self.nodes)
-
-    @property
-    def n_edges(self) -> int:
-        return len(self.src)
-
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays that :meth:`from_arrays` restores (for an ``np.savez`` cache)."""
-        return {"key": np.array(self.spec.key()), "nodes": self.nodes, "src": self.src, "dst": self.dst,
-                "control_points": self.control_points, "cost": self.cost}
-
-    @classmethod
-    def from_arrays(cls, spec: GraphSpec, arrays: dict[str, np.ndarray]) -> BezierGraph:
-        """Rebuild from :meth:`to_arrays`; raises :class:`PlanningError` if they are not ``spec``'s."""
-        try:
-            key = str(arrays["key"])
-            nodes = np.asarray(arrays["nodes"], dtype=float)
-            src = np.asarray(arrays["src"], dtype=np.int64)
-            dst = np.asarray(arrays["dst"], dtype=np.int64)
-            ctrl = np.asarray(arrays["control_points"], dtype=float)
-            cost = np.asarray(arrays["cost"], dtype=float)
-        except KeyError as exc:
-            raise PlanningError(f"graph arrays lack {exc}") from None
-        if key != spec.key():
-            raise PlanningError("graph arrays belong to another spec")
-        E = len(src)
-        if (nodes.shape != (spec.total_nodes, 4) or dst.shape != (E,) or cost.shape != (E,) or ctrl.ndim != 3
-                or ctrl.shape[0] != E or ctrl.shape[2] != DIM or (E and (src.min() < 0 or dst.max() >= spec.total_nodes))
-                or np.any(np.diff(src) < 0)):
-            raise PlanningError("graph arrays are inconsistent")
-        return _assemble(spec, nodes, src, dst, ctrl, cost, spec.reachability())
-
-
-def _assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarray, ctrl: np.ndarray,
-              cost: np.ndarray, test: reach.BezierReachability) -> BezierGraph:
-    indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(src, minlength=len(nodes)), out=indptr[1:])
-    return BezierGraph(spec, np.ascontiguousarray(nodes), np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl))
-
-
-def sample_nodes(spec: GraphSpec) -> np.ndarray:
-    """Graph nodes ``(spec.total_nodes, 4)``: ``spec.nodes`` with positions in the region and
-    velocities in the box ``|v| <= v_max``, then the rest lattice (if any).
-
-    The lattice of resting nodes makes narrow passages passable: between two resting
-    nodes the curve is the straight segment joining them (its hull is that segment), so
-    a row of the lattice through a gap crosses it stop-and-go even where no random
-    node pair lines up.
-    """
-    nodes = _sample(spec)
-    if not spec.rest_grid:
-        return nodes
-    xmin, ymin, xmax, ymax = spec.bounds
-    g = spec.rest_grid
-    xs = xmin + g * np.arange(int((xmax - xmin) // g) + 1)
-    ys = ymin + g * np.arange(int((ymax - ymin) // g) + 1)
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    lattice = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size), np.zeros(X.size)])
-    return np.vstack([nodes, lattice])
-
-
-def _sample(spec: GraphSpec) -> np.ndarray:
-    xmin, ymin, xmax, ymax = spec.bounds
-    v = spec.v_max
-    if spec.sampling == "uniform":
-        rng = np.random.default_rng(spec.seed)
-        pos = rng.uniform([xmin, ymin], [xmax, ymax], size=(spec.nodes, 2))
-        vel = rng.uniform(-v, v, size=(spec.nodes, 2))
-        return np.column_stack([pos, vel])
-    nv = spec.grid_velocities
-    per_cell = nv * nv
-    positions = max(spec.nodes // per_cell, 1)
-    aspect = (xmax - xmin) / (ymax - ymin)
-    nx = max(int(round(math.sqrt(positions * aspect))), 1)
-    ny = max(positions // nx, 1)
-    xs = np.linspace(xmin, xmax, nx) if nx > 1 else np.array([(xmin + xmax) / 2])
-    ys = np.linspace(ymin, ymax, ny) if ny > 1 else np.array([(ymin + ymax) / 2])
-    vs = np.linspace(-v, v, nv) if nv > 1 else np.zeros(1)
-    X, Y, VX, VY = np.meshgrid(xs, ys, vs, vs, indexing="ij")
-    grid = np.column_stack([X.ravel(), Y.ravel(), VX.ravel(), VY.ravel()])
-    if len(grid) < spec.nodes:  # fill the remainder uniformly so the node count is exact
-        rest = GraphSpec(spec.bounds, spec.nodes - len(grid), spec.v_max, spec.a_max, spec.tau, "uniform", spec.seed)
-        grid = np.vstack([grid, _sample(rest)])
-    return grid[: spec.nodes]
-
-
-def reach_scale(test: reach.BezierReachability, a_max: float) -> np.ndarray:
-    """Per-coordinate bound on ``|x_j - x_i|`` over every pair the test accepts ``(4,)``.
-
-    Positions: an LP over the test (:meth:`BezierReachability.reach_radius`). Velocities:
-    the acceleration bound holds along the whole curve, so ``|dv| <= a_max tau``.
-    """
-    pos = test.reach_radius()
-    return np.array([pos[0], pos[1], a_max * test.tau, a_max * test.tau])
-
-
-def candidate_pairs(nodes: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ordered pairs ``(i, j)``, ``i != j``, with ``|x_j - x_i| <= scale`` per coordinate (k-d tree)."""
-    tree = cKDTree(nodes / scale)
-    pairs = tree.query_pairs(1.0 + PRUNE_SLACK, p=np.inf, output_type="ndarray")
-    i = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
-    j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
-    return i, j
-
-
-def build_graph(spec: GraphSpec) -> BezierGraph:
-    """Sample nodes and connect every pair the reachability test accepts (see module docstring)."""
-    test = spec.reachability()
-    nodes = sample_nodes(spec)
-    i, j = candidate_pairs(nodes, reach_scale(test, spec.a_max))
-    ok = test.edge_table(nodes).test_pairs(i, j)
-    i, j = i[ok], j[ok]
-    order = np.lexsort((j, i))
-    i, j = i[order], j[order]
-    ctrl = test.curve(nodes[i], nodes[j])
-    return _assemble(spec, nodes, i, j, ctrl, bz.path_length_bound(ctrl), test)
-
-
-# --- search --------------------------------------------------------------------------------
-
-
-@nb.njit(cache=True)
-def _astar(indptr, dst, cost, extra, free, pos, start_nodes, start_costs, goal_costs, goal_x, goal_y, h_slack):  # pragma: no cover
-    """A* over graph nodes 0..N-1 plus a virtual start (its edges: start_nodes/start_costs)
-    and a virtual goal (edge from node n of cost goal_costs[n]; inf: none). Every graph
-    edge costs ``cost[e] + extra``.
-
-    Returns (pred_node, pred_edge, goal_pred, total): pred_edge -1 marks a virtual start
-    edge; goal_pred is the node before the goal (-1: none found).
-    """
-    N = pos.shape[0]
-    dist = np.full(N, np.inf)
-    pred = np.full(N, -2, dtype=np.int64)  # -2 unvisited, -1 reached from the start
-    pred_edge = np.full(N, -1, dtype=np.int64)
-    closed = np.zeros(N, dtype=np.bool_)
-    heap = [(0.0, np.int64(0))]
-    heap.pop()
-    for k in range(start_nodes.shape[0]):
-        n = start_nodes[k]
-        if start_costs[k] < dist[n]:
-            dist[n] = start_costs[k]
-            pred[n] = -1
-            h = max(math.hypot(pos[n, 0] - goal_x, pos[n, 1] - goal_y) - h_slack, 0.0)
-            heapq.heappush(heap, (dist[n] + h, n))
-    best_goal = np.inf
-    goal_pred = -1
-    while len(heap) > 0:
-        f, n = heapq.heappop(heap)
-        if closed[n]:
-            continue
-        if f >= best_goal:
-            break
-        closed[n] = True
-        if dist[n] + goal_costs[n] < best_goal:
-            best_goal = dist[n] + goal_costs[n]
-            goal_pred = n
-        for e in range(indptr[n], indptr[n + 1]):
-            if not free[e]:
-                continue
-            m = dst[e]
-            d = dist[n] + cost[e] + extra
-            if d < dist[m]:
-                dist[m] = d
-                pred[m] = n
-                pred_edge[m] = e
-                h = max(math.hypot(pos[m, 0] - goal_x, pos[m, 1] - goal_y) - h_slack, 0.0)
-                heapq.heappush(heap, (d + h, m))
-    return pred, pred_edge, goal_pred, best_goal
-
-
-@dataclass(frozen=True)
-class SearchResult:
-    """A path from the start to the goal: node states and the segments between them."""
-
-    states: np.ndarray  # (K + 1, 4) the start, graph nodes, the goal
-    control_points: np.ndarray  # (K, p + 1, 2) position control points of each segment [m]
-    tau: float  # [s] duration of every segment
-    cost: float  # [m] sum of path-length bounds
-    nodes: np.ndarray  # (K + 1,) graph node index per state, -1 for the virtual start / goal
-
-    @property
-    def duration(self) -> float:
-        return self.tau * len(self.control_points)
-
-
-def search(graph: BezierGraph, free: np.ndarray, start_state: np.ndarray, start_nodes: np.ndarray,
-           start_costs: np.ndarray, goal_state: np.ndarray, goal_costs: np.ndarray, goal_slack: float,
-           start_edge_ctrl: dict[int, np.ndarray], goal_edge_ctrl: dict[int, np.ndarray],
-           edge_extra: float = 0.0) -> SearchResult | None:
-    """A* over ``graph`` with edge mask ``free`` between a virtual start and goal.
-
-    ``start_nodes``/``start_costs``: nodes reachable from the start and at what cost
-    (``start_edge_ctrl[n]`` the segment, absent for nodes that contain the start: no
-    segment). ``goal_costs[n]``: cost of ending at the goal from node ``n`` (``inf``:
-    not allowed; ``goal_edge_ctrl[n]`` the segment, absent when ``n`` is itself at the
-    goal). ``goal_slack`` [m] keeps the heuristic admissible for such nodes. Graph edges
-    cost their path-length bound plus ``edge_extra`` (the virtual edges' costs include it).
-    The virtual start-to-goal segment is node index ``N`` in both tables.
-    """
-    N = graph.n_nodes
-    pos = graph.nodes[:, :2]
-    direct = start_edge_ctrl.get(N)
-    sn = np.ascontiguousarray(start_nodes[start_nodes < N], dtype=np.int64)
-    sc = np.ascontiguousarray(start_costs[start_nodes < N], dtype=float)
-    pred, pred_edge, goal_pred, total = _astar(graph.indptr, graph.dst, graph.cost, float(edge_extra), free, pos, sn, sc,
-                                               np.ascontiguousarray(goal_costs[:N]), float(goal_state[0]),
-                                               float(goal_state[1]), float(goal_slack))
-    direct_cost = float(start_costs[start_nodes == N][0]) if direct is not None else math.inf
-    if direct is not None and direct_cost <= total:
-        return SearchResult(np.stack([start_state, goal_state]), direct[None], graph.spec.tau, direct_cost,
-                            np.array([-1, -1]))
-    if goal_pred < 0 or not math.isfinite(total):
-        return None
-    chain = [int(goal_pred)]
-    while pred[chain[-1]] >= 0:
-        chain.append(int(pred[chain[-1]]))
-    chain.reverse()
-    states = [start_state]
-    ctrl = []
-    first = chain[0]
-    if first in start_edge_ctrl:
-        ctrl.append(start_edge_ctrl[first])
-        states.append(graph.nodes[first])
-    else:  # the first node contains the start: the path begins there
-        states = [graph.nodes[first]]
-    for n in chain[1:]:
-        ctrl.append(graph.control_points[pred_edge[n]])
-        states.append(graph.nodes[n])
-    node_ids = ([-1] if first in start_edge_ctrl else []) + chain
-    if goal_pred in goal_edge_ctrl:
-        ctrl.append(goal_edge_ctrl[goal_pred])
-        states.append(goal_state)
-        node_ids.append(-1)
-    if not ctrl:  # already at a goal node: a zero-length stay
-        ctrl.append(np.repeat(graph.nodes[first][None, :2], graph.reachability.p + 1, axis=0))
-        states.append(graph.nodes[first])
-        node_ids.append(first)
-    return SearchResult(np.array(states), np.array(ctrl), graph.spec.tau, float(total), np.array(node_ids))
-
-
-# --- path sampling ---------------------------------------------------------------------
-
-
-def path_states(ctrl: np.ndarray, tau: float, times: np.ndarray) -> np.ndarray:
-    """States ``[px, py, vx, vy]`` ``(len(times), 4)`` of a chain of segments at ``times`` [s].
-
-    Times before 0 read the start; times after the end read the last point at rest
-    (the path ends at rest at the goal).
-    """
-    times = np.asarray(times, dtype=float)
-    K = len(ctrl)
-    end = K * tau
-    t = np.clip(times, 0.0, end)
-    seg = np.minimum((t / tau).astype(np.int64), K - 1)
-    local = t - seg * tau
-    s = local / tau
-    Z = bz.bernstein(ctrl.shape[1] - 1, s)  # (T, p + 1)
-    pos = np.einsum("tj,tjm->tm", Z, ctrl[seg])
-    vel_pts = bz.derivative_points(ctrl, tau, 1)  # (K, p + 1, 2)
-    vel = np.einsum("tj,tjm->tm", Z, vel_pts[seg])
-    vel[times >= end] = 0.0
-    return np.column_stack([pos, vel])
-
-
-def chain_tail(ctrl: np.ndarray, tau: float, t_from: float) -> list[tuple[float, np.ndarray]]:
-    """Segments of a chain from time ``t_from`` on, as ``(duration, control points)``."""
-    K = len(ctrl)
-    if t_from >= K * tau:
-        return []
-    k = int(t_from // tau)
-    a = (t_from - k * tau) / tau
-    out: list[tuple[float, np.ndarray]] = []
-    if a > 1e-9:
-        Q = bz.split_matrix(ctrl.shape[1] - 1, float(a), 1.0)
-        out.append(((1.0 - a) * tau, Q.T @ ctrl[k]))
-        k += 1
-    out.extend((tau, ctrl[i]) for i in range(k, K))
-    return out
 
 
 # --- the planner -----------------------------------------------------------------------

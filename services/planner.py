@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from onboard import collision as col
+from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard import messages as msgs
 from onboard.params import PlannerParams
@@ -61,7 +62,7 @@ def graph_cache_dir() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "archer" / "graphs"
 
 
-def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.BezierGraph, bool]:
+def load_or_build_graph(spec: bg.GraphSpec, cache_dir: Path | None) -> tuple[bg.BezierGraph, bool]:
     """The graph for ``spec`` from ``cache_dir/<key>.npz`` if it is there and sound, else
     built and written there (atomically). Returns ``(graph, from_cache)``; no cache with
     ``cache_dir=None``. A corrupt or foreign file is rebuilt over."""
@@ -69,10 +70,10 @@ def load_or_build_graph(spec: gp.GraphSpec, cache_dir: Path | None) -> tuple[gp.
     if path is not None and path.exists():
         try:
             with np.load(path, allow_pickle=False) as data:
-                return gp.BezierGraph.from_arrays(spec, dict(data)), True
+                return bg.BezierGraph.from_arrays(spec, dict(data)), True
         except (OSError, ValueError, KeyError):
             pass  # rebuilt below
-    graph = gp.build_graph(spec)
+    graph = bg.build_graph(spec)
     if path is not None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -151,7 +152,7 @@ class PlannerService(Service):
         self._cache_dir = graph_cache_dir() if cache_dir is True else (None if cache_dir is False else cache_dir)
         self._builder = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner-graph")
         self._build: concurrent.futures.Future | None = None
-        self._build_spec: gp.GraphSpec | None = None
+        self._build_spec: bg.GraphSpec | None = None
         self._hold_xy: list[float] | None = None
         self._hold_ref: msgs.ComReference | None = None
         self._sent: msgs.ComReference | None = None  # the reference last published

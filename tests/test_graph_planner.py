@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
 
@@ -25,11 +26,11 @@ def _box(cx: float, cy: float, hx: float, hy: float) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def graph() -> gp.BezierGraph:
-    return gp.build_graph(gp.spec_from_params(PARAMS, BOUNDS))
+def graph() -> bg.BezierGraph:
+    return bg.build_graph(bg.spec_from_params(PARAMS, BOUNDS))
 
 
-def _planner(graph: gp.BezierGraph, **kw) -> gp.GraphPlanner:
+def _planner(graph: bg.BezierGraph, **kw) -> gp.GraphPlanner:
     planner = gp.GraphPlanner(dataclasses.replace(PARAMS, **kw), ROBOT_RADIUS, bounds=BOUNDS)
     planner.set_graph(graph)
     return planner
@@ -43,8 +44,8 @@ def _dense(ctrl: np.ndarray, samples: int = 100) -> np.ndarray:
 
 
 def test_edges_are_exactly_the_pairs_the_test_accepts():
-    spec = gp.spec_from_params(PARAMS, (0.0, 0.0, 2.0, 2.0), nodes=250)
-    g = gp.build_graph(spec)
+    spec = bg.spec_from_params(PARAMS, (0.0, 0.0, 2.0, 2.0), nodes=250)
+    g = bg.build_graph(spec)
     test = spec.reachability()
     i, j = np.meshgrid(np.arange(g.n_nodes), np.arange(g.n_nodes), indexing="ij")
     off = i != j
@@ -61,7 +62,7 @@ def test_edges_are_dynamically_feasible_and_costed_by_property_2_49(graph):
     ctrl = graph.control_points[pick]
     assert np.all(test.violation(ctrl) <= 1e-9)  # speed and acceleration bounds, densely sampled
     # Endpoints are the nodes (position and velocity).
-    states = np.stack([gp.path_states(c[None], graph.spec.tau, np.array([0.0, graph.spec.tau])) for c in ctrl])
+    states = np.stack([bg.path_states(c[None], graph.spec.tau, np.array([0.0, graph.spec.tau])) for c in ctrl])
     assert np.allclose(states[:, 0], graph.nodes[graph.src[pick]])
     assert np.allclose(states[:, 1, :2], graph.nodes[graph.dst[pick], :2])
     # The cost bounds the arc length from above and the chord from below.
@@ -74,7 +75,7 @@ def test_edges_are_dynamically_feasible_and_costed_by_property_2_49(graph):
 
 def test_graph_arrays_round_trip_and_key_covers_every_field(graph):
     arrays = graph.to_arrays()
-    again = gp.BezierGraph.from_arrays(graph.spec, arrays)
+    again = bg.BezierGraph.from_arrays(graph.spec, arrays)
     assert np.array_equal(again.src, graph.src) and np.array_equal(again.control_points, graph.control_points)
     keys = {graph.spec.key()}
     for change in ({"nodes": 1499}, {"v_max": 0.6}, {"a_max": 1.1}, {"tau": 1.4}, {"seed": 1},
@@ -83,23 +84,23 @@ def test_graph_arrays_round_trip_and_key_covers_every_field(graph):
     assert len(keys) == 10
     other = dataclasses.replace(graph.spec, seed=5)
     with pytest.raises(gp.PlanningError, match="another spec"):
-        gp.BezierGraph.from_arrays(other, arrays)
+        bg.BezierGraph.from_arrays(other, arrays)
     broken = dict(arrays, src=arrays["src"][::-1])
     with pytest.raises(gp.PlanningError, match="inconsistent"):
-        gp.BezierGraph.from_arrays(graph.spec, broken)
+        bg.BezierGraph.from_arrays(graph.spec, broken)
 
 
 def test_grid_sampling_has_the_requested_node_count_and_resting_nodes():
-    spec = gp.spec_from_params(dataclasses.replace(PARAMS, sampling="grid", rest_grid=0.0), (0.0, 0.0, 3.0, 2.0), nodes=700)
-    nodes = gp.sample_nodes(spec)
+    spec = bg.spec_from_params(dataclasses.replace(PARAMS, sampling="grid", rest_grid=0.0), (0.0, 0.0, 3.0, 2.0), nodes=700)
+    nodes = bg.sample_nodes(spec)
     assert nodes.shape == (700, 4)
     assert np.any(np.all(nodes[:, 2:] == 0.0, axis=1))
     assert np.all(np.abs(nodes[:, 2:]) <= spec.v_max)
 
 
 def test_rest_lattice_joins_neighbours_by_straight_segments():
-    spec = gp.spec_from_params(dataclasses.replace(PARAMS, rest_grid=0.25), (0.0, 0.0, 2.0, 1.0), nodes=100)
-    g = gp.build_graph(spec)
+    spec = bg.spec_from_params(dataclasses.replace(PARAMS, rest_grid=0.25), (0.0, 0.0, 2.0, 1.0), nodes=100)
+    g = bg.build_graph(spec)
     assert g.n_nodes == 100 + 9 * 5 == spec.total_nodes
     lattice = np.arange(100, g.n_nodes)
     assert np.all(g.nodes[lattice, 2:] == 0.0)
@@ -115,11 +116,11 @@ def test_rest_lattice_joins_neighbours_by_straight_segments():
 
 def test_bad_specs_are_rejected():
     with pytest.raises(gp.PlanningError):
-        gp.GraphSpec((0.0, 0.0, -1.0, 1.0), 100, 0.5, 1.0, 1.5)
+        bg.GraphSpec((0.0, 0.0, -1.0, 1.0), 100, 0.5, 1.0, 1.5)
     with pytest.raises(gp.PlanningError):
-        gp.GraphSpec((0.0, 0.0, 1.0, float("nan")), 100, 0.5, 1.0, 1.5)
+        bg.GraphSpec((0.0, 0.0, 1.0, float("nan")), 100, 0.5, 1.0, 1.5)
     with pytest.raises(gp.PlanningError):
-        gp.GraphSpec((0.0, 0.0, 1.0, 1.0), 100, 0.5, 1.0, 1.5, sampling="random")
+        bg.GraphSpec((0.0, 0.0, 1.0, 1.0), 100, 0.5, 1.0, 1.5, sampling="random")
 
 
 # --- search -----------------------------------------------------------------------------
@@ -134,7 +135,7 @@ def test_astar_matches_dijkstra(graph):
         best = dijkstra(W, indices=a)[b]
         goal_costs = np.full(graph.n_nodes, np.inf)
         goal_costs[b] = 0.0
-        res = gp.search(graph, free, graph.nodes[a], np.array([a]), np.array([0.0]), graph.nodes[b], goal_costs,
+        res = bg.search(graph, free, graph.nodes[a], np.array([a]), np.array([0.0]), graph.nodes[b], goal_costs,
                         0.0, {}, {})
         if math.isinf(best):
             assert res is None
@@ -142,7 +143,7 @@ def test_astar_matches_dijkstra(graph):
         assert res is not None and res.cost == pytest.approx(best)
         assert res.nodes[0] == a and res.nodes[-1] == b
         # Consecutive segments join in position and velocity.
-        assert np.allclose(res.states[1:-1], gp.path_states(res.control_points, res.tau, res.tau * np.arange(1, len(res.states) - 1)))
+        assert np.allclose(res.states[1:-1], bg.path_states(res.control_points, res.tau, res.tau * np.arange(1, len(res.states) - 1)))
 
 
 # --- plan: hand-made scenes ---------------------------------------------------------------

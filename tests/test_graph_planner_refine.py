@@ -9,6 +9,7 @@ import pytest
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard import reachability as reach
 from onboard.params import PlannerParams
@@ -24,11 +25,11 @@ OBSTACLES = [
 
 
 @pytest.fixture(scope="module")
-def graph() -> gp.BezierGraph:
-    return gp.build_graph(gp.spec_from_params(PARAMS, BOUNDS))
+def graph() -> bg.BezierGraph:
+    return bg.build_graph(bg.spec_from_params(PARAMS, BOUNDS))
 
 
-def _planner(graph: gp.BezierGraph) -> gp.GraphPlanner:
+def _planner(graph: bg.BezierGraph) -> gp.GraphPlanner:
     planner = gp.GraphPlanner(PARAMS, ROBOT_RADIUS, bounds=BOUNDS)
     planner.set_graph(graph)
     planner.set_obstacles(OBSTACLES)
@@ -85,7 +86,7 @@ def test_refinement_follows_the_robot_along_the_path(graph):
     lengths = []
     for k in range(40):
         now = t0_ns + int(k * 0.05e9)
-        x = gp.path_states(planner.path.control_points, planner.path.tau, np.array([(now - t0_ns) * 1e-9]))[0]
+        x = bg.path_states(planner.path.control_points, planner.path.tau, np.array([(now - t0_ns) * 1e-9]))[0]
         ref = planner.refine(x[:2], x[2:], now)
         assert ref is not None and not ref.hold
         # Knots stay on the path's time grid: t_ref is a whole number of mpc_dt after the path's start.
@@ -97,7 +98,7 @@ def test_refinement_follows_the_robot_along_the_path(graph):
     assert st.refine_failures == 0 and st.refines + st.refine_reused == 40
     assert st.refines >= 20  # a solve at least at every knot (every 0.1 s; the calls come every 0.05 s)
     # The refinement shortens (or keeps) the graph path over the same horizon.
-    graph_pts = gp.path_states(planner.path.control_points, planner.path.tau,
+    graph_pts = bg.path_states(planner.path.control_points, planner.path.tau,
                                np.linspace(1.95, 1.95 + PARAMS.mpc_horizon * PARAMS.mpc_dt, 400))[:, :2]
     graph_len = float(np.linalg.norm(np.diff(graph_pts, axis=0), axis=1).sum())
     assert lengths[-1] <= graph_len * 1.05

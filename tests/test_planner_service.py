@@ -144,9 +144,9 @@ def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
 
 
 def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
-    from onboard import graph_planner as gp
+    from onboard import bezier_graph as bg
 
-    spec = gp.spec_from_params(PARAMS, (0.0, 0.0, 3.0, 3.0), nodes=300)
+    spec = bg.spec_from_params(PARAMS, (0.0, 0.0, 3.0, 3.0), nodes=300)
     g1, cached1 = load_or_build_graph(spec, tmp_path)
     g2, cached2 = load_or_build_graph(spec, tmp_path)
     assert not cached1 and cached2 and np.array_equal(g1.control_points, g2.control_points)

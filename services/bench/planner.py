@@ -35,6 +35,7 @@ import numpy as np
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
 
@@ -92,9 +93,9 @@ def measure(args: argparse.Namespace) -> dict:
     warm.refine((0.2, 0.2), (0.0, 0.0), 0)
     col.cut_obstacles(col.hull_set(np.zeros((gp.col.PARALLEL_MIN, 4, 2))), warm.obstacles, 0.1)
 
-    spec = gp.spec_from_params(params, (0.0, 0.0, side, side), nodes=args.nodes, seed=args.seed)
+    spec = bg.spec_from_params(params, (0.0, 0.0, side, side), nodes=args.nodes, seed=args.seed)
     t0 = time.perf_counter()
-    graph = gp.build_graph(spec)
+    graph = bg.build_graph(spec)
     build_ms = (time.perf_counter() - t0) * 1e3
 
     polys = random_obstacles(rng, args.obstacles, side)
@@ -145,7 +146,7 @@ def measure(args: argparse.Namespace) -> dict:
         found += 1
         for j in range(max(args.refines // args.queries, 1)):
             t_ns = int(j * 1e9 / params.refine_hz)
-            expect = gp.path_states(planner.path.control_points, planner.path.tau, np.array([t_ns * 1e-9]))[0]
+            expect = bg.path_states(planner.path.control_points, planner.path.tau, np.array([t_ns * 1e-9]))[0]
             solves = planner.stats.refines
             t0 = time.perf_counter()
             planner.refine(expect[:2], expect[2:], t_ns)
