@@ -55,7 +55,7 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
         assert exec_start[:3] == ["@ARCHER@", "run", service] and service in SERVICES
         assert "@CONFIG_DIR@/archer.toml" in exec_start and f"@CONFIG_DIR@/zenoh/{service}.json5" in exec_start
         raises_itself = service in ("control", "estimator", "hardware")  # the 1 kHz loops and the bus master
-        fifo_by_systemd = service == "twin"  # the hardware's stand-in
+        fifo_by_systemd = service in ("twin", "estimator")  # the hardware's stand-in; control's input, I/O threads too
         assert (one(unit, "Service", "RestrictRealtime") == "no") == (raises_itself or fifo_by_systemd)
         assert ("LimitRTPRIO" in unit["Service"]) == raises_itself
         assert (unit["Service"].get("CPUSchedulingPolicy") == ["fifo"]) == fifo_by_systemd
@@ -63,6 +63,7 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     assert control["NotifyAccess"] == ["all"] and control["AmbientCapabilities"] == ["CAP_SYS_NICE"]
     for service in ("hardware", "estimator"):
         assert parsed[f"archer-{service}.service"]["Service"]["AmbientCapabilities"] == ["CAP_SYS_NICE"]
+    assert spec_from_unit("estimator", ["true"]).fifo_priority == EstimatorParams().rt_priority
     twin = spec_from_unit("twin", ["true"])
     # the sensors' source below the estimator, the estimator below the control loop it feeds
     assert 0 < twin.fifo_priority < EstimatorParams().rt_priority < ControlParams().rt_priority
