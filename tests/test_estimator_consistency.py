@@ -94,3 +94,17 @@ def test_in_flight_the_projectile_needs_no_imu() -> None:
                                    wheel_torque=[0.0] * 3, foot_pos=0.01, foot_vel=0.0, foot_contact=True), t + 20 * 1_000_000)
     touched = est.estimate(t + 20 * 1_000_000).pos_vel_cov[21]
     assert touched > 100 * after  # a touchdown the accelerometer did not see: the stance CoM is a guess
+
+
+def test_in_an_imu_gap_the_attitude_stays_valid_after_the_com_does_not() -> None:
+    """In stance without IMU samples the CoM velocity's uncertainty passes its limit first;
+    the attitude and body rate (all the wheels' PD needs) stay valid longer, and then end too."""
+    est = StateEstimator(EstimatorParams(), robot_params("indoor"))
+    t = _frames(est, NS, 500, contact=True)
+    last = t - 1_000_000
+    verdicts = [(m.valid, m.attitude_valid) for m in (est.estimate(last + k * 1_000_000) for k in range(400))]
+    com_lost = next(k for k, (valid, _) in enumerate(verdicts) if not valid)
+    attitude_lost = next(k for k, (_, attitude) in enumerate(verdicts) if not attitude)
+    assert all(attitude for valid, attitude in verdicts if valid)  # a valid estimate has a valid attitude
+    assert 5 < com_lost < attitude_lost < 400
+    assert attitude_lost > 2 * com_lost
