@@ -67,6 +67,7 @@ from scipy.spatial import cKDTree
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import polygons as pg
 from onboard import messages as msgs
 from onboard import reachability as reach
 from onboard.bezier_graph import (
@@ -134,8 +135,8 @@ class GraphPlanner:
         self._tree: cKDTree | None = None
         self._scale: np.ndarray | None = None
         self.mode = "obstacles"
-        self.obstacles = col.pack_polygons([])
-        self.cells = col.pack_polygons([])
+        self.obstacles = pg.pack_polygons([])
+        self.cells = pg.pack_polygons([])
         self._world_version = 0
         self._cut_key: tuple | None = None
         self.free: np.ndarray | None = None  # edge mask after the cut
@@ -173,8 +174,8 @@ class GraphPlanner:
     def set_obstacles(self, polygons: list) -> None:
         """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
         try:
-            packed = col.pack_polygons(list(polygons))
-        except col.PolygonError as exc:
+            packed = pg.pack_polygons(list(polygons))
+        except pg.PolygonError as exc:
             raise PlanningError(f"obstacle: {exc}") from None
         if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
             return
@@ -185,8 +186,8 @@ class GraphPlanner:
     def set_free_cells(self, polygons: list) -> None:
         """Convex free cells: a curve is free iff its control points lie in one cell."""
         try:
-            packed = col.pack_polygons(list(polygons))
-        except col.PolygonError as exc:
+            packed = pg.pack_polygons(list(polygons))
+        except pg.PolygonError as exc:
             raise PlanningError(f"free cell: {exc}") from None
         if self.mode == "free" and _same_polygons(packed, self.cells):
             return
@@ -586,20 +587,20 @@ class GraphPlanner:
                 try:
                     polys.append(col.free_polygon(c, self.obstacles, self.margin, np.array(bounds).reshape(2, 2),
                                                   self.params.halfspaces, self.params.halfspace_reach))
-                except col.PolygonError:
+                except pg.PolygonError:
                     polys.append(None)
         sets = []
         for poly in polys + polys[-1:]:
             if poly is None:
                 sets.append(msgs.Polytope(A=[], b=[], vertices=[]))
                 continue
-            A, b = col.polygon_halfspaces(poly)
+            A, b = pg.polygon_halfspaces(poly)
             sets.append(msgs.Polytope(A=A.tolist(), b=b.tolist(), vertices=poly.tolist()))
         points = [[float(s[0]), float(s[1])] for s in self.path.states]
         return msgs.Waypoints(stamp_ns=stamp_ns, points=points, sets=sets)
 
 
-def _same_polygons(a: col.PolygonSet, b: col.PolygonSet) -> bool:
+def _same_polygons(a: pg.PolygonSet, b: pg.PolygonSet) -> bool:
     return a.offsets.shape == b.offsets.shape and np.array_equal(a.offsets, b.offsets) and np.array_equal(a.vertices, b.vertices)
 
 

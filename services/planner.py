@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 
 from onboard import collision as col
+
+from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard import messages as msgs
@@ -133,11 +135,11 @@ def polygons_from_message(msg: msgs.PolytopeSet) -> list[np.ndarray]:
     for k, p in enumerate(msg.polytopes):
         try:
             if p.vertices:
-                out.append(col.validate_polygon(p.vertices))
+                out.append(pg.validate_polygon(p.vertices))
             else:
-                out.append(col.polygon_from_halfspaces(np.array(p.A, dtype=float).reshape(-1, 2), np.array(p.b, dtype=float)))
-        except col.PolygonError as exc:
-            raise col.PolygonError(f"polytope {k}: {exc}") from None
+                out.append(pg.polygon_from_halfspaces(np.array(p.A, dtype=float).reshape(-1, 2), np.array(p.b, dtype=float)))
+        except pg.PolygonError as exc:
+            raise pg.PolygonError(f"polytope {k}: {exc}") from None
     return out
 
 
@@ -326,7 +328,7 @@ class PlannerService(Service):
                     self.planner.set_free_cells(polys)
                 else:
                     self.planner.set_obstacles(polys)
-            except (col.PolygonError, gp.PlanningError) as exc:
+            except (pg.PolygonError, gp.PlanningError) as exc:
                 self.count("rejected.polytopes_geometry")
                 self.fail(f"polytopes: {exc}")
         got = self.tube_in.take()

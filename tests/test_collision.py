@@ -12,6 +12,8 @@ from scipy.optimize import linprog
 
 from onboard import collision as col
 
+from onboard import polygons as pg
+
 SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 
 
@@ -55,7 +57,7 @@ def _bernstein(K: int, s: np.ndarray) -> np.ndarray:
 
 def test_validate_polygon_makes_counter_clockwise():
     cw = SQUARE[::-1]
-    out = col.validate_polygon(cw)
+    out = pg.validate_polygon(cw)
     x, y = out[:, 0], out[:, 1]
     assert np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
 
@@ -73,26 +75,26 @@ def test_validate_polygon_makes_counter_clockwise():
     ],
 )
 def test_validate_polygon_rejects_bad_polygons(poly, why):
-    with pytest.raises(col.PolygonError, match=why):
-        col.validate_polygon(poly)
+    with pytest.raises(pg.PolygonError, match=why):
+        pg.validate_polygon(poly)
 
 
 def test_polygon_from_halfspaces_round_trip():
-    A, b = col.polygon_halfspaces(col.validate_polygon(SQUARE))
-    verts = col.polygon_from_halfspaces(A, b)
+    A, b = pg.polygon_halfspaces(pg.validate_polygon(SQUARE))
+    verts = pg.polygon_from_halfspaces(A, b)
     assert len(verts) == 4
     assert {tuple(np.round(v, 9)) for v in verts} == {tuple(v) for v in SQUARE}
-    with pytest.raises(col.PolygonError, match="do not bound"):
-        col.polygon_from_halfspaces(A[:2], b[:2])
-    with pytest.raises(col.PolygonError):  # empty
-        col.polygon_from_halfspaces(np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([0.0, -1.0]))
+    with pytest.raises(pg.PolygonError, match="do not bound"):
+        pg.polygon_from_halfspaces(A[:2], b[:2])
+    with pytest.raises(pg.PolygonError):  # empty
+        pg.polygon_from_halfspaces(np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([0.0, -1.0]))
 
 
 # --- hand-made scenes with known answers ------------------------------------------------
 
 
 def _cut(points: list[list[list[float]]], polys: list[np.ndarray], margin: float) -> np.ndarray:
-    return col.cut_obstacles(col.hull_set(np.array(points, dtype=float)), col.pack_polygons(polys), margin)
+    return col.cut_obstacles(col.hull_set(np.array(points, dtype=float)), pg.pack_polygons(polys), margin)
 
 
 def test_line_past_square_at_known_distance():
@@ -125,18 +127,18 @@ def test_curve_inside_obstacle_and_point_curve():
 
 def test_no_obstacles_and_inactive_edges():
     hulls = col.hull_set(np.zeros((3, 4, 2)))
-    assert not col.cut_obstacles(hulls, col.pack_polygons([]), 0.3).any()
+    assert not col.cut_obstacles(hulls, pg.pack_polygons([]), 0.3).any()
     active = np.array([True, False, True])
-    blocked = col.cut_obstacles(hulls, col.pack_polygons([SQUARE - 0.5]), 0.1, active=active)
+    blocked = col.cut_obstacles(hulls, pg.pack_polygons([SQUARE - 0.5]), 0.1, active=active)
     assert blocked.tolist() == [True, False, True]
     with pytest.raises(ValueError):
-        col.cut_obstacles(hulls, col.pack_polygons([SQUARE]), float("nan"))
+        col.cut_obstacles(hulls, pg.pack_polygons([SQUARE]), float("nan"))
 
 
 def test_free_cells_every_point_in_one_cell():
     left = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
     right = left + [1.5, 0.0]  # overlaps left on x in [1.5, 2]
-    cells = col.pack_polygons([left, right])
+    cells = pg.pack_polygons([left, right])
     curves = np.array([
         [[0.5, 1.0], [1.0, 1.0], [1.5, 1.0], [1.8, 1.0]],  # inside left
         [[1.7, 1.0], [2.5, 1.0], [3.0, 1.2], [3.2, 1.0]],  # inside right
@@ -145,7 +147,7 @@ def test_free_cells_every_point_in_one_cell():
     ])
     blocked = col.cut_free_cells(col.hull_set(curves), cells, margin=0.1)
     assert blocked.tolist() == [False, False, True, True]
-    assert col.cut_free_cells(col.hull_set(curves), col.pack_polygons([]), 0.1).all()
+    assert col.cut_free_cells(col.hull_set(curves), pg.pack_polygons([]), 0.1).all()
 
 
 # --- properties against brute force and dense sampling -------------------------------------
@@ -165,9 +167,9 @@ def convex_polygon(draw):
         hull = ConvexHull(pts)
     poly = pts[hull.vertices]
     try:
-        return col.validate_polygon(poly)
-    except col.PolygonError:
-        return col.validate_polygon(SQUARE)
+        return pg.validate_polygon(poly)
+    except pg.PolygonError:
+        return pg.validate_polygon(SQUARE)
 
 
 @settings(max_examples=200, deadline=None)
@@ -181,7 +183,7 @@ def test_cut_matches_exact_distance(poly, ctrl, margin):
     dist = _brute_distance(P, poly)
     if abs(dist - margin) < 1e-6:
         return  # a tie: either answer is within round-off
-    blocked = col.cut_obstacles(col.hull_set(P[None]), col.pack_polygons([poly]), margin)[0]
+    blocked = col.cut_obstacles(col.hull_set(P[None]), pg.pack_polygons([poly]), margin)[0]
     assert blocked == (dist <= margin), f"distance {dist}, margin {margin}"
     assert col.hull_polygon_distance(P, poly) == pytest.approx(dist, abs=1e-7)
 
@@ -198,7 +200,7 @@ def test_many_curves_sound_against_dense_sampling():
         w, h = rng.uniform(0.1, 0.6, 2)
         R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
         polys.append(c + np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) @ R.T)
-    obstacles = col.pack_polygons(polys)
+    obstacles = pg.pack_polygons(polys)
     margin = 0.15
     blocked = col.cut_obstacles(col.hull_set(pts), obstacles, margin)
     samples = np.einsum("sk,ekd->esd", _bernstein(4, np.linspace(0, 1, 200)), pts)
@@ -217,7 +219,7 @@ def test_many_curves_sound_against_dense_sampling():
 def test_separating_halfspaces_keep_margin():
     rng = np.random.default_rng(3)
     polys = [SQUARE, SQUARE + [3.0, 0.0], SQUARE + [0.0, 3.0]]
-    obstacles = col.pack_polygons(polys)
+    obstacles = pg.pack_polygons(polys)
     pts = np.array([[[1.6, 1.6], [2.0, 1.8], [2.2, 2.0], [2.4, 1.5]]])
     margin = 0.2
     hs = col.separating_halfspaces(pts, obstacles, margin, count=3, reach=10.0)
@@ -241,7 +243,7 @@ def test_separating_halfspaces_keep_margin():
 
 def test_cut_qp_agrees_with_exact_planar_test():
     rng = np.random.default_rng(11)
-    A, b = col.polygon_halfspaces(col.validate_polygon(SQUARE))
+    A, b = pg.polygon_halfspaces(pg.validate_polygon(SQUARE))
     for _ in range(25):
         P = rng.uniform(-1.5, 2.5, (4, 2))
         exact = _brute_distance(P, SQUARE)

@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
@@ -151,7 +152,7 @@ def test_astar_matches_dijkstra(graph):
 
 def _assert_clear(planner: gp.GraphPlanner, polys: list[np.ndarray], ctrl: np.ndarray) -> None:
     samples = np.stack([_dense(c, 200) for c in ctrl])
-    clearance = col.samples_clearance(samples, col.pack_polygons(polys), reach=1.0)
+    clearance = col.samples_clearance(samples, pg.pack_polygons(polys), reach=1.0)
     assert np.all(clearance > planner.margin), f"clearance {clearance.min()} <= margin {planner.margin}"
 
 
@@ -243,7 +244,7 @@ def test_free_cells_mode_keeps_every_segment_in_one_cell(graph):
     planner.set_free_cells(cells)
     planner.set_goal((4.8, 5.0), 0.1)
     assert planner.plan((0.8, 1.2), (0.0, 0.0)) is not None
-    packed = col.pack_polygons(cells)
+    packed = pg.pack_polygons(cells)
     inside = col.free_cell_of(col.hull_set(planner.path.control_points), packed, planner.margin)
     assert np.all(inside >= 0)
     wps = planner.waypoints()
@@ -278,7 +279,7 @@ def test_waypoint_sets_contain_their_segments_and_keep_the_margin(graph):
         verts = np.array(s.vertices)
         cand = np.random.default_rng(0).uniform(verts.min(axis=0), verts.max(axis=0), (4000, 2))
         inside = cand[np.all(cand @ A.T <= b, axis=1)]
-        clearance = col.samples_clearance(inside[:, None, :], col.pack_polygons(polys), reach=5.0)
+        clearance = col.samples_clearance(inside[:, None, :], pg.pack_polygons(polys), reach=5.0)
         assert clearance.min() >= planner.margin - 1e-8
 
 
@@ -295,7 +296,7 @@ def test_moving_obstacle_triggers_a_replan_around_it(graph):
     assert planner.needs_replan((1.0, 3.0), 0, 0.3)
     old = planner.path.control_points
     samples = np.stack([_dense(c, 100) for c in old])
-    assert col.samples_clearance(samples, col.pack_polygons(moved), reach=1.0).min() <= planner.margin
+    assert col.samples_clearance(samples, pg.pack_polygons(moved), reach=1.0).min() <= planner.margin
     assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=100_000_000) is not None
     _assert_clear(planner, moved, planner.path.control_points)
     assert not planner.needs_replan((1.0, 3.0), 100_000_000, 0.3)
@@ -310,7 +311,7 @@ def test_a_start_inside_the_margin_may_leave_keeping_its_clearance(graph):
     assert planner.start_margin(start) == pytest.approx(0.18 - gp.START_SLACK)
     assert planner.plan(start, (0.0, 0.0)) is not None
     samples = np.stack([_dense(c, 200) for c in planner.path.control_points])
-    clearance = col.samples_clearance(samples, col.pack_polygons([wall]), reach=1.0)
+    clearance = col.samples_clearance(samples, pg.pack_polygons([wall]), reach=1.0)
     assert clearance[0] >= 0.18 - gp.START_SLACK and np.all(clearance[1:] > planner.margin)
     # Touching the wall already: no way out that keeps the robot clear.
     assert planner.start_margin((2.1 + 0.05, 3.0)) == ROBOT_RADIUS

@@ -9,6 +9,7 @@ import pytest
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard import reachability as reach
@@ -73,7 +74,7 @@ def test_refined_reference_is_continuous_feasible_and_clear(graph):
     assert np.all(_mpc_test().violation(mpc_ctrl) <= 1e-6)
     # Every segment keeps the margin from every obstacle, densely sampled.
     pts = np.stack([bz.evaluate(C, dur, np.linspace(0.0, dur, 60)) for _, dur, C in segs])
-    clearance = col.samples_clearance(pts, col.pack_polygons(OBSTACLES), reach=1.0)
+    clearance = col.samples_clearance(pts, pg.pack_polygons(OBSTACLES), reach=1.0)
     assert clearance.min() > planner.margin
     # The reference ends where the graph path ends: at rest at the goal.
     assert np.allclose(segs[-1][2][-1], [5.2, 5.0], atol=1e-6)
@@ -125,7 +126,7 @@ def test_refine_in_free_cells_keeps_each_segment_in_a_cell(graph):
     ref = planner.refine(start[:2], start[2:], 0)
     assert planner.stats.refine_failures == 0
     ctrl = np.stack([np.array(s.control_points) for s in ref.segments[: PARAMS.mpc_horizon]])
-    assert np.all(col.free_cell_of(col.hull_set(ctrl), col.pack_polygons(cells), planner.margin) >= 0)
+    assert np.all(col.free_cell_of(col.hull_set(ctrl), pg.pack_polygons(cells), planner.margin) >= 0)
 
 
 def test_contract_check_grows_the_tube_and_reports(graph):

@@ -14,6 +14,7 @@ import pytest
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import polygons as pg
 from onboard import messages as m
 from onboard.topics import TOPICS
 from services.cli.plan import SceneError, parse_scene
@@ -57,7 +58,7 @@ def test_plan_through_the_gap_and_cache_hit(tmp_path):
         pts.append(bz.evaluate(np.array(s["control_points"]), s["duration"], np.linspace(0, s["duration"], 100)))
     pts = np.concatenate(pts)
     # Densely sampled, the path keeps the clearance and passes the gap (y in [3.9, 5.1] at x = 3).
-    clearance = col.samples_clearance(pts[None], col.pack_polygons(WALL_WITH_GAP), reach=1.0)[0]
+    clearance = col.samples_clearance(pts[None], pg.pack_polygons(WALL_WITH_GAP), reach=1.0)[0]
     assert clearance > out["clearance"]
     assert 3.9 < pts[np.argmin(np.abs(pts[:, 0] - 3.0)), 1] < 5.1
     again = json.loads(_archer(["plan", "--input", str(path), "--json"], tmp_path).stdout)

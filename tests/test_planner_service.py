@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from onboard import collision as col
+from onboard import polygons as pg
 from onboard import messages as m
 from onboard.params import PlannerParams
 from onboard.topics import TOPICS
@@ -34,7 +34,7 @@ def _state(x: float, y: float) -> m.StateEstimate:
 
 def _box(cx: float, cy: float, h: float) -> m.Polytope:
     verts = [[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]]
-    A, b = col.polygon_halfspaces(np.array(verts))
+    A, b = pg.polygon_halfspaces(np.array(verts))
     return m.Polytope(A=A.tolist(), b=b.tolist(), vertices=verts)
 
 

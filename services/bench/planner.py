@@ -35,6 +35,7 @@ import numpy as np
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
@@ -74,7 +75,7 @@ def _pct(values: list[float], q: float) -> float:
     return round(float(np.percentile(values, q)), 3)
 
 
-def _free_point(rng: np.random.Generator, side: float, obstacles: col.PolygonSet, margin: float) -> np.ndarray:
+def _free_point(rng: np.random.Generator, side: float, obstacles: pg.PolygonSet, margin: float) -> np.ndarray:
     while True:
         p = rng.uniform(0.5, side - 0.5, 2)
         if col.samples_clearance(p[None, None, :], obstacles, reach=margin + 0.5)[0] > margin + 0.05:
@@ -106,7 +107,7 @@ def measure(args: argparse.Namespace) -> dict:
     for k in range(args.repeat):
         moved = [p + rng.normal(0.0, JITTER, 2) for p in polys] if k else polys
         t0 = time.perf_counter()
-        packed = col.pack_polygons(moved)
+        packed = pg.pack_polygons(moved)
         t1 = time.perf_counter()
         c1 = time.process_time()
         col.cut_obstacles(graph.hulls, packed, margin)
@@ -115,7 +116,7 @@ def measure(args: argparse.Namespace) -> dict:
         pack_ms.append((t1 - t0) * 1e3)
         cut_ms.append((t2 - t1) * 1e3)
         cut_cpu_ms.append((c2 - c1) * 1e3)
-    obstacles = col.pack_polygons(polys)
+    obstacles = pg.pack_polygons(polys)
     blocked = col.cut_obstacles(graph.hulls, obstacles, margin)
 
     # Soundness against dense sampling of every edge's true curve.

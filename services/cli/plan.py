@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 
 from onboard import collision as col
+
+from onboard import polygons as pg
 from onboard import graph_planner as gp
 from onboard import messages as msgs
 from onboard.params import PlannerParams
@@ -114,8 +116,8 @@ def parse_scene(text: str, base: PlannerParams | None = None) -> Scene:
     obstacles = []
     for k, poly in enumerate(raw["obstacles"]):
         try:
-            obstacles.append(col.validate_polygon(poly))
-        except col.PolygonError as exc:
+            obstacles.append(pg.validate_polygon(poly))
+        except pg.PolygonError as exc:
             raise SceneError(f"obstacle {k}: {exc}") from None
     start = _vec2(raw["start"], "start")
     goal = _vec2(raw["goal"], "goal")
@@ -124,11 +126,11 @@ def parse_scene(text: str, base: PlannerParams | None = None) -> Scene:
         if not (bounds[0] <= p[0] <= bounds[2] and bounds[1] <= p[1] <= bounds[3]):
             raise SceneError(f"{name} {p.tolist()} is outside the bounds")
     if obstacles:
-        packed = col.pack_polygons(obstacles)
+        packed = pg.pack_polygons(obstacles)
         for name, p in (("start", start), ("goal", goal)):
             if col.samples_clearance(p[None, None, :], packed, reach=1.0)[0] <= 0.0:
                 k = next(k for k, poly in enumerate(obstacles)
-                         if col.samples_clearance(p[None, None, :], col.pack_polygons([poly]), reach=1.0)[0] <= 0.0)
+                         if col.samples_clearance(p[None, None, :], pg.pack_polygons([poly]), reach=1.0)[0] <= 0.0)
                 raise SceneError(f"{name} {p.tolist()} is inside obstacle {k}")
     params = base or PlannerParams()
     changes: dict[str, Any] = {}
