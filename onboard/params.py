@@ -534,6 +534,20 @@ class RecorderParams(_Section):
 
 
 @dataclass(frozen=True)
+class ViewParams(_Section):
+    """The live viewer bridge (``view`` service): the stack's topics to a Foxglove WebSocket server."""
+
+    host: Name = "127.0.0.1"  # bind address; the default serves this machine only (reach it over an SSH tunnel)
+    port: Annotated[int, within(0, 65535)] = 8765  # Foxglove's default port; 0: any free port (logged)
+    variant: Literal["indoor", "outdoor", "sim15nm"] = "indoor"  # robot model drawn (robot_description variant)
+    max_rate_hz: Annotated[float, above(0.0, 1000.0)] = 30.0  # [Hz] at most this per channel: fast topics send their latest
+    event_queue: Annotated[int, within(1, 100_000)] = 256  # slow and event topics: messages kept between two sends
+    obstacle_height_m: Annotated[float, above(0.0, 10.0)] = 0.5  # [m] obstacles drawn as prisms this tall
+    reference_samples: Annotated[int, within(2, 10_000)] = 200  # points drawn along the reference curve
+    message_backlog: Annotated[int, within(1, 1_000_000)] = 256  # per client: the SDK drops the oldest beyond it
+
+
+@dataclass(frozen=True)
 class MocapParams(_Section):
     """The ``mocap`` service: a motion capture system's pose through ``motioncapture``.
 
@@ -566,6 +580,7 @@ SECTIONS: dict[str, type] = {
     "twin": TwinParams,
     "recorder": RecorderParams,
     "mocap": MocapParams,
+    "view": ViewParams,
 }
 
 # Fields a running control loop cannot take between two ticks: they shape the loop process

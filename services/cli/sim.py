@@ -93,6 +93,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hardware", choices=HARDWARE, default="twin",
                         help="realtime: twin: the twin publishes the sensors and takes torques; archer-firmware: the twin "
                              "behind emulated ARCHER boards (UDP) and an OptiTrack stream, driven by the hardware and mocap services")
+    parser.add_argument("--view", action="store_true",
+                        help="realtime: also run the live Foxglove view (the view service, ws://127.0.0.1:8765)")
+    parser.add_argument("--view-port", type=int, default=None, metavar="N",
+                        help="with --view: the view's WebSocket port (default view.port, 8765)")
     parser.add_argument("--services", default="auto",
                         help="realtime: comma list of services to run as processes, or 'none' "
                              "(auto: estimator, control and planner, each if archer run knows it)")
@@ -151,6 +155,8 @@ def build_config(args: argparse.Namespace) -> RunConfig:
 def run_lockstep(args: argparse.Namespace) -> dict:
     if getattr(args, "hardware", "twin") != "twin":
         raise ValueError("--hardware archer-firmware is a realtime option (the boards run on their own clocks)")
+    if getattr(args, "view", False):
+        raise ValueError("--view is a realtime option (--mode realtime); a lockstep run is seen afterwards from --record")
     cfg = build_config(args)
     duration = cfg.duration_s if cfg.duration_s is not None else sc.SCENARIOS[cfg.scenario](cfg.seed, cfg.obstacles).default_duration_s
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
@@ -269,6 +275,11 @@ def run_realtime(args: argparse.Namespace) -> dict:
         unknown = [s for s in wanted if s not in SERVICES]
         if unknown:
             raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICES)}")
+    view = getattr(args, "view", False)
+    if getattr(args, "view_port", None) is not None and not view:
+        raise ValueError("--view-port goes with --view")
+    if view and "view" not in wanted:
+        wanted.append("view")
     missing = [s for s in wanted if s not in SERVICES]
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
@@ -301,7 +312,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
         # are up, as a robot is switched on under a running stack.
         units = [n for n in wanted if n in SERVICES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
-        sup = Supervisor(sim_specs(units, endpoint, ns, rig.config_path if rig is not None else args.config))
+        sup = Supervisor(sim_specs(units, endpoint, ns, view_config.path if view_config is not None else
+                                   rig.config_path if rig is not None else args.config))
         wall0 = time.perf_counter()
         twin_started = time.monotonic()
         cpu0: tuple[dict[str, float], float] | None = None
@@ -365,11 +377,36 @@ def run_realtime(args: argparse.Namespace) -> dict:
         return out
 
     rig = FirmwareRig(args.config, args.variant) if firmware else None
+    view_config = None
     try:
+        if view:
+            view_config = _ViewConfig(rig.config_path if rig is not None else args.config, args.view_port, args.variant)
+            print(f"archer sim: live view on ws://127.0.0.1:{view_config.port} (Foxglove: open connection)", file=sys.stderr)
         return asyncio.run(main())
     finally:
+        if view_config is not None:
+            view_config.close()
         if rig is not None:
             rig.close()
+
+
+class _ViewConfig:
+    """The run's config file with the ``[view]`` section ``--view`` asks for (port, robot variant)."""
+
+    def __init__(self, config: str | None, port: int | None, variant: str) -> None:
+        params = load_params(config, ("view",))
+        changes: dict[str, Any] = {"variant": variant}
+        if port is not None:
+            changes["port"] = port
+        self.port = with_overrides(params["view"], changes).port  # validated before anything starts
+        user = tomllib.loads(Path(config).read_text()) if config else {}
+        user["view"] = {**user.get("view", {}), **changes}
+        fd, self.path = tempfile.mkstemp(prefix="archer-view-", suffix=".toml")
+        with os.fdopen(fd, "w") as f:
+            f.write(_toml(user))
+
+    def close(self) -> None:
+        os.unlink(self.path)
 
 
 def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, float], float], wall_s: float) -> dict[str, float]:

@@ -1,0 +1,254 @@
+"""`archer view`: the live Foxglove bridge, checked with an independent WebSocket client.
+
+The client is the `websockets` package speaking Foxglove's WebSocket protocol
+(`foxglove.sdk.v1`); the messages are decoded with `protobuf` from the descriptors the
+server advertises, so nothing of the SDK decodes what the SDK encoded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import math
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import pytest
+import websockets
+import zenoh
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+from onboard import messages as m
+from onboard.topics import TOPICS
+from robot_description.params import body_shapes
+from services.runtime.peers import live_services
+from services.runtime.zenoh_session import open_session
+from services.view import BODY_FRAME, TF_CHANNEL, WORLD_FRAME, RobotDrawing, scene_channel
+
+NS = "archer/viewtest"
+SUBPROTOCOL = "foxglove.sdk.v1"
+START_TIMEOUT_S = 30.0
+MAX_RATE_HZ = 30.0
+PUBLISH_S = 3.0
+STATE_HZ = 1000.0
+QUAT = (math.cos(0.2), math.sin(0.2) * 0.6, 0.0, math.sin(0.2) * 0.8)  # a tilt and a yaw, unit
+FOOT_POS = 0.03  # [m] compression of every published state
+STEP_X = 1e-4  # [m] published state k has its CoM at x = k * STEP_X: a transform names its state
+OP_MESSAGE_DATA = 0x01  # Foxglove WebSocket binary opcode
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def state(k: int) -> m.StateEstimate:
+    return m.StateEstimate(
+        stamp_ns=time.monotonic_ns(), seq=k, position=[k * STEP_X, 0.2, 0.5], velocity=[0.0, 0.0, 0.0], quat=list(QUAT),
+        omega=[0.0, 0.0, 0.0], wheel_vel=[0.0, 0.0, 0.0], foot_pos=FOOT_POS, foot_vel=0.0, contact=False, phase="flight",
+        pos_vel_cov=[0.0] * 36, att_cov=[0.0, 0.0, 0.0])
+
+
+def start_view(endpoint: str, port: int, *extra: str) -> subprocess.Popen:
+    """``archer view`` as its own process, once its liveliness token is up."""
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "view", "--endpoint", endpoint, "--namespace", NS,
+                             "--port", str(port), "--log-level", "WARNING", *extra], stderr=subprocess.PIPE)
+    client = open_session(endpoint, "peer")
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while "view" not in live_services(client, NS):
+            if proc.poll() is not None:
+                raise AssertionError(f"archer view exited {proc.returncode}: {proc.stderr.read().decode()}")
+            assert time.monotonic() < deadline, "archer view never came up"
+            time.sleep(0.1)
+    except BaseException:
+        stop(proc)
+        raise
+    finally:
+        client.close()
+    return proc
+
+
+def stop(proc: subprocess.Popen) -> int:
+    if proc.poll() is None:
+        proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
+    return proc.returncode
+
+
+class Decoders:
+    """Protobuf classes built from the FileDescriptorSets the server advertises."""
+
+    def __init__(self) -> None:
+        self.pool = descriptor_pool.DescriptorPool()
+        self.classes: dict[str, type] = {}
+
+    def add(self, schema_name: str, schema_b64: str) -> type:
+        if schema_name not in self.classes:
+            fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(schema_b64))
+            for f in fds.file:
+                try:
+                    self.pool.Add(f)
+                except TypeError:
+                    pass  # a dependency another schema already added
+                except Exception as exc:  # noqa: BLE001 - the same file twice is fine, a conflict is not
+                    if "duplicate" not in str(exc).lower() and "already" not in str(exc).lower():
+                        raise
+            self.classes[schema_name] = message_factory.GetMessageClass(self.pool.FindMessageTypeByName(schema_name))
+        return self.classes[schema_name]
+
+
+@dataclass
+class Received:
+    channels: dict[str, dict] = field(default_factory=dict)  # topic -> advertised channel
+    messages: dict[str, list] = field(default_factory=dict)  # topic -> [(receive time, decoded)]
+
+
+async def watch(port: int, topics: list[str], duration_s: float, ready: threading.Event, received: Received) -> None:
+    """Connect, subscribe to ``topics`` once advertised, and decode what arrives for ``duration_s``."""
+    decoders = Decoders()
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        subs: dict[int, str] = {}
+        end = None
+        while end is None or time.monotonic() < end:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), 0.2)
+            except asyncio.TimeoutError:
+                continue
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg.get("op") == "advertise":
+                    for ch in msg["channels"]:
+                        received.channels[ch["topic"]] = ch
+                    wanted = [received.channels[t] for t in topics if t in received.channels]
+                    if end is None and len(wanted) == len(topics):
+                        for i, ch in enumerate(wanted, start=1):
+                            subs[i] = ch["topic"]
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": i, "channelId": ch["id"]} for i, ch in enumerate(wanted, start=1)]}))
+                        end = time.monotonic() + duration_s
+                        await asyncio.sleep(0.3)  # the subscription is in place before the publisher starts
+                        ready.set()
+                continue
+            opcode, sub_id, _ = struct.unpack_from("<BIQ", frame, 0)
+            if opcode != OP_MESSAGE_DATA or sub_id not in subs:
+                continue
+            topic = subs[sub_id]
+            ch = received.channels[topic]
+            payload = frame[13:]
+            if ch["encoding"] == "protobuf":
+                decoded = decoders.add(ch["schemaName"], ch["schema"]).FromString(payload)
+            else:
+                decoded = json.loads(payload)
+            received.messages.setdefault(topic, []).append((time.monotonic(), decoded))
+
+
+def publish_states(endpoint: str, ready: threading.Event, published: list[int], polytopes: m.PolytopeSet) -> None:
+    session = open_session(endpoint, "peer")
+    try:
+        pub = session.declare_publisher(TOPICS["state"].key(NS), express=True)
+        world = session.declare_publisher(TOPICS["polytopes"].key(NS), reliability=zenoh.Reliability.RELIABLE)
+        assert ready.wait(START_TIMEOUT_S), "the client never subscribed"
+        world.put(m.encode(polytopes))
+        t0 = time.monotonic()
+        k = 0
+        while time.monotonic() - t0 < PUBLISH_S:  # absolute deadlines: 1 kHz on average
+            k += 1
+            pub.put(m.encode(state(k)))
+            published.append(k)
+            delay = t0 + k / STATE_HZ - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+    finally:
+        session.close()
+
+
+def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_within_the_rate_cap(zenoh_router):
+    port = free_port()
+    proc = start_view(zenoh_router, port)
+    tf_topic, robot_topic, world_topic = TF_CHANNEL, scene_channel(NS, "robot"), scene_channel(NS, "world")
+    state_topic = TOPICS["state"].key(NS)
+    received = Received()
+    published: list[int] = []
+    ready = threading.Event()
+    obstacles = m.PolytopeSet(mode="obstacles", polytopes=[
+        m.Polytope(A=[[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], b=[1.5, -1.0, 0.5, 0.5],
+                   vertices=[[1.0, -0.5], [1.5, 0.5], [1.5, -0.5], [1.0, 0.5]])])  # unordered on purpose
+    publisher = threading.Thread(target=publish_states, args=(zenoh_router, ready, published, obstacles), daemon=True)
+    try:
+        publisher.start()
+        asyncio.run(asyncio.wait_for(
+            watch(port, [tf_topic, robot_topic, world_topic, state_topic], PUBLISH_S + 0.5, ready, received), 60))
+        publisher.join(10)
+        assert stop(proc) == 0
+    finally:
+        stop(proc)
+        ready.set()
+        publisher.join(10)
+
+    assert received.channels[tf_topic]["schemaName"] == "foxglove.FrameTransform"
+    assert received.channels[robot_topic]["schemaName"] == "foxglove.SceneUpdate"
+    assert received.channels[state_topic]["schemaEncoding"] == "jsonschema"
+    assert "foot_pos" in received.channels[state_topic]["schema"]
+    assert len(published) > 0.8 * STATE_HZ * PUBLISH_S
+
+    # each transform is the torso frame of one published state: CoM less its offset, quat as sent
+    drawing = RobotDrawing("indoor")
+    origin0 = drawing.body_origin(state(0))
+    tfs = [msg for _, msg in received.messages[tf_topic]]
+    assert len(tfs) > 10
+    seen = set()
+    published_set = set(published)
+    for tf in tfs:
+        assert (tf.parent_frame_id, tf.child_frame_id) == (WORLD_FRAME, BODY_FRAME)
+        k = round((tf.translation.x - origin0[0]) / STEP_X)
+        assert k in published_set
+        expected = drawing.body_origin(state(k))
+        assert (tf.translation.x, tf.translation.y, tf.translation.z) == pytest.approx(expected, abs=1e-9)
+        assert (tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z) == pytest.approx(QUAT, abs=1e-12)
+        seen.add(k)
+    assert len(seen) == len(tfs)  # never the same state twice: only new estimates are sent
+
+    # the cap: at most MAX_RATE_HZ transforms a second while state arrives at 1 kHz
+    times = [t for t, _ in received.messages[tf_topic]]
+    rate = (len(times) - 1) / (times[-1] - times[0])
+    assert 5.0 < rate <= 1.1 * MAX_RATE_HZ, rate
+
+    # the body: frame-locked to the torso frame, the foot sphere raised by the compression
+    update = received.messages[robot_topic][-1][1]
+    entity = update.entities[0]
+    assert entity.frame_id == BODY_FRAME and entity.frame_locked and entity.id == "robot"
+    foot = next(s for s in body_shapes("indoor").shapes if s.name == "foot")
+    foot_sphere = min(entity.spheres, key=lambda s: s.pose.position.z)
+    assert foot_sphere.pose.position.z == pytest.approx(foot.pos[2] + FOOT_POS)
+    assert foot_sphere.size.x == pytest.approx(2 * foot.size[0])
+    assert len(entity.cylinders) >= 4  # housing, three wheels (and the spool)
+
+    # the obstacle: one prism 0.5 m tall over the 0.5 x 1 m rectangle
+    world = received.messages[world_topic][-1][1]
+    prism = world.entities[0].triangles[0]
+    xs, ys, zs = ([getattr(p, a) for p in prism.points] for a in "xyz")
+    assert (min(xs), max(xs), min(ys), max(ys), min(zs), max(zs)) == pytest.approx((1.0, 1.5, -0.5, 0.5, 0.0, 0.5))
+    assert len(prism.points) == 3 * (2 * 2 + 2 * 4)  # two fans of 2 triangles, 4 walls of 2
+
+    # the JSON channel: the estimate itself, any field plottable
+    last_json = received.messages[state_topic][-1][1]
+    assert last_json["foot_pos"] == FOOT_POS and last_json["quat"] == pytest.approx(list(QUAT))
+
+
+def test_archer_view_refuses_a_bad_port_by_name():
+    out = subprocess.run([sys.executable, "-m", "services.cli.main", "view", "--port", "70000"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "view.port" in out.stderr
