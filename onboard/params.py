@@ -545,6 +545,7 @@ class ViewParams(_Section):
     obstacle_height_m: Annotated[float, above(0.0, 10.0)] = 0.5  # [m] obstacles drawn as prisms this tall
     reference_samples: Annotated[int, within(2, 10_000)] = 200  # points drawn along the reference curve
     message_backlog: Annotated[int, within(1, 1_000_000)] = 256  # per client: the SDK drops the oldest beyond it
+    lockstep_wait_s: Annotated[float, within(0.0, 3600.0)] = 60.0  # [s] `archer sim --view` in lockstep waits this long for a viewer
 
 
 @dataclass(frozen=True)

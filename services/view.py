@@ -253,6 +253,74 @@ def depth_messages(img: DepthImage, epoch_ns: int) -> tuple[fm.RawImage, fm.Fram
     return image, tf
 
 
+class FoxgloveBridge:
+    """A Foxglove WebSocket server and its channels; :meth:`send` shows one stack message on them.
+
+    Not thread-safe: one thread sends. The ``view`` service feeds it from Zenoh; ``archer sim
+    --view`` in lockstep feeds it straight from the runner.
+    """
+
+    def __init__(self, ns: str, params: ViewParams) -> None:
+        self.params = params
+        self.drawing = RobotDrawing(params.variant)
+        self._context = foxglove.Context()  # channels of this server only (a test may run two)
+        try:
+            self.server = foxglove.start_server(name=f"archer {ns}", host=params.host, port=params.port,
+                                                context=self._context, message_backlog_size=params.message_backlog)
+        except Exception as exc:  # the SDK's own error type; say which address, and why
+            raise RuntimeError(f"view: cannot serve on {params.host}:{params.port} ({exc}); set view.port") from exc
+        self.port = self.server.port
+        ctx = self._context
+        self._tf = fc.FrameTransformChannel(TF_CHANNEL, context=ctx)
+        self._robot = fc.SceneUpdateChannel(scene_channel(ns, "robot"), context=ctx)
+        self._plan = fc.SceneUpdateChannel(scene_channel(ns, "plan"), context=ctx)
+        self._world = fc.SceneUpdateChannel(scene_channel(ns, "world"), context=ctx)
+        self._grid = fc.GridChannel(scene_channel(ns, "grid"), context=ctx)
+        self._depth = fc.RawImageChannel(scene_channel(ns, "depth"), context=ctx)
+        self._json: dict[str, foxglove.Channel] = {}
+        for topic in TOPICS.values():
+            if not topic.binary:
+                name, encoding, data, message_encoding = schema_for(topic)
+                self._json[topic.name] = foxglove.Channel(
+                    topic.key(ns), schema=foxglove.Schema(name=name, encoding=encoding, data=data),
+                    message_encoding=message_encoding, context=ctx)
+
+    def send(self, topic: Topic, msg: Any, epoch: int) -> None:
+        """Convert and log ``msg`` (stamped ``epoch`` [ns since 1970]) on every channel it feeds that a
+        client subscribes to (the rest costs nothing)."""
+        params = self.params
+        name = topic.name
+        if name == "state":
+            if self._tf.has_sinks():
+                self._tf.log(self.drawing.transform(msg, epoch), log_time=epoch)
+            if self._robot.has_sinks():
+                self._robot.log(self.drawing.scene(msg.foot_pos, epoch), log_time=epoch)
+        elif name == "reference" and self._plan.has_sinks():
+            self._plan.log(reference_scene(msg, params.reference_samples, epoch), log_time=epoch)
+        elif name == "waypoints" and self._plan.has_sinks():
+            self._plan.log(waypoints_scene(msg, epoch), log_time=epoch)
+        elif name == "polytopes" and self._world.has_sinks():
+            self._world.log(world_scene(msg, params.obstacle_height_m, epoch), log_time=epoch)
+        elif name == "grid" and self._grid.has_sinks():
+            self._grid.log(grid_message(msg, epoch), log_time=epoch)
+        elif name == "depth" and (self._depth.has_sinks() or self._tf.has_sinks()):
+            image, tf = depth_messages(msg, epoch)
+            if self._depth.has_sinks():
+                self._depth.log(image, log_time=epoch)
+            if self._tf.has_sinks():
+                self._tf.log(tf, log_time=epoch)
+        channel = self._json.get(name)
+        if channel is not None and channel.has_sinks():
+            channel.log(m.encode(msg), log_time=epoch)
+
+    def watched(self) -> bool:
+        """A client subscribes to the robot's transform or body."""
+        return self._tf.has_sinks() or self._robot.has_sinks()
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
 class ViewService(Service):
     name = "view"
     params_sections = ("view",)
@@ -260,37 +328,20 @@ class ViewService(Service):
 
     async def setup(self) -> None:
         params: ViewParams = self.params["view"]
-        self.drawing = RobotDrawing(params.variant)
         self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()  # stamps are monotonic, Foxglove's epoch
-        self._context = foxglove.Context()  # channels of this server only (a test may run two)
-        self.server = foxglove.start_server(name=f"archer {self.ns}", host=params.host, port=params.port,
-                                            context=self._context, message_backlog_size=params.message_backlog)
-        self.port = self.server.port
-        ctx = self._context
-        self._tf = fc.FrameTransformChannel(TF_CHANNEL, context=ctx)
-        self._robot = fc.SceneUpdateChannel(scene_channel(self.ns, "robot"), context=ctx)
-        self._plan = fc.SceneUpdateChannel(scene_channel(self.ns, "plan"), context=ctx)
-        self._world = fc.SceneUpdateChannel(scene_channel(self.ns, "world"), context=ctx)
-        self._grid = fc.GridChannel(scene_channel(self.ns, "grid"), context=ctx)
-        self._depth = fc.RawImageChannel(scene_channel(self.ns, "depth"), context=ctx)
-        self._json: dict[str, foxglove.Channel] = {}
+        self.bridge = FoxgloveBridge(self.ns, params)
+        self.port = self.bridge.port
         self._inputs: list[tuple[Topic, Any]] = []
         for topic in TOPICS.values():
             fast = topic.rate_hz > params.max_rate_hz
             # a ring of one keeps the latest of a fast topic; slow and event topics keep what arrived
             self._inputs.append((topic, self.polled(topic.name, 1 if fast else params.event_queue)))
-            if not topic.binary:
-                name, encoding, data, message_encoding = schema_for(topic)
-                self._json[topic.name] = foxglove.Channel(
-                    topic.key(self.ns), schema=foxglove.Schema(name=name, encoding=encoding, data=data),
-                    message_encoding=message_encoding, context=ctx)
         self._ticks = 0
         self._last_ticks = -1
         self._stop_sender = threading.Event()
         self._sender = threading.Thread(target=self._send_loop, name="view-sender", daemon=True)
         self._sender.start()
-        self.log.info("foxglove server", extra={"fields": {"url": f"ws://{params.host}:{self.port}",
-                                                           "open": self.server.app_url()}})
+        self.log.info("foxglove server", extra={"fields": {"url": f"ws://{params.host}:{self.port}"}})
 
     def _send_loop(self) -> None:
         """Every 1 / max_rate_hz: drain each input and send what it holds (absolute deadlines)."""
@@ -320,36 +371,11 @@ class ViewService(Service):
             self.log.exception("view sender failed")
 
     def _send(self, topic: Topic, msg: Any) -> None:
-        """Convert and log ``msg`` on every channel it feeds that a client subscribes to (the rest costs nothing)."""
         stamp = getattr(msg, "stamp_ns", 0)
-        epoch = stamp + self._epoch_offset_ns if stamp > 0 else time.time_ns()
-        params: ViewParams = self.params["view"]
-        name = topic.name
-        if name == "state":
-            if self._tf.has_sinks():
-                self._tf.log(self.drawing.transform(msg, epoch), log_time=epoch)
-            if self._robot.has_sinks():
-                self._robot.log(self.drawing.scene(msg.foot_pos, epoch), log_time=epoch)
-        elif name == "reference" and self._plan.has_sinks():
-            self._plan.log(reference_scene(msg, params.reference_samples, epoch), log_time=epoch)
-        elif name == "waypoints" and self._plan.has_sinks():
-            self._plan.log(waypoints_scene(msg, epoch), log_time=epoch)
-        elif name == "polytopes" and self._world.has_sinks():
-            self._world.log(world_scene(msg, params.obstacle_height_m, epoch), log_time=epoch)
-        elif name == "grid" and self._grid.has_sinks():
-            self._grid.log(grid_message(msg, epoch), log_time=epoch)
-        elif name == "depth" and (self._depth.has_sinks() or self._tf.has_sinks()):
-            image, tf = depth_messages(msg, epoch)
-            if self._depth.has_sinks():
-                self._depth.log(image, log_time=epoch)
-            if self._tf.has_sinks():
-                self._tf.log(tf, log_time=epoch)
-        channel = self._json.get(name)
-        if channel is not None and channel.has_sinks():
-            channel.log(m.encode(msg), log_time=epoch)
+        self.bridge.send(topic, msg, stamp + self._epoch_offset_ns if stamp > 0 else time.time_ns())
 
     def status_extra(self) -> dict[str, float]:
-        if not hasattr(self, "server"):
+        if not hasattr(self, "bridge"):
             return {}
         return {"port": self.port, "ticks": self._ticks}
 
@@ -369,6 +395,8 @@ class ViewService(Service):
                 raise RuntimeError(f"the view's sender thread died: {self.last_error}")
 
     async def teardown(self) -> None:
-        self._stop_sender.set()
-        self._sender.join(SENDER_JOIN_S)
-        self.server.stop()
+        if hasattr(self, "_sender"):
+            self._stop_sender.set()
+            self._sender.join(SENDER_JOIN_S)
+        if hasattr(self, "bridge"):
+            self.bridge.stop()

@@ -112,13 +112,25 @@ class Decoders:
 @dataclass
 class Received:
     channels: dict[str, dict] = field(default_factory=dict)  # topic -> advertised channel
-    messages: dict[str, list] = field(default_factory=dict)  # topic -> [(receive time, decoded)]
+    messages: dict[str, list] = field(default_factory=dict)  # topic -> [(receive time, log time [ns], decoded)]
+
+
+async def connect(port: int, timeout_s: float = START_TIMEOUT_S):
+    """A client connection once the server listens (it starts with its service)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
 
 
 async def watch(port: int, topics: list[str], duration_s: float, ready: threading.Event, received: Received) -> None:
     """Connect, subscribe to ``topics`` once advertised, and decode what arrives for ``duration_s``."""
     decoders = Decoders()
-    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+    async with await connect(port) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         subs: dict[int, str] = {}
         end = None
@@ -142,7 +154,7 @@ async def watch(port: int, topics: list[str], duration_s: float, ready: threadin
                         await asyncio.sleep(0.3)  # the subscription is in place before the publisher starts
                         ready.set()
                 continue
-            opcode, sub_id, _ = struct.unpack_from("<BIQ", frame, 0)
+            opcode, sub_id, log_ns = struct.unpack_from("<BIQ", frame, 0)
             if opcode != OP_MESSAGE_DATA or sub_id not in subs:
                 continue
             topic = subs[sub_id]
@@ -152,7 +164,7 @@ async def watch(port: int, topics: list[str], duration_s: float, ready: threadin
                 decoded = decoders.add(ch["schemaName"], ch["schema"]).FromString(payload)
             else:
                 decoded = json.loads(payload)
-            received.messages.setdefault(topic, []).append((time.monotonic(), decoded))
+            received.messages.setdefault(topic, []).append((time.monotonic(), log_ns, decoded))
 
 
 def publish_states(endpoint: str, ready: threading.Event, published: list[int], polytopes: m.PolytopeSet) -> None:
@@ -207,7 +219,7 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
     # each transform is the torso frame of one published state: CoM less its offset, quat as sent
     drawing = RobotDrawing("indoor")
     origin0 = drawing.body_origin(state(0))
-    tfs = [msg for _, msg in received.messages[tf_topic]]
+    tfs = [msg for _, _, msg in received.messages[tf_topic]]
     assert len(tfs) > 10
     seen = set()
     published_set = set(published)
@@ -222,12 +234,12 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
     assert len(seen) == len(tfs)  # never the same state twice: only new estimates are sent
 
     # the cap: at most MAX_RATE_HZ transforms a second while state arrives at 1 kHz
-    times = [t for t, _ in received.messages[tf_topic]]
+    times = [t for t, _, _ in received.messages[tf_topic]]
     rate = (len(times) - 1) / (times[-1] - times[0])
     assert 5.0 < rate <= 1.1 * MAX_RATE_HZ, rate
 
     # the body: frame-locked to the torso frame, the foot sphere raised by the compression
-    update = received.messages[robot_topic][-1][1]
+    update = received.messages[robot_topic][-1][2]
     entity = update.entities[0]
     assert entity.frame_id == BODY_FRAME and entity.frame_locked and entity.id == "robot"
     foot = next(s for s in body_shapes("indoor").shapes if s.name == "foot")
@@ -237,14 +249,14 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
     assert len(entity.cylinders) >= 4  # housing, three wheels (and the spool)
 
     # the obstacle: one prism 0.5 m tall over the 0.5 x 1 m rectangle
-    world = received.messages[world_topic][-1][1]
+    world = received.messages[world_topic][-1][2]
     prism = world.entities[0].triangles[0]
     xs, ys, zs = ([getattr(p, a) for p in prism.points] for a in "xyz")
     assert (min(xs), max(xs), min(ys), max(ys), min(zs), max(zs)) == pytest.approx((1.0, 1.5, -0.5, 0.5, 0.0, 0.5))
     assert len(prism.points) == 3 * (2 * 2 + 2 * 4)  # two fans of 2 triangles, 4 walls of 2
 
     # the JSON channel: the estimate itself, any field plottable
-    last_json = received.messages[state_topic][-1][1]
+    last_json = received.messages[state_topic][-1][2]
     assert last_json["foot_pos"] == FOOT_POS and last_json["quat"] == pytest.approx(list(QUAT))
 
 
@@ -252,3 +264,63 @@ def test_archer_view_refuses_a_bad_port_by_name():
     out = subprocess.run([sys.executable, "-m", "services.cli.main", "view", "--port", "70000"], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 2 and "view.port" in out.stderr
+
+
+def test_archer_sim_view_shows_the_twin_hopping():
+    """`archer sim --mode realtime --view`: the bridge runs as a supervised unit beside the twin; its
+    transforms are the estimates it bridges (paired by log time) and the robot is seen hopping upright."""
+    from services.runtime.zenoh_session import free_endpoint
+
+    port, endpoint, duration = free_port(), free_endpoint(), 8.0
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "sim", "--mode", "realtime", "--scenario", "hop-in-place",
+                             "--duration", str(duration), "--services", "estimator,control", "--view", "--view-port", str(port),
+                             "--endpoint", endpoint, "--namespace", NS, "--json", "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    tf_topic, state_topic = TF_CHANNEL, TOPICS["state"].key(NS)
+    received = Received()
+    try:
+        asyncio.run(asyncio.wait_for(watch(port, [tf_topic, state_topic], duration, threading.Event(), received), 120))
+        out, err = proc.communicate(timeout=120)
+    finally:
+        stop(proc)
+    assert proc.returncode == 0, err
+    metrics = json.loads(out.strip().splitlines()[-1])
+    assert "view" in metrics["services_started"] and metrics["falls"] == 0
+    assert metrics["service_restarts"]["view"] == 0
+
+    drawing = RobotDrawing("indoor")
+    estimates = {log_ns: msg for _, log_ns, msg in received.messages[state_topic]}
+    pairs = [(tf, estimates[log_ns]) for _, log_ns, tf in received.messages[tf_topic] if log_ns in estimates]
+    assert len(pairs) > 30  # seconds of the run at up to 30 Hz
+    heights = []
+    for tf, est in pairs:
+        s = m.decode(json.dumps(est).encode(), m.StateEstimate)
+        assert (tf.translation.x, tf.translation.y, tf.translation.z) == pytest.approx(drawing.body_origin(s), abs=1e-9)
+        assert (tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z) == pytest.approx(s.quat, abs=1e-12)
+        assert 2 * (tf.rotation.w ** 2 + tf.rotation.z ** 2) - 1 > math.cos(math.radians(20))  # upright within 20 deg
+        heights.append(tf.translation.z)
+    assert 0.2 < min(heights) and max(heights) - min(heights) > 0.02  # on its foot, and hopping
+
+
+def test_archer_sim_view_in_lockstep_is_paced_and_shows_the_run():
+    """Lockstep with --view: it waits for a viewer, then runs at wall-clock pace, thinned to the cap."""
+    port, duration = free_port(), 3.0
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "sim", "--scenario", "hop-in-place", "--duration", str(duration),
+                             "--view", "--view-port", str(port), "--namespace", NS, "--json", "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    received = Received()
+    try:
+        asyncio.run(asyncio.wait_for(watch(port, [TF_CHANNEL, scene_channel(NS, "robot")], duration + 1.0, threading.Event(),
+                                           received), 120))
+        out, err = proc.communicate(timeout=120)
+    finally:
+        stop(proc)
+    assert proc.returncode == 0, err
+    metrics = json.loads(out.strip().splitlines()[-1])
+    assert metrics["falls"] == 0 and metrics["realtime_factor"] <= 1.05  # paced for watching
+    tfs = [(t, tf) for t, _, tf in received.messages[TF_CHANNEL] if tf.child_frame_id == BODY_FRAME]
+    rate = (len(tfs) - 1) / (tfs[-1][0] - tfs[0][0])
+    assert 10.0 < rate <= 1.1 * MAX_RATE_HZ, rate
+    heights = [tf.translation.z for _, tf in tfs]
+    assert 0.2 < min(heights) and max(heights) - min(heights) > 0.02
+    assert received.messages[scene_channel(NS, "robot")]

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -94,7 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="realtime: twin: the twin publishes the sensors and takes torques; archer-firmware: the twin "
                              "behind emulated ARCHER boards (UDP) and an OptiTrack stream, driven by the hardware and mocap services")
     parser.add_argument("--view", action="store_true",
-                        help="realtime: also run the live Foxglove view (the view service, ws://127.0.0.1:8765)")
+                        help="a live Foxglove view on ws://127.0.0.1:8765 (realtime: the view service beside the twin; "
+                             "lockstep: the run paced to wall time, started once a viewer subscribes or after view.lockstep_wait_s)")
     parser.add_argument("--view-port", type=int, default=None, metavar="N",
                         help="with --view: the view's WebSocket port (default view.port, 8765)")
     parser.add_argument("--services", default="auto",
@@ -155,12 +157,19 @@ def build_config(args: argparse.Namespace) -> RunConfig:
 def run_lockstep(args: argparse.Namespace) -> dict:
     if getattr(args, "hardware", "twin") != "twin":
         raise ValueError("--hardware archer-firmware is a realtime option (the boards run on their own clocks)")
-    if getattr(args, "view", False):
-        raise ValueError("--view is a realtime option (--mode realtime); a lockstep run is seen afterwards from --record")
+    view = _LockstepView(args) if getattr(args, "view", False) else None
     cfg = build_config(args)
+    if view is not None:
+        cfg = dataclasses.replace(cfg, sink=view)
     duration = cfg.duration_s if cfg.duration_s is not None else sc.SCENARIOS[cfg.scenario](cfg.seed, cfg.obstacles).default_duration_s
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
-    result = run(cfg, progress)
+    try:
+        if view is not None:
+            view.wait_for_viewer()
+        result = run(cfg, progress)
+    finally:
+        if view is not None:
+            view.close()
     if args.record:
         from sim_twin.record import write_mcap
 
@@ -170,6 +179,52 @@ def run_lockstep(args: argparse.Namespace) -> dict:
 
         plot_run(result, args.plot)
     return result.metrics
+
+
+class _LockstepView:
+    """``--view`` in lockstep: the run paced to wall time and shown on a Foxglove server as it goes.
+
+    No Zenoh here: the runner hands each message over (``RunConfig.sink``); fast topics are
+    thinned to ``view.max_rate_hz`` of simulated time, as the view service does.
+    """
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        from onboard.topics import namespace
+        from services.view import FoxgloveBridge
+
+        changes: dict[str, Any] = {"variant": args.variant}
+        if args.view_port is not None:
+            changes["port"] = args.view_port
+        self.params = with_overrides(load_params(args.config, ("view",))["view"], changes)
+        self.bridge = FoxgloveBridge(args.namespace or namespace(), self.params)
+        self.period_ns = int(1e9 / self.params.max_rate_hz)
+        self.last_ns: dict[str, int] = {}
+        self.wall0 = 0.0
+        self.epoch0 = 0
+        print(f"archer sim: live view on ws://{self.params.host}:{self.bridge.port} (Foxglove: open connection)", file=sys.stderr)
+
+    def wait_for_viewer(self) -> None:
+        deadline = time.monotonic() + self.params.lockstep_wait_s
+        while not self.bridge.watched() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self.wall0 = time.monotonic()
+        self.epoch0 = time.time_ns()
+
+    def __call__(self, topic_name: str, sim_ns: int, msg: object) -> None:
+        from onboard.topics import TOPICS
+
+        topic = TOPICS[topic_name]
+        if topic.rate_hz > self.params.max_rate_hz:
+            if sim_ns - self.last_ns.get(topic_name, -self.period_ns) < self.period_ns:
+                return
+            self.last_ns[topic_name] = sim_ns
+        ahead = sim_ns / 1e9 - (time.monotonic() - self.wall0)
+        if ahead > 0.0:  # paced: simulated time never runs ahead of the wall clock
+            time.sleep(ahead)
+        self.bridge.send(topic, msg, self.epoch0 + sim_ns)
+
+    def close(self) -> None:
+        self.bridge.stop()
 
 
 def _take_twin_priority() -> None:
@@ -276,8 +331,6 @@ def run_realtime(args: argparse.Namespace) -> dict:
         if unknown:
             raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICES)}")
     view = getattr(args, "view", False)
-    if getattr(args, "view_port", None) is not None and not view:
-        raise ValueError("--view-port goes with --view")
     if view and "view" not in wanted:
         wanted.append("view")
     missing = [s for s in wanted if s not in SERVICES]
@@ -422,6 +475,8 @@ def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, fl
 def run_sim(args: argparse.Namespace) -> int:
     """Exit code 0; 2 for what the user asked wrong; 1 when the run failed by itself."""
     try:
+        if getattr(args, "view_port", None) is not None and not getattr(args, "view", False):
+            raise ValueError("--view-port goes with --view")
         metrics = run_realtime(args) if args.mode == "realtime" else run_lockstep(args)
     except (ValueError, ConfigError) as exc:
         print(f"archer sim: {exc}", file=sys.stderr)
