@@ -531,6 +531,7 @@ class RecorderParams(_Section):
     compression: Literal["zstd", "lz4", "none"] = "zstd"  # "zstd", "lz4" or "none"
     keep_bytes: Annotated[int, within(0, 2**50)] = 8 * 1024 * 1024 * 1024  # delete the oldest finished files beyond this
     status_period_s: Annotated[float, above(0.0, 3600.0)] = 5.0  # record every live service's status this often [s] (a query costs them CPU)
+    scene: bool = True  # also write the Foxglove scene channels (services/scene.py, drawn as [view] says) beside the raw topics
 
 
 @dataclass(frozen=True)

@@ -25,11 +25,11 @@ import zenoh
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from onboard import messages as m
-from onboard.topics import TOPICS
+from onboard.topics import TOPICS, namespace
 from robot_description.params import body_shapes
 from services.runtime.peers import live_services
 from services.runtime.zenoh_session import open_session
-from services.view import BODY_FRAME, TF_CHANNEL, WORLD_FRAME, RobotDrawing, scene_channel
+from services.scene import BODY_FRAME, TF_CHANNEL, WORLD_FRAME, RobotDrawing, scene_channel
 
 NS = "archer/viewtest"
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -321,3 +321,92 @@ def test_archer_sim_view_in_lockstep_is_paced_and_shows_the_run():
     heights = [tf.translation.z for _, tf in tfs]
     assert 0.2 < min(heights) and max(heights) - min(heights) > 0.02
     assert received.messages[scene_channel(NS, "robot")]
+
+
+def _scene_and_states(paths) -> tuple[dict[str, str], list[tuple[int, object]], dict[int, m.StateEstimate], list]:
+    """From recordings: channel -> schema name, body transforms (publish time, decoded), raw states by
+    publish time, and the robot's scene updates; decoded with protobuf from the files' own schemas."""
+    from mcap.reader import make_reader
+
+    decoders = Decoders()
+    schemas: dict[str, str] = {}
+    tfs, states, robots = [], {}, []
+    for path in paths:
+        with open(path, "rb") as f:
+            for schema, channel, message in make_reader(f).iter_messages():
+                schemas[channel.topic] = schema.name if schema else ""
+                if channel.message_encoding == "protobuf":
+                    decoded = decoders.add(schema.name, base64.b64encode(schema.data).decode()).FromString(message.data)
+                    if channel.topic == TF_CHANNEL and decoded.child_frame_id == BODY_FRAME:
+                        tfs.append((message.publish_time, decoded))
+                    elif channel.topic.endswith("/view/robot"):
+                        robots.append(decoded)
+                elif channel.topic.endswith(TOPICS["state"].suffix):
+                    states[message.publish_time] = m.decode(message.data, m.StateEstimate)
+    return schemas, tfs, states, robots
+
+
+def _check_transforms(tfs, states) -> None:
+    drawing = RobotDrawing("indoor")
+    assert tfs
+    for publish_ns, tf in tfs:
+        if publish_ns == 0:
+            continue  # an estimate before any sensor data has no stamp of its own to pair by
+        s = states[publish_ns]  # the state it was made from, by its stamp
+        assert (tf.translation.x, tf.translation.y, tf.translation.z) == pytest.approx(drawing.body_origin(s), abs=1e-9)
+        assert (tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z) == pytest.approx(s.quat, abs=1e-12)
+
+
+def test_the_recorder_writes_the_scene_with_foxglove_schemas_beside_the_raw_topics(tmp_path, zenoh_router):
+    from onboard.params import RecorderParams, ViewParams
+    from services.recorder import RecorderService
+
+    params = RecorderParams(directory=str(tmp_path), chunk_s=600.0, flush_s=0.1, status_period_s=60.0)
+    n, period_s = 600, 0.002  # 1.2 s of estimates at 500 Hz
+
+    async def scenario() -> RecorderService:
+        rec = RecorderService(ns=NS, endpoint=zenoh_router, params={"recorder": params, "view": ViewParams()})
+        task = asyncio.create_task(rec.run())
+        session = open_session(zenoh_router, "peer")
+        try:
+            while rec.state != "running":
+                await asyncio.sleep(0.02)
+            await asyncio.sleep(0.3)  # the subscription reaches the router
+
+            def publish() -> None:
+                pub = session.declare_publisher(TOPICS["state"].key(NS), reliability=zenoh.Reliability.RELIABLE,
+                                                congestion_control=zenoh.CongestionControl.BLOCK)
+                time.sleep(0.3)
+                for k in range(1, n + 1):
+                    pub.put(m.encode(state(k)))
+                    time.sleep(period_s)
+
+            await asyncio.to_thread(publish)
+            await asyncio.sleep(0.3)
+        finally:
+            rec.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            session.close()
+        return rec
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
+    schemas, tfs, states, robots = _scene_and_states(sorted(tmp_path.glob("*.mcap")))
+    assert schemas[TF_CHANNEL] == "foxglove.FrameTransform" and schemas[scene_channel(NS, "robot")] == "foxglove.SceneUpdate"
+    assert len(states) == n  # every raw estimate kept ...
+    span_s = (max(states) - min(states)) / 1e9
+    assert 0.5 * MAX_RATE_HZ * span_s < len(tfs) <= MAX_RATE_HZ * span_s + 2  # ... the scene thinned to the cap
+    _check_transforms(tfs, states)
+    assert robots and robots[-1].entities[0].frame_id == BODY_FRAME
+
+
+def test_a_lockstep_recording_carries_the_scene(tmp_path):
+    from services.cli.main import main
+
+    rec = tmp_path / "run.mcap"
+    assert main(["sim", "--scenario", "hop-in-place", "--duration", "1.0", "--record", str(rec), "--quiet"]) == 0
+    schemas, tfs, states, robots = _scene_and_states([rec])
+    assert schemas[TF_CHANNEL] == "foxglove.FrameTransform"
+    assert schemas[scene_channel(namespace(), "world")] == "foxglove.SceneUpdate"
+    assert 25 <= len(tfs) <= 31  # 1 s of sim time at 30 Hz
+    _check_transforms(tfs, states)
+    assert len(robots) == len(tfs)

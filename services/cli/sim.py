@@ -171,9 +171,19 @@ def run_lockstep(args: argparse.Namespace) -> dict:
         if view is not None:
             view.close()
     if args.record:
+        from onboard.topics import TOPICS, namespace
+        from services.scene import SceneRecording
         from sim_twin.record import write_mcap
 
-        result.metrics["recorded_messages"] = write_mcap(args.record, result.messages)
+        # the scene channels beside the raw topics, drawn as the live view draws them; lockstep times start at 0
+        ns = args.namespace or namespace()
+        scene = SceneRecording(ns, with_overrides(load_params(args.config, ("view",))["view"], {"variant": args.variant}))
+
+        def scene_records(topic: str, log_ns: int, msg: object):
+            rate = TOPICS[topic].rate_hz if topic in TOPICS else 0.0
+            return scene.records(topic, msg, log_ns) if scene.due(topic, rate, log_ns) else ()
+
+        result.metrics["recorded_messages"] = write_mcap(args.record, result.messages, ns, extra=scene_records)
     if args.plot:
         from sim_twin.plot import plot_run
 
