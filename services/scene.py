@@ -23,6 +23,7 @@ from onboard import messages as m
 from onboard.binary_messages import DepthImage, OccupancyGrid
 from onboard.low_level import sample_reference
 from onboard.params import ViewParams
+from onboard.topics import TOPICS
 from robot_description.params import BodyGeometry, BodyShape, body_shapes, robot_params
 
 WORLD_FRAME = "world"
@@ -309,3 +310,24 @@ class SceneRecording:
                 schema = self._schemas[type(fmsg)] = (s.name, s.encoding, bytes(s.data), "protobuf")
             out.append((channel_name(self.ns, which), schema, fmsg.encode()))
         return out
+
+
+def layout(ns: str) -> str:
+    """A Foxglove layout (JSON, built with the SDK's ``foxglove.layouts``) for these channels: the 3D
+    scene following the robot, the depth image, and the CoM height and foot compression plotted."""
+    import foxglove.layouts as fl
+
+    scene_topics: dict[str, Any] = {channel_name(ns, w): fl.BaseRendererSceneUpdateTopicSettings(visible=True)
+                                    for w in ("robot", "plan", "world")}
+    scene_topics[channel_name(ns, "grid")] = fl.BaseRendererGridTopicSettings(visible=True)
+    state = f'"{TOPICS["state"].key(ns)}"'  # a topic name with slashes is quoted in a message path
+    three_d = fl.ThreeDeePanel(title="ARCHER", config=fl.ThreeDeeConfig(
+        follow_tf=BODY_FRAME, fixed_frame=WORLD_FRAME, follow_mode="follow-position", topics=scene_topics))
+    depth = fl.ImagePanel(title="depth", config=fl.ImageConfig(image_mode=fl.ImageModeConfig(image_topic=channel_name(ns, "depth"))))
+    plot = fl.PlotPanel(title="CoM height, foot compression", config=fl.PlotConfig(paths=[
+        fl.PlotSeries(value=f"{state}.position[2]", label="CoM z [m]"),
+        fl.PlotSeries(value=f"{state}.foot_pos", label="foot compression [m]")]))
+    return fl.Layout(content=fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(proportion=2, content=three_d),
+        fl.SplitItem(proportion=1, content=fl.SplitContainer(direction="column", items=[
+            fl.SplitItem(proportion=1, content=depth), fl.SplitItem(proportion=1, content=plot)]))])).to_json()

@@ -410,3 +410,17 @@ def test_a_lockstep_recording_carries_the_scene(tmp_path):
     assert 25 <= len(tfs) <= 31  # 1 s of sim time at 30 Hz
     _check_transforms(tfs, states)
     assert len(robots) == len(tfs)
+
+
+def test_the_shipped_foxglove_layout_is_the_generated_one():
+    """deploy/foxglove/archer-layout.json: made by services.scene.layout for the default robot; it shows every scene channel."""
+    from pathlib import Path
+
+    from onboard.topics import DEFAULT_ROBOT
+    from services.scene import SCENE_CHANNELS, channel_name, layout
+
+    ns = namespace(DEFAULT_ROBOT)
+    shipped = Path(__file__).resolve().parent.parent / "deploy" / "foxglove" / "archer-layout.json"
+    assert json.loads(shipped.read_text()) == json.loads(layout(ns))
+    text = shipped.read_text()
+    assert all(channel_name(ns, w) in text for w in SCENE_CHANNELS if w != "tf")  # the transforms need no entry
