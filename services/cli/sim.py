@@ -209,7 +209,7 @@ class _LockstepView:
         self.bridge = FoxgloveBridge(args.namespace or namespace(), self.params)
         self.period_ns = int(1e9 / self.params.max_rate_hz)
         self.last_ns: dict[str, int] = {}
-        self.wall0 = 0.0
+        self.wall0: float | None = None  # set by the run's first message: building the run takes its time
         self.epoch0 = 0
         print(f"archer sim: live view on ws://{self.params.host}:{self.bridge.port} (Foxglove: open connection)", file=sys.stderr)
 
@@ -217,13 +217,14 @@ class _LockstepView:
         deadline = time.monotonic() + self.params.lockstep_wait_s
         while not self.bridge.watched() and time.monotonic() < deadline:
             time.sleep(0.05)
-        self.wall0 = time.monotonic()
-        self.epoch0 = time.time_ns()
 
     def __call__(self, topic_name: str, sim_ns: int, msg: object) -> None:
         from onboard.topics import TOPICS
 
         topic = TOPICS[topic_name]
+        if self.wall0 is None:
+            self.wall0 = time.monotonic() - sim_ns / 1e9
+            self.epoch0 = time.time_ns() - sim_ns
         if topic.rate_hz > self.params.max_rate_hz:
             if sim_ns - self.last_ns.get(topic_name, -self.period_ns) < self.period_ns:
                 return
