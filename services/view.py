@@ -1,8 +1,9 @@
 """The live viewer bridge: the stack's topics to a Foxglove WebSocket server (``archer view``).
 
-Subscribes: every topic of the topic table, each through a Zenoh ring buffer drained by
-the bridge's own sender thread (no Python callback per sample: a 1 kHz topic costs this
-process nothing between two sends, and a service publishing it never waits on us).
+Subscribes: any topic of the topic table, while a client watches a channel it feeds (a
+topic nobody watches costs nothing), each through a Zenoh ring buffer drained by the
+bridge's own sender thread (no Python callback per sample: a 1 kHz topic costs this
+process little between two sends, and a service publishing it never waits on us).
 Fast topics (nominal rate above ``view.max_rate_hz``) keep only their latest sample;
 slow and event topics keep up to ``view.event_queue`` samples; what overflows is dropped.
 
@@ -35,15 +36,19 @@ from typing import Any
 
 import foxglove
 import foxglove.channels as fc
+import zenoh
 
 from onboard import messages as m
 from onboard.params import ViewParams
 from onboard.topics import TOPICS, Topic
 from services.recorder import schema_for
-from services.runtime.service import EVERY_TOPIC, Service
+from services.runtime.service import EVERY_TOPIC, PolledInput, Service
 from services.scene import SceneMaker, channel_name
 
 SENDER_JOIN_S = 2.0
+# the scene channels each source topic feeds (services.scene.SceneMaker)
+_FEEDS = {"state": ("tf", "robot"), "reference": ("plan",), "waypoints": ("plan",), "polytopes": ("world",),
+          "grid": ("grid",), "depth": ("depth", "tf")}
 
 _CHANNEL_TYPES = {"tf": fc.FrameTransformChannel, "robot": fc.SceneUpdateChannel, "plan": fc.SceneUpdateChannel,
                   "world": fc.SceneUpdateChannel, "grid": fc.GridChannel, "depth": fc.RawImageChannel}
@@ -86,6 +91,13 @@ class FoxgloveBridge:
         if channel is not None and channel.has_sinks():
             channel.log(m.encode(msg), log_time=epoch)
 
+    def wanted(self, topic: str) -> bool:
+        """Whether a client subscribes to a channel that ``topic`` feeds (its JSON channel or a scene channel)."""
+        channel = self._json.get(topic)
+        if channel is not None and channel.has_sinks():
+            return True
+        return any(self._scene[which].has_sinks() for which in _FEEDS.get(topic, ()))
+
     def watched(self) -> bool:
         """A client subscribes to the robot's transform or body."""
         return self._scene["tf"].has_sinks() or self._scene["robot"].has_sinks()
@@ -104,11 +116,9 @@ class ViewService(Service):
         self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()  # stamps are monotonic, Foxglove's epoch
         self.bridge = FoxgloveBridge(self.ns, params)
         self.port = self.bridge.port
-        self._inputs: list[tuple[Topic, Any]] = []
-        for topic in TOPICS.values():
-            fast = topic.rate_hz > params.max_rate_hz
-            # a ring of one keeps the latest of a fast topic; slow and event topics keep what arrived
-            self._inputs.append((topic, self.polled(topic.name, 1 if fast else params.event_queue)))
+        # topic -> its subscription while a client watches a channel it feeds (None while nobody does: a
+        # 1 kHz topic nobody watches then costs this process nothing, not even Zenoh's work per sample)
+        self._inputs: dict[str, tuple[Topic, PolledInput | None]] = {t.name: (t, None) for t in TOPICS.values()}
         self._ticks = 0
         self._last_ticks = -1
         self._stop_sender = threading.Event()
@@ -123,7 +133,10 @@ class ViewService(Service):
         batch: list[Any] = []
         try:
             while not self._stop_sender.is_set():
-                for topic, inp in self._inputs:
+                self._follow_clients()
+                for topic, inp in self._inputs.values():
+                    if inp is None:
+                        continue
                     batch.clear()
                     taken = inp.drain(batch)
                     if taken >= inp.capacity > 1:
@@ -142,6 +155,22 @@ class ViewService(Service):
         except Exception as exc:  # noqa: BLE001 - recorded; progress() then stops the watchdog pings
             self.fail(f"sender: {exc!r}")
             self.log.exception("view sender failed")
+
+    def _follow_clients(self) -> None:
+        """Subscribe to a topic while a client watches what it feeds; unsubscribe when nobody does."""
+        max_rate, queue = self.params["view"].max_rate_hz, self.params["view"].event_queue
+        for name, (topic, inp) in self._inputs.items():
+            wanted = self.bridge.wanted(name)
+            if wanted and inp is None:
+                self._reads(name)  # the service table's rule
+                # a ring of one keeps the latest of a fast topic; slow and event topics keep what arrived
+                capacity = 1 if topic.rate_hz > max_rate else queue
+                sub = self.session.declare_subscriber(topic.key(self.ns), zenoh.handlers.RingChannel(capacity))
+                self._inputs[name] = (topic, PolledInput(sub, capacity, self._decoder(topic),
+                                                         lambda exc, t=topic: self._reject(t, exc), self.rate(f"rx.{name}")))
+            elif not wanted and inp is not None:
+                inp.close()
+                self._inputs[name] = (topic, None)
 
     def _send(self, topic: Topic, msg: Any) -> None:
         stamp = getattr(msg, "stamp_ns", 0)
@@ -171,5 +200,8 @@ class ViewService(Service):
         if hasattr(self, "_sender"):
             self._stop_sender.set()
             self._sender.join(SENDER_JOIN_S)
+            for _, inp in self._inputs.values():
+                if inp is not None:
+                    inp.close()
         if hasattr(self, "bridge"):
             self.bridge.stop()
