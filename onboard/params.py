@@ -531,6 +531,22 @@ class RecorderParams(_Section):
     compression: Literal["zstd", "lz4", "none"] = "zstd"  # "zstd", "lz4" or "none"
     keep_bytes: Annotated[int, within(0, 2**50)] = 8 * 1024 * 1024 * 1024  # delete the oldest finished files beyond this
     status_period_s: Annotated[float, above(0.0, 3600.0)] = 5.0  # record every live service's status this often [s] (a query costs them CPU)
+    scene: bool = True  # also write the Foxglove scene channels (services/scene.py, drawn as [view] says) beside the raw topics
+
+
+@dataclass(frozen=True)
+class ViewParams(_Section):
+    """The live viewer bridge (``view`` service): the stack's topics to a Foxglove WebSocket server."""
+
+    host: Name = "127.0.0.1"  # bind address; the default serves this machine only (reach it over an SSH tunnel)
+    port: Annotated[int, within(0, 65535)] = 8765  # Foxglove's default port; 0: any free port (logged)
+    variant: Literal["indoor", "outdoor", "sim15nm"] = "indoor"  # robot model drawn (robot_description variant)
+    max_rate_hz: Annotated[float, above(0.0, 1000.0)] = 30.0  # [Hz] at most this per channel: fast topics send their latest
+    event_queue: Annotated[int, within(1, 100_000)] = 256  # slow and event topics: messages kept between two sends
+    obstacle_height_m: Annotated[float, above(0.0, 10.0)] = 0.5  # [m] obstacles drawn as prisms this tall
+    reference_samples: Annotated[int, within(2, 10_000)] = 200  # points drawn along the reference curve
+    message_backlog: Annotated[int, within(1, 1_000_000)] = 256  # per client: the SDK drops the oldest beyond it
+    lockstep_wait_s: Annotated[float, within(0.0, 3600.0)] = 60.0  # [s] `archer sim --view` in lockstep waits this long for a viewer
 
 
 @dataclass(frozen=True)
@@ -566,6 +582,7 @@ SECTIONS: dict[str, type] = {
     "twin": TwinParams,
     "recorder": RecorderParams,
     "mocap": MocapParams,
+    "view": ViewParams,
 }
 
 # Fields a running control loop cannot take between two ticks: they shape the loop process

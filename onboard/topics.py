@@ -85,7 +85,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in _TABLE}
 assert len(TOPICS) == len(_TABLE), "duplicate topic name"
 assert len({t.suffix for t in _TABLE}) == len(_TABLE), "duplicate topic key"
 
-SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder")
+SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder", "view")
 
 
 def namespace(robot: str | None = None) -> str:

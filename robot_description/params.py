@@ -468,3 +468,97 @@ def hopper_model(variant: str = DEFAULT_VARIANT) -> zdp.HopperModel:
         travel=robot.foot_travel,
         gravity=robot.gravity,
     )
+
+
+@dataclass(frozen=True)
+class BodyShape:
+    """One geom of the robot, for drawing it (``body_shapes``): torso frame, zero compression."""
+
+    name: str
+    kind: str  # MJCF geom type: "sphere", "capsule", "cylinder" or "box"
+    size: tuple[float, ...]  # MJCF size: radius (, half-length or half-height) or box half-sizes [m]
+    pos: Vec3  # centre in the torso frame [m]
+    quat: tuple[float, float, float, float]  # orientation in the torso frame [w, x, y, z]; the geom's own z is its axis
+    rgba: tuple[float, float, float, float]
+    on_foot: bool  # moves with the foot: up by the compression along ``BodyGeometry.foot_axis``
+
+
+@dataclass(frozen=True)
+class BodyGeometry:
+    shapes: tuple[BodyShape, ...]
+    foot_axis: Vec3  # compression direction of the foot in the torso frame (unit)
+
+
+_DRAWN_GEOMS = ("sphere", "capsule", "cylinder", "box")
+
+
+def _euler_xyz(angles: np.ndarray) -> np.ndarray:
+    """MuJoCo's default ``eulerseq="xyz"`` (intrinsic, radians, as ``compiler angle="radian"``)."""
+    out = np.eye(3)
+    for axis, a in zip(range(3), angles):
+        c, s = math.cos(a), math.sin(a)
+        r = np.eye(3)
+        i, j = (axis + 1) % 3, (axis + 2) % 3  # cyclic, so that each is a right-handed rotation
+        r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+        out = out @ r
+    return out
+
+
+def _mat_quat(rot: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion [w, x, y, z] of a rotation matrix (Shepperd's method)."""
+    m = rot
+    tr = float(m[0, 0] + m[1, 1] + m[2, 2])
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        v = [0.0, 0.0, 0.0]
+        v[i] = 0.25 * s
+        v[j] = (m[j, i] + m[i, j]) / s
+        v[k] = (m[k, i] + m[i, k]) / s
+        q = ((m[k, j] - m[j, k]) / s, *v)
+    return tuple(float(x) for x in q)  # type: ignore[return-value]
+
+
+@functools.lru_cache(maxsize=None)
+def body_shapes(variant: str = DEFAULT_VARIANT) -> BodyGeometry:
+    """Every drawable geom of the robot (collision and visual) in the torso frame, foot extended.
+
+    For viewers (``archer view``): read from the same MJCF as :func:`robot_params`, without MuJoCo.
+    """
+    r = _robot(variant)
+    xml, model = r.xml, r.model
+    defaults = _Defaults(xml)
+    foot = r.joint_id(FOOT_JOINT)
+    torso_inv = r.body_placement(TORSO).inverse()
+    shapes = []
+    for body, cls in _walk_bodies(xml.find("worldbody")):
+        placement = torso_inv * r.body_placement(body.get("name"))
+        frame = model.frames[model.getFrameId(body.get("name"), pin.BODY)]
+        on_foot = foot in model.supports[frame.parentJoint]
+        for i, geom in enumerate(body.findall("geom")):
+            attrs = defaults.attrs(geom, cls)
+            kind = attrs.get("type", "sphere")
+            if kind not in _DRAWN_GEOMS:
+                raise ValueError(f"geom {geom.get('name')!r} of type {kind!r} cannot be drawn (only {', '.join(_DRAWN_GEOMS)})")
+            size = _floats(attrs["size"])
+            if "euler" in attrs:
+                centre, grot = _floats(attrs.get("pos", "0 0 0")), _euler_xyz(_floats(attrs["euler"]))
+            else:
+                centre, grot = _geom_pose(attrs)
+            if "fromto" in attrs:  # the half-length is the ends' distance, not a size entry
+                ends = _floats(attrs["fromto"])
+                size = np.array([size[0], 0.5 * float(np.linalg.norm(ends[3:] - ends[:3]))])
+            rgba = tuple(float(v) for v in _floats(attrs.get("rgba", "0.5 0.5 0.5 1")))
+            shapes.append(BodyShape(
+                name=geom.get("name") or f"{body.get('name')}_{i}", kind=kind, size=tuple(float(v) for v in size),
+                pos=_vec3(placement.act(centre)), quat=_mat_quat(placement.rotation @ grot),
+                rgba=rgba, on_foot=bool(on_foot)))  # type: ignore[arg-type]
+    slide = _named(xml, "joint", FOOT_JOINT, defaults)
+    axis = _floats(slide.get("axis", "0 0 1"))
+    foot_body_rot = (torso_inv * r.data.oMi[foot]).rotation
+    foot_axis = foot_body_rot @ (axis / np.linalg.norm(axis))
+    return BodyGeometry(shapes=tuple(shapes), foot_axis=_vec3(foot_axis))

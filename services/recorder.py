@@ -42,11 +42,13 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from onboard import binary_messages as bm
 from onboard import messages as m
 from onboard.params import RecorderParams
 from onboard.topics import TOPICS, Topic, all_keys, status_key, topic_for_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.service import EVERY_TOPIC, Service
+from services.scene import SceneRecording
 
 BINARY_ENCODING = "archer-binary-v1"  # MCAP message encoding of onboard.binary_messages layouts
 METADATA_NAME = "archer.recorder"
@@ -244,12 +246,14 @@ def default_directory(params: RecorderParams) -> Path:
 
 class RecorderService(Service):
     name = "recorder"
-    params_sections = ("recorder",)
+    params_sections = ("recorder", "view")  # [view]: how the scene channels draw the robot, and their rate
     subscribes = EVERY_TOPIC
 
     async def setup(self) -> None:
         params: RecorderParams = self.params["recorder"]
         self.files = RotatingMcap(default_directory(params), params)
+        self._scene = SceneRecording(self.ns, self.params["view"]) if params.scene else None
+        self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()  # stamps are monotonic, Foxglove's epoch
         self.seq_stats = {t.name: SeqStats(max(1, len(t.publishers))) for t in TOPICS.values()}
         self._inbox: collections.deque[tuple[str, Topic, int, bytes, Any]] = collections.deque()
         self._stop_writer = threading.Event()
@@ -297,10 +301,26 @@ class RecorderService(Service):
                 self.files.write(key, self._status_schema, log_ns, stamp or log_ns, 0, payload)
                 continue
             self.seq_stats[topic.name].observe(seq, source)
+            epoch = stamp + self._epoch_offset_ns  # the scene's own times: the message's stamp on the wall clock
             if not 0 < stamp < MCAP_TIME_LIMIT:  # MCAP times are unsigned; keep the message anyway
                 self.count(f"bad_stamp.{topic.name}")
-                stamp = log_ns
+                stamp = epoch = log_ns
             self.files.write(key, self._schemas[topic.name], log_ns, stamp, seq, payload)
+            if self._scene is not None and self._scene.due(topic.name, topic.rate_hz, stamp):
+                self._write_scene(topic, payload, log_ns, stamp, epoch)
+
+    def _write_scene(self, topic: Topic, payload: bytes, log_ns: int, stamp: int, epoch: int) -> None:
+        """The scene records of one message (Foxglove's schemas), beside its raw record."""
+        try:
+            if topic.binary:
+                msg: Any = {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary](payload)
+            else:
+                msg = m.decode(payload, topic.msg_type)
+        except m.MessageError:
+            self.count(f"scene_rejected.{topic.name}")  # the raw record keeps it as it came
+            return
+        for channel, schema, data in self._scene.records(topic.name, msg, epoch):
+            self.files.write(channel, schema, log_ns, stamp, 0, data)  # seq 0: the raw record carries the sequence
 
     def record_status(self, status: m.ServiceStatus) -> None:
         """Queue one service's status as a message on ``ns/svc/<name>/status``."""

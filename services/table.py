@@ -50,6 +50,7 @@ SERVICES: dict[str, ServiceRow] = {row.process: row for row in (
     ServiceRow("planner", "services.planner:PlannerService", "archer-planner.service", True),
     ServiceRow("perception", "services.perception:PerceptionService", "archer-perception.service", True),
     ServiceRow("recorder", "services.recorder:RecorderService", "archer-recorder.service", True),
+    ServiceRow("view", "services.view:ViewService", "archer-view.service", True),
     ServiceRow("twin", "services.twin:TwinService", "archer-twin.service", False),
     ServiceRow("scenario_reference", "services.twin:ScenarioReferenceService", None, False),
 )}

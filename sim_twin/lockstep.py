@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import mujoco
@@ -63,6 +63,7 @@ class RunConfig:
     perception_params: object | None = None
     stop_on_fall: bool = True
     record: bool = False  # keep every message for --record
+    sink: Callable[[str, int, object], None] | None = None  # also hand every message to this as it happens (a live view)
     sensor_outages: tuple[SensorOutage, ...] = ()  # windows in which a sensor's samples are lost
 
 
@@ -72,6 +73,24 @@ class RunResult:
     trace: Trace
     scenario: sc.Scenario
     messages: list[tuple[str, int, object]]  # (topic, log time ns, message) when recording
+
+
+class _Tee(list):
+    """The run's message list that also hands each message to a sink (kept only when recording)."""
+
+    def __init__(self, sink: Callable[[str, int, object], None], keep: bool) -> None:
+        super().__init__()
+        self._sink = sink
+        self._keep = keep
+
+    def append(self, item: tuple[str, int, object]) -> None:
+        self._sink(*item)
+        if self._keep:
+            super().append(item)
+
+    def extend(self, items: Iterable[tuple[str, int, object]]) -> None:
+        for item in items:
+            self.append(item)
 
 
 class LockstepRunner:
@@ -114,8 +133,8 @@ class LockstepRunner:
         estimator, planner, controller, metrics = self.estimator, self.planner, self.controller, self.metrics
         tick_ns, substeps = self.tick_ns, self.substeps
         n_ticks = int(round(self.duration_s * NS / tick_ns))
-        record = cfg.record
-        messages: list[tuple[str, int, object]] = []
+        record = cfg.record or cfg.sink is not None
+        messages: list[tuple[str, int, object]] = _Tee(cfg.sink, cfg.record) if cfg.sink is not None else []
         goal = scenario.goal()
         if record:
             if goal is not None:

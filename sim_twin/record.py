@@ -8,7 +8,7 @@ their binary layout (:mod:`onboard.binary_messages`) under the ``archer-binary-v
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import msgspec
@@ -21,8 +21,16 @@ from onboard.topics import TOPICS, namespace
 BINARY_ENCODING = "archer-binary-v1"
 
 
-def write_mcap(path: str | Path, messages: Iterable[tuple[str, int, object]], ns: str | None = None) -> int:
-    """Write ``(topic name, log time ns, message)`` triples; returns the number written."""
+# (channel, (schema name, schema encoding, schema data, message encoding), message bytes)
+ExtraRecord = tuple[str, tuple[str, str, bytes, str], bytes]
+
+
+def write_mcap(path: str | Path, messages: Iterable[tuple[str, int, object]], ns: str | None = None,
+               extra: Callable[[str, int, object], Iterable[ExtraRecord]] | None = None) -> int:
+    """Write ``(topic name, log time ns, message)`` triples; returns the number written.
+
+    ``extra(topic, log_ns, msg)`` gives more records to write beside each message, at its times
+    (the Foxglove scene channels of ``archer sim --record``)."""
     ns = ns or namespace()
     count = 0
     with open(path, "wb") as f:
@@ -41,6 +49,13 @@ def write_mcap(path: str | Path, messages: Iterable[tuple[str, int, object]], ns
                 stamp = getattr(msg, "stamp_ns", log_ns)
             writer.add_message(ch, log_time=int(log_ns), data=data, publish_time=int(stamp), sequence=count)
             count += 1
+            for key, (name, encoding, schema_data, message_encoding), payload in (extra(topic, log_ns, msg) if extra else ()):
+                xch = channels.get(key)
+                if xch is None:
+                    schema = writer.register_schema(name=name, encoding=encoding, data=schema_data)
+                    xch = channels[key] = writer.register_channel(topic=key, message_encoding=message_encoding, schema_id=schema)
+                writer.add_message(xch, log_time=int(log_ns), data=payload, publish_time=int(stamp), sequence=0)
+                count += 1
         writer.finish()
     return count
 

@@ -41,7 +41,7 @@ def one(unit: dict, section: str, key: str) -> str:
 
 def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     parsed = units()
-    for service in ROBOT + ("twin", "mocap"):
+    for service in ROBOT + ("twin", "mocap", "view"):
         unit = parsed[f"archer-{service}.service"]
         assert one(unit, "Service", "Type") == "notify"
         assert one(unit, "Service", "Restart") == "on-failure"
@@ -74,6 +74,7 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     assert sorted(sil) == sorted(f"archer-{s}.service" for s in ROBOT if s != "hardware") + ["archer-twin.service"]
     firmware = one(parsed["archer-firmware.target"], "Unit", "Wants").split()
     assert sorted(firmware) == sorted(f"archer-{s}.service" for s in (*ROBOT, "mocap"))
+    assert "archer-view.service" not in robot + sil + firmware  # the viewer runs only when asked
     for name in firmware:  # stopping the target stops its units
         assert "archer-firmware.target" in one(parsed[name], "Unit", "PartOf").split(), name
     assert set(one(parsed["archer-firmware.target"], "Unit", "Conflicts").split()) == {"archer.target", "archer-sil.target"}

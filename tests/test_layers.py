@@ -36,7 +36,7 @@ LAYERS: dict[str, set[str]] = {
     "services.bench": _ROBOT | {"services", "services.twin", "sim_twin"},
     "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy"},
 }
-ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap")
+ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap", "view")
 
 
 def layer_of(module: str) -> str:

@@ -108,7 +108,8 @@ def test_recorder_rotates_into_finished_files_with_schemas(tmp_path, zenoh_route
         summary = make_reader(f).get_summary()
     schema = next(s for s in summary.schemas.values() if s.name == "StateEstimate")
     assert schema.encoding == "jsonschema" and "position" in json.dumps(json.loads(schema.data))
-    assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+    # the raw topics as JSON, the scene made from them with Foxglove's protobuf schemas (tests/test_view.py)
+    assert {c.message_encoding for c in summary.channels.values()} == {"json", "protobuf"}
     statuses = [r for r in read_recording([tmp_path]) if r.schema == "ServiceStatus"]
     assert statuses and m.decode(statuses[0].data, m.ServiceStatus).service == "recorder"
 

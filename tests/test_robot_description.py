@@ -219,3 +219,37 @@ def test_robot_params_equal_mujoco_reading(variant: str) -> None:
 @pytest.mark.parametrize("variant", rd.VARIANTS)
 def test_hopper_model_equals_mujoco_reading(variant: str) -> None:
     _assert_same(rd.hopper_model(variant), mujoco_hopper_model(variant))
+
+
+@pytest.mark.parametrize("variant", rd.VARIANTS)
+def test_body_shapes_equal_mujoco_geoms(variant: str) -> None:
+    """What `archer view` draws is where MuJoCo puts each geom of the robot (torso upright at the origin)."""
+    model = tm.load_model(variant)
+    data = mujoco.MjData(model)
+    adr = int(model.joint(rd.ROOT_JOINT).qposadr[0])
+    data.qpos[adr:adr + 7] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    mujoco.mj_forward(model, data)
+    kinds = {mujoco.mjtGeom.mjGEOM_SPHERE: "sphere", mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule",
+             mujoco.mjtGeom.mjGEOM_CYLINDER: "cylinder", mujoco.mjtGeom.mjGEOM_BOX: "box"}
+    foot = model.body(rd.FOOT).id
+    geometry = rd.body_shapes(variant)
+    ours = list(geometry.shapes)
+    robot = [g for g in range(model.ngeom) if model.geom_bodyid[g] != 0]  # the world's geoms hang off body 0
+    assert len(robot) == len(ours)
+    for g in robot:
+        kind = kinds[int(model.geom_type[g])]
+        match = [s for s in ours if s.kind == kind and np.allclose(s.pos, data.geom_xpos[g], atol=1e-9)]
+        assert len(match) == 1, (variant, g, kind)
+        s = match[0]
+        n = {"sphere": 1, "capsule": 2, "cylinder": 2, "box": 3}[kind]
+        assert np.allclose(s.size[:n], model.geom_size[g][:n], atol=1e-12)
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, np.array(s.quat))
+        ours_rot, theirs = rot.reshape(3, 3), data.geom_xmat[g].reshape(3, 3)
+        if kind == "box":
+            assert np.allclose(ours_rot, theirs, atol=1e-6), (variant, s.name)
+        elif kind != "sphere":  # round about their axis: the axis, either way along it (MuJoCo turns fromto's over)
+            assert abs(float(ours_rot[:, 2] @ theirs[:, 2])) == pytest.approx(1.0, abs=1e-6), (variant, s.name)
+        assert s.on_foot == _is_descendant(model, int(model.geom_bodyid[g]), foot) or model.geom_bodyid[g] == foot
+        ours.remove(s)
+    assert np.allclose(geometry.foot_axis, [0.0, 0.0, 1.0])

@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "services": ("services.cli.introspect", "print the service table: class, unit, parameters, what each reads and writes"),
     "echo": ("services.cli.introspect", "print decoded live messages of one topic"),
     "status": ("services.cli.introspect", "list live services and their status"),
+    "view": ("services.cli.view", "live Foxglove view of a running stack: a WebSocket server on 127.0.0.1:8765"),
     "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
     "sim": ("services.cli.sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "bench": ("services.bench.main", "measure speed and print figures"),

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -93,6 +94,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hardware", choices=HARDWARE, default="twin",
                         help="realtime: twin: the twin publishes the sensors and takes torques; archer-firmware: the twin "
                              "behind emulated ARCHER boards (UDP) and an OptiTrack stream, driven by the hardware and mocap services")
+    parser.add_argument("--view", action="store_true",
+                        help="a live Foxglove view on ws://127.0.0.1:8765 (realtime: the view service beside the twin; "
+                             "lockstep: the run paced to wall time, started once a viewer subscribes or after view.lockstep_wait_s)")
+    parser.add_argument("--view-port", type=int, default=None, metavar="N",
+                        help="with --view: the view's WebSocket port (default view.port, 8765)")
     parser.add_argument("--services", default="auto",
                         help="realtime: comma list of services to run as processes, or 'none' "
                              "(auto: estimator, control and planner, each if archer run knows it)")
@@ -151,19 +157,85 @@ def build_config(args: argparse.Namespace) -> RunConfig:
 def run_lockstep(args: argparse.Namespace) -> dict:
     if getattr(args, "hardware", "twin") != "twin":
         raise ValueError("--hardware archer-firmware is a realtime option (the boards run on their own clocks)")
+    view = _LockstepView(args) if getattr(args, "view", False) else None
     cfg = build_config(args)
+    if view is not None:
+        cfg = dataclasses.replace(cfg, sink=view)
     duration = cfg.duration_s if cfg.duration_s is not None else sc.SCENARIOS[cfg.scenario](cfg.seed, cfg.obstacles).default_duration_s
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
-    result = run(cfg, progress)
+    try:
+        if view is not None:
+            view.wait_for_viewer()
+        result = run(cfg, progress)
+    finally:
+        if view is not None:
+            view.close()
     if args.record:
+        from onboard.topics import TOPICS, namespace
+        from services.scene import SceneRecording
         from sim_twin.record import write_mcap
 
-        result.metrics["recorded_messages"] = write_mcap(args.record, result.messages)
+        # the scene channels beside the raw topics, drawn as the live view draws them; lockstep times start at 0
+        ns = args.namespace or namespace()
+        scene = SceneRecording(ns, with_overrides(load_params(args.config, ("view",))["view"], {"variant": args.variant}))
+
+        def scene_records(topic: str, log_ns: int, msg: object):
+            rate = TOPICS[topic].rate_hz if topic in TOPICS else 0.0
+            return scene.records(topic, msg, log_ns) if scene.due(topic, rate, log_ns) else ()
+
+        result.metrics["recorded_messages"] = write_mcap(args.record, result.messages, ns, extra=scene_records)
     if args.plot:
         from sim_twin.plot import plot_run
 
         plot_run(result, args.plot)
     return result.metrics
+
+
+class _LockstepView:
+    """``--view`` in lockstep: the run paced to wall time and shown on a Foxglove server as it goes.
+
+    No Zenoh here: the runner hands each message over (``RunConfig.sink``); fast topics are
+    thinned to ``view.max_rate_hz`` of simulated time, as the view service does.
+    """
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        from onboard.topics import namespace
+        from services.view import FoxgloveBridge
+
+        changes: dict[str, Any] = {"variant": args.variant}
+        if args.view_port is not None:
+            changes["port"] = args.view_port
+        self.params = with_overrides(load_params(args.config, ("view",))["view"], changes)
+        self.bridge = FoxgloveBridge(args.namespace or namespace(), self.params)
+        self.period_ns = int(1e9 / self.params.max_rate_hz)
+        self.last_ns: dict[str, int] = {}
+        self.wall0: float | None = None  # set by the run's first message: building the run takes its time
+        self.epoch0 = 0
+        print(f"archer sim: live view on ws://{self.params.host}:{self.bridge.port} (Foxglove: open connection)", file=sys.stderr)
+
+    def wait_for_viewer(self) -> None:
+        deadline = time.monotonic() + self.params.lockstep_wait_s
+        while not self.bridge.watched() and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    def __call__(self, topic_name: str, sim_ns: int, msg: object) -> None:
+        from onboard.topics import TOPICS
+
+        topic = TOPICS[topic_name]
+        if self.wall0 is None:
+            self.wall0 = time.monotonic() - sim_ns / 1e9
+            self.epoch0 = time.time_ns() - sim_ns
+        if topic.rate_hz > self.params.max_rate_hz:
+            if sim_ns - self.last_ns.get(topic_name, -self.period_ns) < self.period_ns:
+                return
+            self.last_ns[topic_name] = sim_ns
+        ahead = sim_ns / 1e9 - (time.monotonic() - self.wall0)
+        if ahead > 0.0:  # paced: simulated time never runs ahead of the wall clock
+            time.sleep(ahead)
+        self.bridge.send(topic, msg, self.epoch0 + sim_ns)
+
+    def close(self) -> None:
+        self.bridge.stop()
 
 
 def _take_twin_priority() -> None:
@@ -269,6 +341,9 @@ def run_realtime(args: argparse.Namespace) -> dict:
         unknown = [s for s in wanted if s not in SERVICES]
         if unknown:
             raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICES)}")
+    view = getattr(args, "view", False)
+    if view and "view" not in wanted:
+        wanted.append("view")
     missing = [s for s in wanted if s not in SERVICES]
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
@@ -301,7 +376,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
         # are up, as a robot is switched on under a running stack.
         units = [n for n in wanted if n in SERVICES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
-        sup = Supervisor(sim_specs(units, endpoint, ns, rig.config_path if rig is not None else args.config))
+        sup = Supervisor(sim_specs(units, endpoint, ns, view_config.path if view_config is not None else
+                                   rig.config_path if rig is not None else args.config))
         wall0 = time.perf_counter()
         twin_started = time.monotonic()
         cpu0: tuple[dict[str, float], float] | None = None
@@ -365,11 +441,36 @@ def run_realtime(args: argparse.Namespace) -> dict:
         return out
 
     rig = FirmwareRig(args.config, args.variant) if firmware else None
+    view_config = None
     try:
+        if view:
+            view_config = _ViewConfig(rig.config_path if rig is not None else args.config, args.view_port, args.variant)
+            print(f"archer sim: live view on ws://127.0.0.1:{view_config.port} (Foxglove: open connection)", file=sys.stderr)
         return asyncio.run(main())
     finally:
+        if view_config is not None:
+            view_config.close()
         if rig is not None:
             rig.close()
+
+
+class _ViewConfig:
+    """The run's config file with the ``[view]`` section ``--view`` asks for (port, robot variant)."""
+
+    def __init__(self, config: str | None, port: int | None, variant: str) -> None:
+        params = load_params(config, ("view",))
+        changes: dict[str, Any] = {"variant": variant}
+        if port is not None:
+            changes["port"] = port
+        self.port = with_overrides(params["view"], changes).port  # validated before anything starts
+        user = tomllib.loads(Path(config).read_text()) if config else {}
+        user["view"] = {**user.get("view", {}), **changes}
+        fd, self.path = tempfile.mkstemp(prefix="archer-view-", suffix=".toml")
+        with os.fdopen(fd, "w") as f:
+            f.write(_toml(user))
+
+    def close(self) -> None:
+        os.unlink(self.path)
 
 
 def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, float], float], wall_s: float) -> dict[str, float]:
@@ -385,6 +486,8 @@ def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, fl
 def run_sim(args: argparse.Namespace) -> int:
     """Exit code 0; 2 for what the user asked wrong; 1 when the run failed by itself."""
     try:
+        if getattr(args, "view_port", None) is not None and not getattr(args, "view", False):
+            raise ValueError("--view-port goes with --view")
         metrics = run_realtime(args) if args.mode == "realtime" else run_lockstep(args)
     except (ValueError, ConfigError) as exc:
         print(f"archer sim: {exc}", file=sys.stderr)

@@ -256,6 +256,13 @@ class PolledInput:
         self._reject = reject
         self._rate = rate
 
+    def close(self) -> None:
+        """Undeclare the subscription (a service that subscribes only while it needs a topic)."""
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass  # already gone with a closed session
+
     def drain(self, into: list) -> int:
         """Append the decoded messages to ``into``, oldest first; returns how many samples were
         taken (good or not): ``capacity`` means the ring was full, and older ones may be lost."""
