@@ -77,10 +77,15 @@ OBSERVE_END_S = 1.0  # observation ends this long before the run does (then the 
 CONTROL_LOOP_RUNNING_S = 0.2  # commands this recent: a control loop is there to take over after a put back
 
 
-class _Armed(msgspec.Struct):
-    """The one field of a torque command the soak reads (the rest is skipped unparsed)."""
+def commanded_armed(payload: bytes) -> bool | None:
+    """A torque command's armed flag, or None for a payload the stack itself refuses.
 
-    armed: bool = False
+    Decoded whole, as the twin decodes it: a malformed flood on ``torque_cmd`` (a field missing,
+    an unknown one) must not read as the commander disarming."""
+    try:
+        return m.decode(payload, m.TorqueCommand).armed
+    except m.MessageError:
+        return None
 
 
 class Observer:
@@ -91,7 +96,6 @@ class Observer:
         self.streams = Streams(torque_rx=array("q"), torque_armed=bytearray())
         self._live: set[str] = set()
         self._live_lock = threading.Lock()  # written by a Zenoh thread, read by the soak's
-        self._armed_decoder = msgspec.json.Decoder(_Armed)
         self._stop = threading.Event()
         self._subs = [
             session.declare_subscriber(TOPICS["safety"].key(ns), self._on_safety),
@@ -113,9 +117,8 @@ class Observer:
 
     def _on_torque(self, sample: zenoh.Sample) -> None:
         rx = time.monotonic_ns()
-        try:
-            armed = self._armed_decoder.decode(sample.payload.to_bytes()).armed
-        except (msgspec.DecodeError, msgspec.ValidationError):
+        armed = commanded_armed(sample.payload.to_bytes())
+        if armed is None:
             return
         self.streams.torque_rx.append(rx)  # type: ignore[attr-defined]
         self.streams.torque_armed.append(1 if armed else 0)  # type: ignore[attr-defined]
