@@ -85,7 +85,9 @@ from onboard.bezier_graph import (
     spec_from_params,
 )
 from onboard.bezier_mpc import BezierMpc, MpcWeights
+from onboard.low_level import sample_reference
 from onboard.params import PlannerParams
+from onboard.seen_space import SeenSpace
 
 MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
 START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its clearance less this
@@ -112,6 +114,7 @@ class PlannerStats:
     refine_numerical_errors: int = 0  # of the failures: a solver or linear-algebra error (last one in last_refine_error)
     last_refine_error: str = ""
     edges_free: int = 0
+    unseen_holds: int = 0  # references held back because their committed part crossed ground not seen free
 
 
 class GraphPlanner:
@@ -152,6 +155,8 @@ class GraphPlanner:
         self._last_refined: tuple | None = None  # (knot, world version, path, first knot, reference)
         self.contract_violations = 0
         self._reports: list[msgs.ContractReport] = []
+        self.seen: SeenSpace | None = None  # None: the world is known (ground truth), nothing to gate
+        self.require_seen = False
 
     # --- inputs ----------------------------------------------------------------------
 
@@ -194,6 +199,13 @@ class GraphPlanner:
         self.mode = "free"
         self.cells = packed
         self._world_version += 1
+
+    def set_seen(self, seen: SeenSpace | None, required: bool = True) -> None:
+        """What the camera has seen free (``onboard.seen_space``). With ``required`` every
+        reference is gated on it, and before the first one the robot is committed nowhere;
+        ``required=False`` (a world given whole, as ground truth) gates nothing."""
+        self.seen = seen
+        self.require_seen = bool(required)
 
     def set_tube(self, tube: float) -> None:
         """Plan with tube ``tube`` [m] from now on (a larger one after a broken promise)."""
@@ -391,7 +403,7 @@ class GraphPlanner:
         if result is None:
             self.stats.no_path += 1
             return None
-        return self.path_reference(stamp_ns)
+        return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
 
     def path_reference(self, stamp_ns: int = 0) -> msgs.ComReference:
         """The graph path as the CoM reference (time 0 at the path's start)."""
@@ -406,6 +418,44 @@ class GraphPlanner:
         tau = self.params.segment_s
         seg = msgs.BezierSegment(t0=0.0, duration=tau, control_points=[p] * 4)
         return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=True)
+
+    def heading(self, ref: msgs.ComReference, position: np.ndarray, stamp_ns: int) -> float | None:
+        """The yaw [rad] that points the camera along ``ref``: at the first place, every
+        ``heading_lookahead_s`` along it, at least ``heading_min_m`` from ``position`` (a path
+        from rest starts slowly); None (keep the heading) when the whole reference is near."""
+        if ref.hold or not ref.segments:
+            return None
+        prm = self.params
+        t = (stamp_ns - ref.t_ref_ns) * 1e-9
+        end = ref.segments[-1].t0 + ref.segments[-1].duration
+        while True:
+            t = min(t + prm.heading_lookahead_s, end)
+            x, y, _, _ = sample_reference(ref, t)
+            dx, dy = x - float(position[0]), y - float(position[1])
+            if math.hypot(dx, dy) >= prm.heading_min_m:
+                return math.atan2(dy, dx)
+            if t >= end:
+                return None
+
+    def committed(self, ref: msgs.ComReference, position: np.ndarray, stamp_ns: int) -> msgs.ComReference:
+        """With a perceived world (:meth:`set_seen`): ``ref`` with the heading that shows the
+        camera its way, when the robot's footprint stays on seen-free ground along its first
+        ``commit_s`` (the tube's clearance from what was seen occupied is the cut's); else hop in
+        place where the robot is, turned that way, until the camera has seen it
+        (``stats.unseen_holds``)."""
+        if not self.require_seen:  # a world given whole: no camera to point, nothing unseen
+            return ref
+        yaw = self.heading(ref, position, stamp_ns)
+        if not ref.hold:
+            prm = self.params
+            t0 = (stamp_ns - ref.t_ref_ns) * 1e-9
+            steps = int(math.ceil(prm.commit_s / prm.commit_step_s))
+            samples = np.array([sample_reference(ref, t0 + k * prm.commit_step_s)[:2] for k in range(steps + 1)])
+            here = np.asarray(position, dtype=float)[:2]
+            if self.seen is None or self.seen.first_unseen(samples, self.robot_radius, here, self.margin) is not None:
+                self.stats.unseen_holds += 1
+                return msgspec.structs.replace(self.hold_reference(here, stamp_ns), yaw=yaw)
+        return msgspec.structs.replace(ref, yaw=yaw)
 
     def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
         """True when there is no path, the world changed since it was planned, or the
@@ -434,6 +484,11 @@ class GraphPlanner:
         return self._mpc
 
     def refine(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
+        """The refined reference (:meth:`refine_path`), gated on seen ground (:meth:`committed`)."""
+        ref = self.refine_path(position, velocity, stamp_ns)
+        return None if ref is None else self.committed(ref, position, stamp_ns)
+
+    def refine_path(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
         """One SQP iteration of the MPC of eq. 7.2 around the current path; the refined reference.
 
         Knots sit every ``mpc_dt`` from the path's start (so they meet the graph

@@ -142,6 +142,12 @@ def _sample_unrolled(pts: list[list[float]], n: int, tau: float, s: float) -> tu
     return u * x0 + s * x1, u * y0 + s * y1, u * hx0 + s * hx1, u * hy0 + s * hy1
 
 
+def turn_toward(angle: float, target: float, max_step: float) -> float:
+    """``angle`` [rad] moved toward ``target`` the short way round, by at most ``max_step``."""
+    d = (target - angle + math.pi) % (2.0 * math.pi) - math.pi
+    return angle + max(-max_step, min(max_step, d))
+
+
 def sample_reference(ref: ComReference, t_s: float) -> tuple[float, float, float, float]:
     """Reference CoM ``(x, y, vx, vy)`` at ``t_s`` [s] after ``ref.t_ref_ns``.
 
@@ -337,6 +343,8 @@ class LowLevelController:
             self.eta = (0.0, 0.0)
             self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
             return self.q_des
+        if ref is not None and ref.yaw is not None:
+            self._yaw_ref = turn_toward(self._yaw_ref, ref.yaw, self.p.yaw_rate_max / self.p.rate_hz)
         g = self._g
         px, py, pz = state.position
         vx, vy, vz = state.velocity

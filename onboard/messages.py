@@ -158,6 +158,7 @@ class ComReference(Message):
     t_ref_ns: int  # clock time at which segment time 0 is
     segments: list[BezierSegment]
     hold: bool = False  # True: no path; hop in place at ``segments[0]`` start
+    yaw: float | None = None  # [rad] heading to turn the body (and its camera) to; None: keep the heading
 
 
 class Waypoints(Message):

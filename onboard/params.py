@@ -328,6 +328,7 @@ class ControlParams(_Section):
     attitude_log: bool = False  # error map: False = 2 Im(q_d^-1 q) (thesis default), True = Log
     # ground: flywheel spin-down u = -gamma * wheel speed (thesis 2723-2731)
     spin_down_gamma: Annotated[float, within(0.0, 1.0)] = 0.03  # [N m s/rad]
+    yaw_rate_max: Annotated[float, within(0.0, 10.0)] = 1.0  # [rad/s] the heading follows the reference's yaw (the planner points the camera) at most this fast
     # foot: hop-height regulator (preload in flight, release at touchdown)
     hop_height: Annotated[float, above(0.0, 0.5)] = 0.12  # CoM rise from touchdown to apex [m] (higher: fewer hops per metre, less wheel momentum)
     hop_gain: Annotated[float, within(0.0, 1.0)] = 0.5  # fraction of the hop-energy error corrected per hop
@@ -452,6 +453,12 @@ class PlannerParams(_Section):
     tube_max: Annotated[float, within(0.0, 10.0)] = 0.5  # [m] the tube the planner grows to at most after broken promises
     contract_min_hops: Annotated[int, within(1, 100_000)] = 5  # impacts in the low level's tube window before it is judged
     state_stale_s: Annotated[float, above(0.0, 10.0)] = 0.1  # [s] an older state estimate is not planned from
+    # seen before stepped on (onboard.seen_space): with a perceived world the robot is committed
+    # only to the first commit_s of a reference, and only over ground the camera saw free
+    commit_s: Annotated[float, within(0.0, 10.0)] = 1.0  # [s] beyond a replan (0.1 s) and a stop from cruise (~2 hops)
+    commit_step_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] reference samples checked along it (one cell at cruise speed)
+    heading_lookahead_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] the camera points at where the reference is this far ahead (or a multiple, when that is near)
+    heading_min_m: Annotated[float, within(0.0, 10.0)] = 0.15  # [m] nearer than this the heading is left alone (no turning on the spot at the goal)
     nice: Annotated[int, within(0, 19)] = 10  # the planner process lowers its CPU priority by this much: it must never starve the 1 kHz loops
 
 

@@ -1,8 +1,9 @@
 """The ``planner`` service: Bezier graph planning and MPC refinement (thesis ch. 6-7).
 
 Subscribes (latest value): ``state`` (StateEstimate), ``goal`` (Goal), ``polytopes``
-(PolytopeSet: convex obstacles or free cells), ``tube`` (TrackingTube, the low level's
-measured guarantee).
+(PolytopeSet: convex obstacles or free cells), ``grid`` (the occupancy grid: with perceived
+obstacles the robot is committed only over ground it saw free, ``onboard.seen_space``),
+``tube`` (TrackingTube, the low level's measured guarantee).
 Computes: :class:`onboard.graph_planner.GraphPlanner`. Every tick (``refine_hz``,
 100 Hz by default) one SQP iteration of the MPC refines the current path; when the
 world, the goal or the tube changed, or the CoM strayed ``replan_deviation`` from the
@@ -41,6 +42,7 @@ from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard import messages as msgs
 from onboard.params import PlannerParams
+from onboard.seen_space import SeenSpace
 from robot_description import params as rd
 from services.runtime.service import Service
 
@@ -146,7 +148,7 @@ def polygons_from_message(msg: msgs.PolytopeSet) -> list[np.ndarray]:
 class PlannerService(Service):
     name = "planner"
     params_sections = ("planner",)
-    subscribes = ("goal", "polytopes", "state", "tube")
+    subscribes = ("goal", "grid", "polytopes", "state", "tube")
 
     def __init__(self, *, robot_radius: float | None = None, cache_dir: Path | None | bool = True, **kw: Any) -> None:
         super().__init__(**kw)
@@ -181,6 +183,7 @@ class PlannerService(Service):
         self.state_in = self.latest("state")
         self.goal_in = self.latest("goal")
         self.polytopes_in = self.latest("polytopes")
+        self.grid_in = self.latest("grid")
         self.tube_in = self.latest("tube")
         self.pub_reference = self.publisher("reference")
         self.pub_waypoints = self.publisher("waypoints")
@@ -206,6 +209,7 @@ class PlannerService(Service):
             "refine_reused": st.refine_reused,
             "refine_failures": st.refine_failures,
             "refine_numerical_errors": st.refine_numerical_errors,
+            "unseen_holds": st.unseen_holds,
             "tube_m": self.planner.tube,
             "margin_m": self.planner.margin,
             "contract_violations": self.planner.contract_violations,
@@ -328,9 +332,20 @@ class PlannerService(Service):
                     self.planner.set_free_cells(polys)
                 else:
                     self.planner.set_obstacles(polys)
+                # perceived obstacles leave the unseen free: commit only to what the grid saw
+                perceived = msg.mode == "obstacles" and msg.source != "ground_truth"
+                if perceived != self.planner.require_seen:
+                    self.planner.set_seen(self.planner.seen, required=perceived)
             except (pg.PolygonError, gp.PlanningError) as exc:
                 self.count("rejected.polytopes_geometry")
                 self.fail(f"polytopes: {exc}")
+        got = self.grid_in.take()
+        if got is not None:
+            try:
+                self.planner.set_seen(SeenSpace.from_grid(got[0]), required=self.planner.require_seen)
+            except ValueError as exc:
+                self.count("rejected.grid_geometry")
+                self.fail(f"grid: {exc}")
         got = self.tube_in.take()
         if got is not None:
             self._check_contract(got[0])

@@ -231,6 +231,7 @@ class LockstepRunner:
         if isinstance(planner, st.GraphPlannerPlug):
             out["planner_plans"] = planner.plans
             out["planner_no_path"] = planner.no_path
+            out["planner_unseen_holds"] = planner.planner.stats.unseen_holds  # refined references held back: not yet seen
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
 
 

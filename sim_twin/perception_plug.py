@@ -4,7 +4,8 @@ twin's depth camera, instead of the scenario's ground-truth obstacles.
 Depth images are fused as the sensors deliver them (with the robot's estimated
 position); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
 ``perception.mode = "free"``) replace the planner's world, which makes it replan. Before
-the first view the planner knows no obstacle at all.
+the first view the planner knows no obstacle at all; in obstacle mode it then commits the
+robot nowhere (``onboard.seen_space``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 from onboard import messages as m
 from onboard.params import PerceptionParams
 from onboard.perception.pipeline import PerceptionLoop
+from onboard.seen_space import SeenSpace
 from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 from sim_twin.stack import GraphPlannerPlug
@@ -28,6 +30,8 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
         self.planner.set_obstacles([])  # nothing is known before the first view
         self.loop = PerceptionLoop(perception_params or PerceptionParams())
         self.mode = self.loop.params.mode
+        if self.mode == "obstacles":  # unknown counts as free there: commit only to what was seen
+            self.planner.set_seen(None)
         self._xy: tuple[float, float] = scenario.start
         self._goal = scenario.target()
         self.polygons = 0
@@ -48,6 +52,7 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
                 self.planner.set_free_cells(verts)
             else:
                 self.planner.set_obstacles(verts)
+                self.planner.set_seen(SeenSpace.from_grid(self.loop.view.grid()))
         return super().update(now_ns, state)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from onboard import polygons as pg
+from onboard.binary_messages import CELL_FREE, CELL_UNKNOWN, OccupancyGrid, encode_grid
 from onboard import messages as m
 from onboard.params import PlannerParams
 from onboard.topics import TOPICS
@@ -63,7 +64,8 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
         try:
             await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
-            obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)])
+            # a world given whole (as the twin's ground truth): nothing to wait to see
+            obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)], source="ground_truth")
             client.put(TOPICS["polytopes"].key(NS), m.encode(obstacles))
             client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[3.0, 0.0], tolerance=0.1)))
             await wait_for(lambda: any(not r.hold for r in refs) and wps)
@@ -115,6 +117,55 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             client.close()
 
     asyncio.run(asyncio.wait_for(scenario(), 120))
+
+
+def test_perceived_obstacles_commit_the_robot_only_over_ground_the_grid_saw_free(zenoh_router, tmp_path):
+    ns = NS + "3"
+
+    async def scenario() -> None:
+        service = PlannerService(ns=ns, endpoint=zenoh_router, params={"planner": PARAMS}, robot_radius=ROBOT_RADIUS,
+                                 cache_dir=tmp_path)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        refs: list[m.ComReference] = []
+        sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
+        stop_state = asyncio.Event()
+
+        async def stream_state() -> None:
+            while not stop_state.is_set():
+                client.put(TOPICS["state"].key(ns), m.encode(_state(0.0, 0.0)))
+                await asyncio.sleep(0.02)
+
+        feeder = asyncio.create_task(stream_state())
+        try:
+            await wait_for(lambda: service.state == "running")
+            await asyncio.sleep(0.3)
+            # perception's obstacles (unknown counts as free there) and no grid yet: hold, facing the goal
+            client.put(TOPICS["polytopes"].key(ns), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[])))
+            client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
+            await wait_for(lambda: service.status_extra()["unseen_holds"] > 5 and refs)
+            assert all(r.hold for r in refs)
+            assert any(r.yaw is not None and abs(r.yaw) < 1.0 for r in refs)
+            # the grid says the way ahead was seen free: the robot may go
+            cells = np.full((80, 80), CELL_FREE, dtype=np.uint8)
+            grid = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=1, resolution=0.05, origin=(-2.0, -2.0), cells=cells)
+            client.put(TOPICS["grid"].key(ns), encode_grid(grid))
+            await wait_for(lambda: any(not r.hold for r in refs))
+            # a grid with nothing seen: held again
+            n = len(refs)
+            unseen = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=2, resolution=0.05, origin=(-2.0, -2.0),
+                                   cells=np.full((80, 80), CELL_UNKNOWN, dtype=np.uint8))
+            client.put(TOPICS["grid"].key(ns), encode_grid(unseen))
+            await wait_for(lambda: len(refs) > n + 3 and refs[-1].hold)
+        finally:
+            stop_state.set()
+            await feeder
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
 
 
 def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):

@@ -1,0 +1,73 @@
+"""Seen before stepped on: the part of a plan the robot is committed to lies on seen-free ground.
+
+In obstacle mode perception turns what the camera saw occupied into convex obstacles, and
+what it has not seen counts as free, so the planner may route optimistically through
+unknown space. The robot is only *committed* to the first ``PlannerParams.commit_s`` of
+a reference (what it executes before the planner can change its mind); along that part,
+every cell whose centre lies within ``radius`` (the robot's footprint) of a sample of the
+reference must be free in the occupancy grid (the clearance the tube needs from what was
+seen occupied is the planner's cut's to keep). The robot's own region, its footprint grown
+by its tube around where it is now, counts as seen: the robot hops there, and beside its
+body lies the camera's blind zone (cells there are never seen, from anywhere).
+
+    space = SeenSpace.from_grid(grid)
+    k = space.first_unseen(samples_xy, radius, here_xy, own_radius)   # None: all seen free
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from onboard.binary_messages import CELL_FREE, OccupancyGrid
+
+
+class SeenSpace:
+    """The cells an occupancy grid holds as free (rows along world y, columns along x)."""
+
+    def __init__(self, free: np.ndarray, resolution: float, origin: tuple[float, float]) -> None:
+        free = np.asarray(free, dtype=bool)
+        if free.ndim != 2 or not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError("seen space needs a 2-D mask and a positive resolution")
+        if not all(math.isfinite(v) for v in origin):
+            raise ValueError("seen space origin is not finite")
+        self.free = free
+        self.resolution = float(resolution)
+        self.origin = (float(origin[0]), float(origin[1]))
+
+    @classmethod
+    def from_grid(cls, grid: OccupancyGrid) -> SeenSpace:
+        return cls(grid.cells == CELL_FREE, grid.resolution, grid.origin)
+
+    def first_unseen(self, points: np.ndarray, radius: float, here: np.ndarray | tuple[float, float],
+                     own_radius: float) -> int | None:
+        """Index of the first of ``points`` ``(N, 2)`` [m] whose disc of ``radius`` [m] covers
+        a cell not seen free (outside the grid is not seen), or None when all are on seen ground.
+        Cells within ``own_radius`` of ``here`` count as seen: the robot hops there."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        if not np.all(np.isfinite(pts)):
+            raise ValueError("points must be finite")
+        res = self.resolution
+        reach = int(math.ceil(radius / res)) + 1
+        offsets = np.arange(-reach, reach + 1)
+        rows_n, cols_n = self.free.shape
+        hx, hy = float(here[0]), float(here[1])
+        for k, (x, y) in enumerate(pts):
+            col0 = int(math.floor((x - self.origin[0]) / res))
+            row0 = int(math.floor((y - self.origin[1]) / res))
+            cols = col0 + offsets
+            rows = row0 + offsets
+            cx = self.origin[0] + (cols + 0.5) * res  # cell centres
+            cy = self.origin[1] + (rows + 0.5) * res
+            near = (cy[:, None] - y) ** 2 + (cx[None, :] - x) ** 2 <= radius * radius
+            own = (cy[:, None] - hy) ** 2 + (cx[None, :] - hx) ** 2 <= own_radius * own_radius
+            need = near & ~own
+            if not need.any():
+                continue
+            r_idx, c_idx = np.nonzero(need)
+            r_cells, c_cells = rows[r_idx], cols[c_idx]
+            inside = (r_cells >= 0) & (r_cells < rows_n) & (c_cells >= 0) & (c_cells < cols_n)
+            if not inside.all() or not self.free[r_cells, c_cells].all():
+                return k
+        return None
