@@ -413,6 +413,7 @@ class TwinParams(_Section):
     variant: Name = "indoor"  # MJCF variant (robot_description/models)
     obstacles: Annotated[int, within(-1, 10_000)] = -1  # forest: number of obstacles (-1: the scenario's default)
     publish_world: bool = True  # publish the scenario's goal and ground-truth obstacle polytopes
+    publish_obstacles: bool = True  # ...and, of the world, its obstacles (false: the perception service makes them from the depth camera)
     world_period_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] goal and polytopes are re-published this often (late joiners)
 
 
@@ -455,6 +456,7 @@ class PlannerParams(_Section):
     state_stale_s: Annotated[float, above(0.0, 10.0)] = 0.1  # [s] an older state estimate is not planned from
     # seen before stepped on (onboard.seen_space): with a perceived world the robot is committed
     # only to the first commit_s of a reference, and only over ground the camera saw free
+    require_seen: bool = True  # false only where no camera watches and no world is given (nothing would ever be seen)
     commit_s: Annotated[float, within(0.0, 10.0)] = 1.0  # [s] beyond a replan (0.1 s) and a stop from cruise (~2 hops)
     commit_step_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] reference samples checked along it (one cell at cruise speed)
     heading_lookahead_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] the camera points at where the reference is this far ahead (or a multiple, when that is near)

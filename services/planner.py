@@ -177,6 +177,7 @@ class PlannerService(Service):
         if radius is None:
             radius = self.prm.robot_radius or robot_footprint_radius()
         self.planner = gp.GraphPlanner(self.prm, radius)
+        self.planner.set_seen(None, required=self.prm.require_seen)  # nothing seen yet, no world given
         # Load every compiled kernel now, before the service reports ready: done later, it
         # would cost the robot's first seconds CPU that the hard-rate loops need.
         await asyncio.to_thread(warm_up, self.prm, radius)
@@ -332,10 +333,11 @@ class PlannerService(Service):
                     self.planner.set_free_cells(polys)
                 else:
                     self.planner.set_obstacles(polys)
-                # perceived obstacles leave the unseen free: commit only to what the grid saw
-                perceived = msg.mode == "obstacles" and msg.source != "ground_truth"
-                if perceived != self.planner.require_seen:
-                    self.planner.set_seen(self.planner.seen, required=perceived)
+                # perceived obstacles leave the unseen free: commit only to what the grid saw;
+                # free cells are seen free, and a world given whole has nothing unseen
+                required = self.prm.require_seen and msg.mode == "obstacles" and msg.source != "ground_truth"
+                if required != self.planner.require_seen:
+                    self.planner.set_seen(self.planner.seen, required=required)
             except (pg.PolygonError, gp.PlanningError) as exc:
                 self.count("rejected.polytopes_geometry")
                 self.fail(f"polytopes: {exc}")

@@ -13,7 +13,8 @@ tick it:
 3. publishes what the sensors deliver now (``imu``, ``joints``, ``pose``, ``depth``), stamped with
    the capture time on the stack's clock, exactly as the hardware service would.
 
-It also publishes the scenario's ``goal`` and ground-truth ``polytopes`` (``publish_world``).
+It also publishes the scenario's ``goal`` and ground-truth ``polytopes`` (``publish_world``; the
+obstacles not with ``publish_obstacles`` false, when the perception service makes them).
 
 Setting ``twin.seed`` on the running twin (its parameter query) puts the robot back, as a person
 picks up a fallen robot in a long test: between two ticks the physics restarts from the
@@ -112,7 +113,7 @@ class TwinService(Service):
         self.pubs = {name: self.publisher(name) for name in ("imu", "joints", "pose", "depth")}
         self.safety_pub = self.publisher("safety")
         self.goal_pub = self.publisher("goal") if tp.publish_world else None
-        self.poly_pub = self.publisher("polytopes") if tp.publish_world else None
+        self.poly_pub = self.publisher("polytopes") if tp.publish_world and tp.publish_obstacles else None
         self.loop = DeadlineLoop(period_s, self._tick, name="twin-loop")
 
     # --- every tick: command in, physics, sensors out ---------------------------------------------

@@ -31,7 +31,7 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
         self.loop = PerceptionLoop(perception_params or PerceptionParams())
         self.mode = self.loop.params.mode
         if self.mode == "obstacles":  # unknown counts as free there: commit only to what was seen
-            self.planner.set_seen(None)
+            self.planner.set_seen(None, required=self.planner.params.require_seen)
         self._xy: tuple[float, float] = scenario.start
         self._goal = scenario.target()
         self.polygons = 0

@@ -69,3 +69,17 @@ def test_sim_realtime_runs_the_twin_on_wall_time(capsys) -> None:
     assert metrics["sim_time_s"] == pytest.approx(metrics["loop_ticks"] / 1000.0)
     assert metrics["commands_refused"]["no_command"] == metrics["loop_ticks"]  # nothing commands it
     assert main(["sim", "--scenario", "setpoint", "--mode", "realtime", "--estimator", "truth"]) == 2
+
+
+def test_sim_realtime_with_depth_perception_runs_the_perception_service_and_waits_to_see(capsys) -> None:
+    from services.runtime.zenoh_session import free_endpoint
+
+    rc = main(["sim", "--scenario", "forest", "--mode", "realtime", "--perception", "depth", "--duration", "6",
+               "--endpoint", free_endpoint(), "--namespace", "archer/clidepth", "--json", "--quiet"])
+    assert rc == 0
+    metrics = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert {"perception", "planner"} <= set(metrics["services_started"])
+    assert metrics["planner_plans"] >= 1
+    # the first plans come before the camera has seen the way: held, and counted
+    assert metrics["planner_unseen_holds"] >= 1
+    assert metrics["collisions"] == 0 and metrics["falls"] == 0

@@ -57,6 +57,7 @@ STACK_SERVICES = ("estimator", "control", "planner")  # spawned in realtime mode
 HARDWARE = ("twin", "archer-firmware")
 FIRMWARE_SERVICES = ("hardware", "mocap")  # with --hardware archer-firmware, before the stack's
 LOOPBACK = "127.0.0.1"
+PLANNER_COUNTS = ("plans", "no_path", "unseen_holds")  # of the planner's status, into a real-time run's report
 START_TIMEOUT_S = 20.0  # [s] for the twin to open its session
 ROUTINE_UNIT_EVENTS = ("start", "ready")  # the rest says why a unit went down
 SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
@@ -78,7 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scenario: the scenario's own reference; graph: the onboard planner; auto: graph when there are obstacles")
     parser.add_argument("--controller", choices=st.CONTROLLERS, default="lowlevel", help="passive: no torque (physics only)")
     parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
-                        help="lockstep: the planner sees ground-truth obstacles, or what perception makes of the depth camera")
+                        help="the planner sees ground-truth obstacles, or what perception makes of the depth camera "
+                             "(in real time: the perception service)")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -306,6 +308,7 @@ class FirmwareRig:
 def run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
+    from services.runtime.peers import query_status
     from services.runtime.supervisor import Supervisor, sim_specs
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.topics import namespace
@@ -322,7 +325,8 @@ def run_realtime(args: argparse.Namespace) -> dict:
         raise ValueError(f"duration must be positive, got {duration}")
     twin_params = with_overrides(params["twin"], {
         "scenario": args.scenario, "seed": args.seed, "variant": args.variant,
-        "obstacles": -1 if args.obstacles is None else args.obstacles, "noise": params["twin"].noise and not args.no_noise})
+        "obstacles": -1 if args.obstacles is None else args.obstacles, "noise": params["twin"].noise and not args.no_noise,
+        "publish_obstacles": args.perception == "truth"})
     endpoint = args.endpoint or default_endpoint()
     ns = args.namespace or namespace()
     if endpoint_in_use(endpoint) and not args.join:
@@ -334,6 +338,10 @@ def run_realtime(args: argparse.Namespace) -> dict:
     firmware = getattr(args, "hardware", "twin") == "archer-firmware"
     if args.services == "auto":
         wanted = [s for s in STACK_SERVICES if not (s == "planner" and planner == "scenario")]
+        if args.perception == "depth":
+            if planner != "graph":
+                raise ValueError("--perception depth feeds the graph planner; use --planner graph or auto")
+            wanted.append("perception")  # the world from the twin's depth camera, not its ground truth
         if firmware:
             wanted = [*FIRMWARE_SERVICES, *wanted]
     else:
@@ -382,6 +390,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
         twin_started = time.monotonic()
         cpu0: tuple[dict[str, float], float] | None = None
         cpu_used: dict[str, float] = {}
+        planner_counts: dict[str, int] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -409,6 +418,10 @@ def run_realtime(args: argparse.Namespace) -> dict:
                     tasks[0].result()
                 if twin.metrics.fell and not args.keep_going:
                     break
+            if "planner" in units:  # how it planned, as the lockstep runner reports it
+                status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
+                if status is not None:
+                    planner_counts = {f"planner_{k}": int(status.extra[k]) for k in PLANNER_COUNTS if k in status.extra}
         finally:
             run_ended = time.monotonic()  # what the stop itself does is no failure
             if cpu0 is not None:
@@ -432,6 +445,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
             {"t_s": round(e.t - twin_started, 3), "unit": e.unit, "what": e.what, "detail": e.detail}
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
+        out.update(planner_counts)
         out["endpoint"] = endpoint
         # cores each process group used while the twin ran ("sim": this process, the twin's);
         # a unit restarted meanwhile counts only its last process
