@@ -19,6 +19,13 @@ nodes, the default planner parameters. Prints:
   within the margin of an obstacle (must be 0); ``missed_edges``: cut edges whose dense
   samples all keep the margin (the convex-hull test's conservatism).
 
+``--oracle ompl``: instead of the above, OMPL's RRTConnect (``--oracle-time`` each, 1 s by
+default) against the graph planner on ``--queries`` random start/goal pairs at rest, the
+graph planner densifying a failed search for at most ``--densify-budget`` (see
+:mod:`services.bench.ompl_oracle` for how the two see the same problem): ``rrt_solved``,
+``ours_before`` / ``ours_after`` (solved before / after densification), ``missed_after``
+(solved by RRTConnect, not by us), densification rounds, nodes and time, and each query.
+
 500 obstacles in the 10 m world that 5000 nodes get leave little room for a robot of
 0.26 m with its tube (most edges are cut, many start/goal pairs have no path): the
 figures are the thesis's problem size (5000 nodes, about 50,000 edges, 500 obstacles).
@@ -58,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tube", type=float, default=PlannerParams().tube, help="[m] low-level tube planned with")
     parser.add_argument("--rest-grid", type=float, default=0.0, help="[m] rest-lattice spacing (0: none, exactly --nodes nodes)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--oracle", choices=["ompl"], help="compare with OMPL's RRTConnect (needs the test extra)")
+    parser.add_argument("--oracle-time", type=float, default=1.0, help="[s] RRTConnect's time per query")
+    parser.add_argument("--densify-budget", type=float, default=PlannerParams().densify_budget_s,
+                        help="[s] densification after a failed search (0: none)")
 
 
 def random_obstacles(rng: np.random.Generator, count: int, side: float) -> list[np.ndarray]:
@@ -84,6 +95,11 @@ def _free_point(rng: np.random.Generator, side: float, obstacles: pg.PolygonSet,
 
 def measure(args: argparse.Namespace) -> dict:
     side = args.world if args.world > 0 else math.sqrt(args.nodes / NODES_PER_M2)
+    if args.oracle == "ompl":
+        from services.bench.ompl_oracle import compare_queries
+
+        return compare_queries(side, args.obstacles, args.nodes, args.queries, args.seed, args.oracle_time,
+                               args.densify_budget, args.robot_radius, args.tube, args.rest_grid)
     params = PlannerParams(nodes=args.nodes, rest_grid=args.rest_grid, tube=args.tube)
     rng = np.random.default_rng(args.seed)
     # Warm the compiled kernels on a small problem so that timings exclude compilation.
