@@ -195,12 +195,12 @@ def lattice_in_cells(grid: CellGrid, cells: np.ndarray, spacing: float,
     cx, cy = np.nonzero(cells)
     if len(cx) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2), dtype=np.int64)
-    k = np.arange(per)
+    kx, ky = np.meshgrid(np.arange(per), np.arange(per), indexing="ij")
     # lattice indices from the first point at or after each cell's corner
     ix0 = np.ceil((grid.x0 + cx * grid.h - xmin) / spacing - 1e-9).astype(np.int64)
     iy0 = np.ceil((grid.y0 + cy * grid.h - ymin) / spacing - 1e-9).astype(np.int64)
-    ix = (ix0[:, None, None] + k[None, :, None] + 0 * k[None, None, :]).ravel()
-    iy = (iy0[:, None, None] + 0 * k[None, :, None] + k[None, None, :]).ravel()
+    ix = (ix0[:, None] + kx.ravel()[None, :]).ravel()
+    iy = (iy0[:, None] + ky.ravel()[None, :]).ravel()
     px, py = xmin + ix * spacing, ymin + iy * spacing
     cell_x = np.repeat(cx, per * per)
     cell_y = np.repeat(cy, per * per)
@@ -355,8 +355,8 @@ class Densifier:
             self._crossings = None
             self._crossing_world = world_version
         rounds = added = edges = 0
-        level = meeting_only = 0
-        passes = (True, False)
+        level = 0
+        scope = 0  # 0: where the two sets meet, 1: the whole failed frontier (see _frontiers)
         last_round_s = 0.0
         cell = float(self._scale[0])
         frontier_of: tuple | None = None  # (graph, frontier per pass) of the last graph seen
@@ -374,13 +374,13 @@ class Densifier:
             if frontier_of is None or frontier_of[0] is not graph:
                 frontier_of = (graph, self._frontiers(view, grid, start, goal))
             spacing = self.levels[level]
-            points, links = self._new_points(grid, frontier_of[1][meeting_only], spacing, graph.spec.bounds,
+            points, links = self._new_points(grid, frontier_of[1][scope], spacing, graph.spec.bounds,
                                              obstacles, margin, view)
             if len(points) == 0:
                 if level + 1 < len(self.levels):
                     level += 1
-                elif meeting_only + 1 < len(passes):
-                    meeting_only, level = meeting_only + 1, 0
+                elif scope == 0:
+                    scope, level = 1, 0
                 else:
                     reason = UNREACHABLE
                     break

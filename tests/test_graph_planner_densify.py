@@ -15,7 +15,8 @@ from onboard import collision as col
 from onboard import densify as dn
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
-from services.bench.ompl_oracle import RrtConnectOracle, compare_queries
+from services.bench.ompl_oracle import RrtConnectOracle
+from services.bench.planner import compare_queries
 from services.cli.plan import parse_scene, plan_scene
 
 RADIUS = 0.13
