@@ -150,6 +150,7 @@ class GraphPlanner:
         self.free: np.ndarray | None = None  # edge mask after the cut
         self._densifier: dn.Densifier | None = None  # what densification added to the current graph
         self.last_densify: dn.DensifyReport | None = None  # the last plan's densification (None: it needed none)
+        self._unreachable: tuple | None = None  # (world version, goal, graph) densified to the finest level in vain
         self.goal: np.ndarray | None = None
         self.goal_tolerance = 0.0
         self.path: SearchResult | None = None
@@ -372,9 +373,10 @@ class GraphPlanner:
             self._ensure_graph(x0[:2])
         self.cut()
         self.stats.plans += 1
-        self.last_densify = None
         result, start_seeds, goal_seeds = self._search(x0)
-        if result is None and self.params.densify_budget_s > 0:
+        if result is not None or self.params.densify_budget_s <= 0:
+            self.last_densify = None
+        elif not self._settled():
             result = self._densify(x0, start_seeds, goal_seeds, clock)
         self.path = result
         self.path_t0_ns = int(stamp_ns)
@@ -433,6 +435,12 @@ class GraphPlanner:
                         self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
         return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
 
+    def _settled(self) -> bool:
+        """The same world, goal and graph were densified to the finest level in vain: that answer
+        (:attr:`last_densify`) stands, and replans at ``replan_hz`` do not spend the budget on it again."""
+        u = self._unreachable
+        return u is not None and u[0] == self._world_version and u[1] == tuple(self.goal) and u[2] is self.graph
+
     def _densify(self, x0: np.ndarray, start_seeds: np.ndarray, goal_seeds: np.ndarray,
                  clock: Callable[[], float] | None) -> SearchResult | None:
         """Densify the graph where the search failed (:mod:`onboard.densify`); the path found, or None."""
@@ -447,6 +455,7 @@ class GraphPlanner:
         report = self._densifier.run(view, x0[:2], self.goal, self.obstacles if self.mode == "obstacles" else None,
                                      self.margin, self._world_version, clock)
         self.last_densify = report
+        self._unreachable = (self._world_version, tuple(self.goal), self.graph) if report.reason == dn.UNREACHABLE else None
         self.stats.densify_plans += 1
         self.stats.densify_rounds += report.rounds
         self.stats.densify_nodes += report.nodes_added

@@ -76,6 +76,13 @@ def test_closed_gap_is_unreachable_at_the_finest_resolution():
     assert report.reason == dn.UNREACHABLE and not report.found
     assert report.rounds >= 1 and report.finest_grid == pytest.approx(planner._densifier.levels[-1])
     assert report.finest_grid >= PARAMS.densify_min_grid
+    # a replan of the same world and goal keeps the answer without densifying again
+    nodes = planner.graph.n_nodes
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.last_densify is report and planner.stats.densify_plans == 1 and planner.graph.n_nodes == nodes
+    planner.set_goal(GOAL + 0.1, 0.1)  # a new question: densified again (nothing left to add there)
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.stats.densify_plans == 2 and planner.last_densify.reason == dn.UNREACHABLE
     # RRTConnect cannot pass either: the two see the same clearance
     oracle = RrtConnectOracle(BOUNDS, wall_with_gap(2 * MARGIN - 0.02), MARGIN)
     assert oracle.solve(START, GOAL, 0.3) is None
