@@ -210,22 +210,31 @@ def lattice_in_cells(grid: CellGrid, cells: np.ndarray, spacing: float,
     return np.column_stack([xmin + coords[:, 0] * spacing, ymin + coords[:, 1] * spacing]), coords
 
 
-def _closest_points(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Distance and closest points of two disjoint convex polygons (vertex-to-edge, both ways)."""
-    best = (math.inf, a[0], b[0])
-    for p_set, q_set, swap in ((a, b, False), (b, a, True)):
-        q0 = q_set
-        q1 = np.roll(q_set, -1, axis=0)
-        d = q1 - q0
-        length2 = np.maximum(np.sum(d * d, axis=1), 1e-18)
-        t = np.clip(np.einsum("pk,ek->pe", p_set, d) - np.sum(q0 * d, axis=1)[None, :], 0.0, None) / length2[None, :]
-        t = np.minimum(t, 1.0)
-        foot = q0[None, :, :] + t[..., None] * d[None, :, :]
-        dist = np.hypot(*(p_set[:, None, :] - foot).transpose(2, 0, 1))
-        i, e = np.unravel_index(int(np.argmin(dist)), dist.shape)
-        if dist[i, e] < best[0]:
-            best = (float(dist[i, e]), foot[i, e], p_set[i]) if swap else (float(dist[i, e]), p_set[i], foot[i, e])
-    return best
+@nb.njit(cache=True)
+def _pair_gaps(verts, offsets, pairs):  # pragma: no cover - compiled
+    """Per pair of disjoint convex polygons: distance and closest points (vertex to edge, both ways)."""
+    P = pairs.shape[0]
+    dist = np.full(P, np.inf)
+    near = np.zeros((P, 2, 2))
+    for k in range(P):
+        for side in range(2):
+            a, b = pairs[k, side], pairs[k, 1 - side]
+            for v in range(offsets[a], offsets[a + 1]):
+                px, py = verts[v, 0], verts[v, 1]
+                n = offsets[b + 1] - offsets[b]
+                for i in range(n):
+                    x0, y0 = verts[offsets[b] + i, 0], verts[offsets[b] + i, 1]
+                    x1, y1 = verts[offsets[b] + (i + 1) % n, 0], verts[offsets[b] + (i + 1) % n, 1]
+                    dx, dy = x1 - x0, y1 - y0
+                    d2 = dx * dx + dy * dy
+                    t = 0.0 if d2 <= 0.0 else min(max(((px - x0) * dx + (py - y0) * dy) / d2, 0.0), 1.0)
+                    fx, fy = x0 + t * dx, y0 + t * dy
+                    d = math.hypot(px - fx, py - fy)
+                    if d < dist[k]:
+                        dist[k] = d
+                        near[k, side, 0], near[k, side, 1] = px, py
+                        near[k, 1 - side, 0], near[k, 1 - side, 1] = fx, fy
+    return dist, near
 
 
 def gap_crossings(obstacles: pg.PolygonSet, margin: float, widest: float, spacing: float) -> dict[tuple[int, int], np.ndarray]:
@@ -240,22 +249,21 @@ def gap_crossings(obstacles: pg.PolygonSet, margin: float, widest: float, spacin
     reach = 2 * margin + widest
     boxes = obstacles.aabb
     tree = cKDTree(obstacles.center)
-    pairs = tree.query_pairs(float(2 * obstacles.radius.max() + reach), output_type="ndarray")
-    for i, j in pairs:
-        gap_x = max(boxes[i, 0] - boxes[j, 2], boxes[j, 0] - boxes[i, 2])
-        gap_y = max(boxes[i, 1] - boxes[j, 3], boxes[j, 1] - boxes[i, 3])
-        if max(gap_x, gap_y) > reach:
-            continue
-        a, b = obstacles.polygon(int(i)), obstacles.polygon(int(j))
-        dist, p, q = _closest_points(a, b)
-        if not (2 * margin < dist <= reach):
-            continue
+    pairs = tree.query_pairs(float(2 * obstacles.radius.max() + reach), output_type="ndarray").astype(np.int64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    box_gap = np.maximum(np.maximum(boxes[i, 0] - boxes[j, 2], boxes[j, 0] - boxes[i, 2]),
+                         np.maximum(boxes[i, 1] - boxes[j, 3], boxes[j, 1] - boxes[i, 3]))
+    pairs = np.ascontiguousarray(pairs[box_gap <= reach])
+    dist, near = _pair_gaps(obstacles.vertices, obstacles.offsets, pairs)
+    for k in np.flatnonzero((dist > 2 * margin) & (dist <= reach)):
+        a, b = obstacles.polygon(int(pairs[k, 0])), obstacles.polygon(int(pairs[k, 1]))
+        p, q = near[k, 0], near[k, 1]
         mid = (p + q) / 2
-        across = np.array([-(q - p)[1], (q - p)[0]]) / dist
+        across = np.array([-(q - p)[1], (q - p)[0]]) / dist[k]
         extent = max(np.abs((a - mid) @ across).max(), np.abs((b - mid) @ across).max()) + margin + spacing
         steps = int(math.ceil(extent / spacing))
         t = spacing * np.arange(-steps, steps + 1)
-        out[(int(i), int(j))] = mid[None, :] + t[:, None] * across[None, :]
+        out[(int(pairs[k, 0]), int(pairs[k, 1]))] = mid[None, :] + t[:, None] * across[None, :]
     return out
 
 
@@ -434,14 +442,11 @@ class Densifier:
             first = self.levels[0]
             if self._crossings is None:
                 self._crossings = gap_crossings(obstacles, margin, first, first)
-            rows = []
-            for key, row in self._crossings.items():
-                if key in self._crossed:
-                    continue
-                ix, iy = grid.index(row[len(row) // 2][None])
-                if frontier[ix[0], iy[0]]:
-                    self._crossed.add(key)
-                    rows.append(row)
+            keys = [k for k in self._crossings if k not in self._crossed]
+            mids = np.array([self._crossings[k][len(self._crossings[k]) // 2] for k in keys]).reshape(-1, 2)
+            on = frontier[grid.index(mids)] if len(keys) else np.zeros(0, dtype=bool)
+            rows = [self._crossings[keys[k]] for k in np.flatnonzero(on)]
+            self._crossed.update(keys[k] for k in np.flatnonzero(on))
             if rows:
                 cross = np.vstack(rows)
                 pts = np.vstack([cross, pts])
