@@ -131,6 +131,7 @@ class BezierGraph:
     cost: np.ndarray  # (E,) path-length bound [m] (Property 2.49)
     reachability: reach.BezierReachability = field(repr=False)
     hulls: col.HullSet = field(repr=False)
+    densified: int = 0  # nodes added after the build (onboard.densify), appended after the spec's
 
     @property
     def n_nodes(self) -> int:
@@ -141,7 +142,10 @@ class BezierGraph:
         return len(self.src)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays that :meth:`from_arrays` restores (for an ``np.savez`` cache)."""
+        """Arrays that :meth:`from_arrays` restores (for an ``np.savez`` cache); refused for a
+        densified graph, which is not its spec's graph and must not replace it in a cache."""
+        if self.densified:
+            raise PlanningError(f"a graph densified by {self.densified} nodes is not its spec's graph")
         return {"key": np.array(self.spec.key()), "nodes": self.nodes, "src": self.src, "dst": self.dst,
                 "control_points": self.control_points, "cost": self.cost}
 
@@ -164,15 +168,19 @@ class BezierGraph:
                 or ctrl.shape[0] != E or ctrl.shape[2] != DIM or (E and (src.min() < 0 or dst.max() >= spec.total_nodes))
                 or np.any(np.diff(src) < 0)):
             raise PlanningError("graph arrays are inconsistent")
-        return _assemble(spec, nodes, src, dst, ctrl, cost, spec.reachability())
+        return assemble(spec, nodes, src, dst, ctrl, cost, spec.reachability())
 
 
-def _assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarray, ctrl: np.ndarray,
-              cost: np.ndarray, test: reach.BezierReachability) -> BezierGraph:
+def assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarray, ctrl: np.ndarray,
+             cost: np.ndarray, test: reach.BezierReachability, densified: int = 0,
+             axes: np.ndarray | None = None) -> BezierGraph:
+    """A graph from edges sorted by source (the CSR index and the hulls computed here;
+    ``axes``: the hulls' candidate axes when already known)."""
     indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
     np.cumsum(np.bincount(src, minlength=len(nodes)), out=indptr[1:])
     return BezierGraph(spec, np.ascontiguousarray(nodes), np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl))
+                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl, axes),
+                       densified)
 
 
 def sample_nodes(spec: GraphSpec) -> np.ndarray:
@@ -250,7 +258,7 @@ def build_graph(spec: GraphSpec) -> BezierGraph:
     order = np.lexsort((j, i))
     i, j = i[order], j[order]
     ctrl = test.curve(nodes[i], nodes[j])
-    return _assemble(spec, nodes, i, j, ctrl, bz.path_length_bound(ctrl), test)
+    return assemble(spec, nodes, i, j, ctrl, bz.path_length_bound(ctrl), test)
 
 
 # --- search --------------------------------------------------------------------------------

@@ -122,8 +122,9 @@ def hull_axes(points: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(axes)
 
 
-def hull_set(points: np.ndarray) -> HullSet:
-    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points."""
+def hull_set(points: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
+    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points
+    (``axes``: :func:`hull_axes` of ``points`` when the caller has them, e.g. a grown graph)."""
     pts = np.ascontiguousarray(points, dtype=float)
     if pts.ndim != 3 or pts.shape[2] != 2 or pts.shape[1] < 1:
         raise ValueError(f"control points must be (E, K, 2), got {pts.shape}")
@@ -134,7 +135,7 @@ def hull_set(points: np.ndarray) -> HullSet:
     aabb = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
     center = np.ascontiguousarray((lo + hi) / 2)
     radius = np.sqrt(np.max(np.sum((pts - center[:, None, :]) ** 2, axis=2), axis=1)) if len(pts) else np.zeros(0)
-    axes = hull_axes(pts)
+    axes = hull_axes(pts) if axes is None else axes
     half_max = (hi - lo).max(axis=0) / 2 if len(pts) else np.zeros(2)
     grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
     cx = np.clip(((center[:, 0] - grid.x0) // grid.h).astype(np.int64), 0, grid.nx - 1)

@@ -59,6 +59,7 @@ and :meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O, n
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import msgspec
@@ -67,6 +68,7 @@ from scipy.spatial import cKDTree
 
 from onboard import bezier as bz
 from onboard import collision as col
+from onboard import densify as dn
 from onboard import polygons as pg
 from onboard import messages as msgs
 from onboard import reachability as reach
@@ -115,6 +117,9 @@ class PlannerStats:
     last_refine_error: str = ""
     edges_free: int = 0
     unseen_holds: int = 0  # references held back because their committed part crossed ground not seen free
+    densify_plans: int = 0  # plans whose search failed and densified the graph (onboard.densify)
+    densify_rounds: int = 0  # densification rounds that added nodes
+    densify_nodes: int = 0  # nodes they added
 
 
 class GraphPlanner:
@@ -143,7 +148,9 @@ class GraphPlanner:
         self._world_version = 0
         self._cut_key: tuple | None = None
         self.free: np.ndarray | None = None  # edge mask after the cut
-        self.edge_cell: np.ndarray | None = None  # free-cell mode: the cell of each edge
+        self._densifier: dn.Densifier | None = None  # what densification added to the current graph
+        self.last_densify: dn.DensifyReport | None = None  # the last plan's densification (None: it needed none)
+        self._unreachable: tuple | None = None  # (world version, goal, graph) densified to the finest level in vain
         self.goal: np.ndarray | None = None
         self.goal_tolerance = 0.0
         self.path: SearchResult | None = None
@@ -264,7 +271,17 @@ class GraphPlanner:
         self._scale = reach_scale(test, graph.spec.a_max)
         self._tree = cKDTree(graph.nodes / self._scale)
         self._cut_key = None
+        self._densifier = None
         self.path = None
+
+    def _install_densified(self, graph: BezierGraph, free: np.ndarray) -> None:
+        """Plan on ``graph``, a densified copy of the current one, with its cut ``free``."""
+        assert self._scale is not None
+        self.graph = graph
+        self._tree = cKDTree(graph.nodes / self._scale)
+        self.free = free
+        self._cut_key = (id(graph), self._world_version)
+        self.stats.edges_free = int(free.sum())
 
     def _ensure_graph(self, position: np.ndarray) -> None:
         spec = self.graph_spec_for(position)
@@ -291,9 +308,7 @@ class GraphPlanner:
         assert self.graph is not None
         key = (id(self.graph), self._world_version)
         if self._cut_key != key or self.free is None:
-            blocked, cell = self._blocked(self.graph.hulls)
-            self.free = ~blocked
-            self.edge_cell = cell
+            self.free = ~self._blocked(self.graph.hulls)[0]
             self._cut_key = key
             self.stats.cuts += 1
             self.stats.edges_free = int(self.free.sum())
@@ -339,22 +354,44 @@ class GraphPlanner:
         return max(have - START_SLACK, self.robot_radius)
 
     def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0,
-             build: bool = True) -> msgs.ComReference | None:
+             build: bool = True, clock: Callable[[], float] | None = None) -> msgs.ComReference | None:
         """Cut (if needed) and search from the state at ``stamp_ns``; None when there is no path.
 
         ``build=False`` plans on the current graph even when another would fit the region
         better (a caller building that one meanwhile); it needs a graph. The result is also
         kept in :attr:`path` for :meth:`refine` and :meth:`waypoints`.
+
+        When the search finds no path, the graph is densified where it failed
+        (:mod:`onboard.densify`) for at most ``densify_budget_s`` on ``clock`` (seconds, the
+        caller's; without one, until a path, the finest resolution or the node limit);
+        :attr:`last_densify` says what that did and why there is still no path.
         """
         if self.goal is None:
             raise PlanningError("no goal set")
         x0 = self._state(position, velocity)
         if build or self.graph is None:
             self._ensure_graph(x0[:2])
-        graph = self.graph
-        assert graph is not None
-        free = self.cut()
+        self.cut()
         self.stats.plans += 1
+        result, start_seeds, goal_seeds = self._search(x0)
+        if result is not None or self.params.densify_budget_s <= 0:
+            self.last_densify = None
+        elif not self._settled():
+            result = self._densify(x0, start_seeds, goal_seeds, clock)
+        self.path = result
+        self.path_t0_ns = int(stamp_ns)
+        self.path_world_version = self._world_version
+        self._last_solution = None
+        if result is None:
+            self.stats.no_path += 1
+            return None
+        return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
+
+    def _search(self, x0: np.ndarray) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
+        """Search the cut graph from state ``x0`` to the goal at rest: the path (None: none)
+        and the graph nodes joined to the start and to the goal."""
+        graph = self.graph
+        assert graph is not None and self.goal is not None and self.free is not None
         N = graph.n_nodes
         goal_state = np.array([self.goal[0], self.goal[1], 0.0, 0.0])
         # Start: the state itself joined by free segments (the reference starts where the
@@ -393,17 +430,36 @@ class GraphPlanner:
                 (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
                 & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
             goal_costs[at_goal] = 0.0
-        result = search(graph, free, x0, np.concatenate(start_nodes).astype(np.int64),
+        result = search(graph, self.free, x0, np.concatenate(start_nodes).astype(np.int64),
                         np.concatenate(start_costs), goal_state, goal_costs,
                         self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
-        self.path = result
-        self.path_t0_ns = int(stamp_ns)
-        self.path_world_version = self._world_version
-        self._last_solution = None
-        if result is None:
-            self.stats.no_path += 1
-            return None
-        return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
+        return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
+
+    def _settled(self) -> bool:
+        """The same world, goal and graph were densified to the finest level in vain: that answer
+        (:attr:`last_densify`) stands, and replans at ``replan_hz`` do not spend the budget on it again."""
+        u = self._unreachable
+        return u is not None and u[0] == self._world_version and u[1] == tuple(self.goal) and u[2] is self.graph
+
+    def _densify(self, x0: np.ndarray, start_seeds: np.ndarray, goal_seeds: np.ndarray,
+                 clock: Callable[[], float] | None) -> SearchResult | None:
+        """Densify the graph where the search failed (:mod:`onboard.densify`); the path found, or None."""
+        assert self.graph is not None and self.goal is not None
+        prm = self.params
+        if self._densifier is None:
+            first = prm.rest_grid / 2 if self.graph.spec.rest_grid else prm.densify_grid
+            limits = dn.DensifyLimits(prm.densify_budget_s, first, min(prm.densify_min_grid, first),
+                                      prm.densify_max_nodes, prm.densify_round_nodes)
+            self._densifier = dn.Densifier(self.graph, limits)
+        view = _PlanView(self, x0, start_seeds, goal_seeds)
+        report = self._densifier.run(view, x0[:2], self.goal, self.obstacles if self.mode == "obstacles" else None,
+                                     self.margin, self._world_version, clock)
+        self.last_densify = report
+        self._unreachable = (self._world_version, tuple(self.goal), self.graph) if report.reason == dn.UNREACHABLE else None
+        self.stats.densify_plans += 1
+        self.stats.densify_rounds += report.rounds
+        self.stats.densify_nodes += report.nodes_added
+        return view.result
 
     def path_reference(self, stamp_ns: int = 0) -> msgs.ComReference:
         """The graph path as the CoM reference (time 0 at the path's start)."""
@@ -653,6 +709,40 @@ class GraphPlanner:
             sets.append(msgs.Polytope(A=A.tolist(), b=b.tolist(), vertices=poly.tolist()))
         points = [[float(s[0]), float(s[1])] for s in self.path.states]
         return msgs.Waypoints(stamp_ns=stamp_ns, points=points, sets=sets)
+
+
+class _PlanView(dn.SearchView):
+    """The planner as :class:`onboard.densify.Densifier` sees it during one plan call from ``x0``."""
+
+    def __init__(self, planner: GraphPlanner, x0: np.ndarray, start_seeds: np.ndarray, goal_seeds: np.ndarray) -> None:
+        self.planner = planner
+        self.x0 = x0
+        self.start_seeds = start_seeds
+        self.goal_seeds = goal_seeds
+        self.result: SearchResult | None = None
+
+    @property
+    def graph(self) -> BezierGraph:  # type: ignore[override]
+        assert self.planner.graph is not None
+        return self.planner.graph
+
+    @property
+    def free(self) -> np.ndarray:  # type: ignore[override]
+        assert self.planner.free is not None
+        return self.planner.free
+
+    def search(self) -> bool:
+        self.result, self.start_seeds, self.goal_seeds = self.planner._search(self.x0)
+        return self.result is not None
+
+    def points_free(self, points: np.ndarray) -> np.ndarray:
+        return ~self.planner._blocked(col.hull_set(np.repeat(points[:, None, :], 2, axis=1)))[0]
+
+    def edges_free(self, control_points: np.ndarray) -> np.ndarray:
+        return ~self.planner._blocked(col.hull_set(control_points))[0]
+
+    def install(self, graph: BezierGraph, free: np.ndarray) -> None:
+        self.planner._install_densified(graph, free)
 
 
 def _same_polygons(a: pg.PolygonSet, b: pg.PolygonSet) -> bool:

@@ -434,6 +434,13 @@ class PlannerParams(_Section):
     grid_velocities: Annotated[int, within(1, 15)] = 3  # "grid": velocity values per axis (odd keeps 0)
     rest_grid: Annotated[float, within(0.0, 10.0)] = 0.15  # [m] extra graph nodes at rest on a lattice of this spacing (0: none): narrow gaps
     time_weight: Annotated[float, within(0.0, 10.0)] = 0.15  # [m/s] search cost per second of path on top of its length (0: length only)
+    # densification (onboard.densify): when the search finds no path, nodes at rest are added
+    # where it failed, finer level by level, before the planner declares that there is none
+    densify_budget_s: Annotated[float, within(0.0, 60.0)] = 0.3  # [s] per plan call (0: never densify); below the reference's 0.5 s staleness
+    densify_grid: Annotated[float, above(0.0, 10.0)] = 0.3  # [m] first lattice spacing for a graph without a rest lattice (else half of rest_grid)
+    densify_min_grid: Annotated[float, above(0.0, 10.0)] = 0.02  # [m] finest lattice spacing: below it the goal is unreachable "at the finest resolution"
+    densify_max_nodes: Annotated[int, within(1, 1_000_000)] = 40_000  # nodes densification may add to one graph (memory, cut time)
+    densify_round_nodes: Annotated[int, within(1, 1_000_000)] = 500  # nodes added per round at most (one round, ~0.1-0.3 s on a shared 2-core machine, is what may overrun the budget)
     seed: Seed = 0  # node sampling seed
     tube: Annotated[float, within(0.0, 5.0)] = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
     tube_growth: Annotated[float, within(1.0, 10.0)] = 1.1  # on a broken promise, plan with the achieved tube times this

@@ -16,8 +16,10 @@ fresh, so that the 1 kHz receiver does not decode the same 10 kB at 100 Hz), ``w
 its convex sets, after each replan), ``contract`` (ContractReport on every broken
 promise: the low level's tube p95 above the tube planned with; the planner then plans
 with the achieved tube times ``tube_growth``).
-Status: ``path`` (1/0), planning and refinement times, edges, tube, violations; the
-state is ``degraded`` with ``last_error`` saying so while there is no path.
+Status: ``path`` (1/0), planning and refinement times, edges, tube, violations,
+densifications (``densify_plans``, ``densify_rounds``, ``densify_nodes``: a failed search
+densifies the graph for at most ``densify_budget_s``, and later plans reuse it); the
+state is ``degraded`` with ``last_error`` saying so, and why, while there is no path.
 
 Also here: the on-disk graph cache (:func:`load_or_build_graph`).
 """
@@ -211,6 +213,9 @@ class PlannerService(Service):
             "refine_failures": st.refine_failures,
             "refine_numerical_errors": st.refine_numerical_errors,
             "unseen_holds": st.unseen_holds,
+            "densify_plans": st.densify_plans,
+            "densify_rounds": st.densify_rounds,
+            "densify_nodes": st.densify_nodes,
             "tube_m": self.planner.tube,
             "margin_m": self.planner.margin,
             "contract_violations": self.planner.contract_violations,
@@ -251,14 +256,16 @@ class PlannerService(Service):
         due = now - self._last_plan_ns >= 1e9 / self.prm.replan_hz
         if due and self.planner.needs_replan(pos, now, self.prm.replan_deviation):
             t0 = time.perf_counter()
-            ref = self.planner.plan(pos, vel, now, build=False)
+            # the wall clock bounds a densification; the tick is late by at most densify_budget_s
+            ref = self.planner.plan(pos, vel, now, build=False, clock=time.perf_counter)
             self._plan_ms = (time.perf_counter() - t0) * 1e3
             self._last_plan_ns = now
             self.rate("plan").tick()
             self._has_path = ref is not None
             if ref is None:
                 self.state = "degraded"
-                self.last_error = f"no path to goal {self.planner.goal.tolist()}"
+                why = self.planner.last_densify.reason if self.planner.last_densify else "densification off"
+                self.last_error = f"no path to goal {self.planner.goal.tolist()}: {why}"
                 self.count("no_path")
             else:
                 self.state = "running"

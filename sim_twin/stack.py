@@ -21,6 +21,7 @@ Adapters expose ``feed(topic, msg, now_ns)`` (``now_ns``: when the message arriv
 from __future__ import annotations
 
 import math
+import time
 from typing import Protocol
 
 import mujoco
@@ -215,7 +216,8 @@ class GraphPlannerPlug:
         if now_ns >= self._next_replan:
             self._next_replan = now_ns + self._replan_ns
             if self.reference is None or pl.needs_replan(pos, now_ns, self.REPLAN_DEVIATION_M):
-                ref = pl.plan(pos, vel, now_ns)
+                # densification is bounded by the wall clock: lockstep must not stall on it either
+                ref = pl.plan(pos, vel, now_ns, clock=time.perf_counter)
                 self.plans += 1
                 if ref is None:
                     self.no_path += 1

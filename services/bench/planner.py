@@ -19,6 +19,13 @@ nodes, the default planner parameters. Prints:
   within the margin of an obstacle (must be 0); ``missed_edges``: cut edges whose dense
   samples all keep the margin (the convex-hull test's conservatism).
 
+``--oracle ompl``: instead of the above, OMPL's RRTConnect (``--oracle-time`` each, 1 s by
+default) against the graph planner on ``--queries`` random start/goal pairs at rest, the
+graph planner densifying a failed search for at most ``--densify-budget`` (see
+:mod:`services.bench.ompl_oracle` for how the two see the same problem): ``rrt_solved``,
+``ours_before`` / ``ours_after`` (solved before / after densification), ``missed_after``
+(solved by RRTConnect, not by us), densification rounds, nodes and time, and each query.
+
 500 obstacles in the 10 m world that 5000 nodes get leave little room for a robot of
 0.26 m with its tube (most edges are cut, many start/goal pairs have no path): the
 figures are the thesis's problem size (5000 nodes, about 50,000 edges, 500 obstacles).
@@ -39,6 +46,7 @@ from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
 from onboard.params import PlannerParams
+from services.bench.ompl_oracle import RrtConnectOracle
 
 NODES_PER_M2 = 50.0  # default world sizing: thesis density (5000 nodes, about 10 edges each)
 OBSTACLE_HALF_SIZE = (0.03, 0.12)  # [m] half sides of the random rectangles
@@ -58,6 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tube", type=float, default=PlannerParams().tube, help="[m] low-level tube planned with")
     parser.add_argument("--rest-grid", type=float, default=0.0, help="[m] rest-lattice spacing (0: none, exactly --nodes nodes)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--oracle", choices=["ompl"], help="compare with OMPL's RRTConnect (needs the test extra)")
+    parser.add_argument("--oracle-time", type=float, default=1.0, help="[s] RRTConnect's time per query")
+    parser.add_argument("--densify-budget", type=float, default=PlannerParams().densify_budget_s,
+                        help="[s] densification after a failed search (0: none)")
 
 
 def random_obstacles(rng: np.random.Generator, count: int, side: float) -> list[np.ndarray]:
@@ -84,6 +96,9 @@ def _free_point(rng: np.random.Generator, side: float, obstacles: pg.PolygonSet,
 
 def measure(args: argparse.Namespace) -> dict:
     side = args.world if args.world > 0 else math.sqrt(args.nodes / NODES_PER_M2)
+    if args.oracle == "ompl":
+        return compare_queries(side, args.obstacles, args.nodes, args.queries, args.seed, args.oracle_time,
+                               args.densify_budget, args.robot_radius, args.tube, args.rest_grid)
     params = PlannerParams(nodes=args.nodes, rest_grid=args.rest_grid, tube=args.tube)
     rng = np.random.default_rng(args.seed)
     # Warm the compiled kernels on a small problem so that timings exclude compilation.
@@ -179,4 +194,74 @@ def measure(args: argparse.Namespace) -> dict:
         "missed_edges": missed,
         "paths_found": found,
         "queries": attempts,
+    }
+
+
+# --- against an oracle ---------------------------------------------------------------------
+
+
+def compare_queries(side: float, obstacle_count: int, nodes: int, queries: int, seed: int, rrt_s: float,
+                    budget_s: float, robot_radius: float, tube: float, rest_grid: float = 0.0,
+                    samples: int = 50) -> dict:
+    """RRTConnect against the graph planner on ``queries`` random free start/goal pairs (at
+    rest) in a ``side`` [m] square with ``obstacle_count`` random obstacles (the planner bench's).
+
+    Each query gets the same base graph (``nodes`` uniform random nodes, ``rest_grid``), so
+    a densification never helps a later query. ``ours_before``: solved by the first search;
+    ``ours_after``: solved after densifying for at most ``budget_s`` on the wall clock.
+    ``missed``: queries RRTConnect solved and we did not. Our paths are sampled densely
+    (``samples`` per segment) and their least clearance reported (must exceed the margin).
+    """
+    rng = np.random.default_rng(seed)
+    polys = random_obstacles(rng, obstacle_count, side)
+    params = PlannerParams(nodes=nodes, rest_grid=rest_grid, tube=tube, densify_budget_s=budget_s)
+    bounds = (0.0, 0.0, side, side)
+    base = bg.build_graph(bg.spec_from_params(params, bounds, nodes=nodes, seed=seed))
+    planner = gp.GraphPlanner(params, robot_radius, bounds=bounds, nodes=nodes)
+    planner.set_obstacles(polys)
+    margin = planner.margin
+    oracle = RrtConnectOracle(bounds, polys, margin, seed)
+    Z = bz.bernstein(base.control_points.shape[1] - 1, np.linspace(0.0, 1.0, samples))
+    records = []
+    for _ in range(queries):
+        start = _free_point(rng, side, planner.obstacles, margin)
+        goal = _free_point(rng, side, planner.obstacles, margin)
+        t0 = time.perf_counter()
+        rrt = oracle.solve(start, goal, rrt_s)
+        rrt_ms = (time.perf_counter() - t0) * 1e3
+        planner.set_graph(base)  # every query from the same base graph
+        planner.set_goal(goal, 0.1)
+        t0 = time.perf_counter()
+        ref = planner.plan(start, (0.0, 0.0), 0, clock=time.perf_counter)
+        plan_ms = (time.perf_counter() - t0) * 1e3
+        report = planner.last_densify
+        clearance = None
+        if ref is not None:
+            pts = np.einsum("sk,ekd->esd", Z, planner.path.control_points).reshape(1, -1, 2)
+            clearance = float(col.samples_clearance(pts, planner.obstacles, reach=margin + 1.0)[0])
+        records.append({
+            "start": start.tolist(), "goal": goal.tolist(), "rrt": rrt is not None, "rrt_ms": round(rrt_ms, 1),
+            "ours_before": ref is not None and report is None, "ours_after": ref is not None, "plan_ms": round(plan_ms, 1),
+            "densify_rounds": report.rounds if report else 0, "densify_nodes": report.nodes_added if report else 0,
+            "densify_ms": round(report.spent_s * 1e3, 1) if report else 0.0,
+            "no_path_reason": None if ref is not None else (report.reason if report else "densification off"),
+            "path_clearance": clearance,
+        })
+    densified = [r for r in records if r["densify_rounds"] or r["densify_ms"]]
+    clearances = [r["path_clearance"] for r in records if r["path_clearance"] is not None]
+    return {
+        "world_m": side, "obstacles": obstacle_count, "nodes": nodes, "rest_grid": rest_grid, "margin_m": round(margin, 3),
+        "queries": queries, "rrt_time_s": rrt_s, "densify_budget_s": budget_s,
+        "rrt_solved": sum(r["rrt"] for r in records),
+        "ours_before": sum(r["ours_before"] for r in records),
+        "ours_after": sum(r["ours_after"] for r in records),
+        "missed_before": sum(r["rrt"] and not r["ours_before"] for r in records),
+        "missed_after": sum(r["rrt"] and not r["ours_after"] for r in records),
+        "ours_only": sum(r["ours_after"] and not r["rrt"] for r in records),
+        "densified_queries": len(densified),
+        "densify_rounds_max": max((r["densify_rounds"] for r in records), default=0),
+        "densify_nodes_max": max((r["densify_nodes"] for r in records), default=0),
+        "densify_ms_max": max((r["densify_ms"] for r in records), default=0.0),
+        "path_clearance_min": round(min(clearances), 4) if clearances else None,
+        "records": records,
     }

@@ -8,15 +8,22 @@ SCENE (one JSON object)::
      "start_velocity": [vx, vy],                        # optional [m/s], default at rest
      "limits": {"v_max": .., "a_max": ..},              # optional [m/s], [m/s^2] per axis
      "tube": .., "robot_radius": ..,                    # optional [m]; radius default from the MJCF
-     "nodes": .., "seed": ..}                           # optional graph size and sampling seed
+     "nodes": .., "seed": ..,                           # optional graph size and sampling seed
+     "densify_budget_s": ..}                            # optional [s] densification after a failed search
 
 Output (``--json``: one JSON object): ``found``, ``segments`` (``{"t0", "duration",
 "control_points"}``: consecutive Bezier segments of the CoM position, times in seconds
 from the start), ``clearance`` (robot radius plus tube: what the plan keeps from every
 obstacle), ``limits`` (``v_max``, ``a_max``, ``segment_s``), ``plan_ms`` (cut and
-search), ``graph_ms`` and ``graph_cached`` (build, or load from the graph cache),
-``nodes`` (the scene's random nodes plus ``lattice_nodes``, the rest lattice), ``edges``, ``edges_free``, ``cost`` (path-length bound [m]), ``duration``
-[s]. Exit code 0 with a path, 1 without, 2 for a bad scene (non-convex or degenerate
+search, densification included), ``graph_ms`` and ``graph_cached`` (build, or load from the graph cache),
+``nodes`` (the scene's random nodes plus ``lattice_nodes``, the rest lattice, plus any nodes densification added), ``edges``, ``edges_free``, ``cost`` (path-length bound [m]), ``duration``
+[s]; ``path`` (the same as ``found``) and ``densified``: when the first search found no
+path, the graph was densified where it failed (``onboard.densify``, at most
+``densify_budget_s`` of the planner parameters, or ``"densify_budget_s"`` in the scene):
+``{"rounds", "nodes_added", "edges_added", "spent_ms", "finest_grid"}`` (null when the
+first search found a path), and ``no_path_reason``: null with a path, else ``"budget
+spent"``, ``"node limit reached"``, ``"goal unreachable in the graph at the finest
+resolution"`` or ``"densification off"`` (a budget of 0). Exit code 0 with a path, 1 without, 2 for a bad scene (non-convex or degenerate
 polygon, start or goal inside an obstacle or outside the bounds, NaN, unknown key),
 with the reason on stderr.
 """
@@ -42,7 +49,8 @@ from onboard import messages as msgs
 from onboard.params import PlannerParams
 from onboard.topics import TOPICS, namespace
 
-SCENE_KEYS = {"bounds", "obstacles", "start", "goal", "start_velocity", "limits", "tube", "robot_radius", "nodes", "seed"}
+SCENE_KEYS = {"bounds", "obstacles", "start", "goal", "start_velocity", "limits", "tube", "robot_radius", "nodes", "seed",
+              "densify_budget_s"}
 REQUIRED_KEYS = ("bounds", "obstacles", "start", "goal")
 LIMIT_KEYS = {"v_max", "a_max"}
 MAX_NODES = 200_000  # a bigger graph does not fit the memory of the onboard computer
@@ -141,6 +149,8 @@ def parse_scene(text: str, base: PlannerParams | None = None) -> Scene:
         changes[key] = _number(limits[key], f"limits.{key}", positive=True)
     if "tube" in raw:
         changes["tube"] = _number(raw["tube"], "tube")
+    if "densify_budget_s" in raw:
+        changes["densify_budget_s"] = _number(raw["densify_budget_s"], "densify_budget_s")
     if "seed" in raw:
         if isinstance(raw["seed"], bool) or not isinstance(raw["seed"], int):
             raise SceneError("seed must be an integer")
@@ -168,20 +178,32 @@ def plan_scene(scene: Scene, cache_dir: Path | None) -> dict[str, Any]:
     graph_ms = (time.perf_counter() - t0) * 1e3
     planner.set_graph(graph)
     t0 = time.perf_counter()
-    ref = planner.plan(scene.start, scene.start_velocity, 0)
+    ref = planner.plan(scene.start, scene.start_velocity, 0, clock=time.perf_counter)
     plan_ms = (time.perf_counter() - t0) * 1e3
     path = planner.path
+    report = planner.last_densify
+    if ref is not None:
+        reason = None
+    elif report is None:
+        reason = "densification off"
+    else:
+        reason = report.reason
     return {
         "found": ref is not None,
+        "path": ref is not None,
+        "densified": None if report is None else {
+            "rounds": report.rounds, "nodes_added": report.nodes_added, "edges_added": report.edges_added,
+            "spent_ms": round(report.spent_s * 1e3, 3), "finest_grid": report.finest_grid},
+        "no_path_reason": reason,
         "segments": [{"t0": s.t0, "duration": s.duration, "control_points": s.control_points} for s in (ref.segments if ref else [])],
         "clearance": planner.margin,
         "limits": {"v_max": scene.params.v_max, "a_max": scene.params.a_max, "segment_s": scene.params.segment_s},
         "plan_ms": round(plan_ms, 3),
         "graph_ms": round(graph_ms, 3),
         "graph_cached": cached,
-        "nodes": graph.n_nodes,
+        "nodes": planner.graph.n_nodes if planner.graph is not None else graph.n_nodes,
         "lattice_nodes": graph.spec.lattice_size(),
-        "edges": graph.n_edges,
+        "edges": planner.graph.n_edges if planner.graph is not None else graph.n_edges,
         "edges_free": planner.stats.edges_free,
         "cost": path.cost if path else None,
         "duration": path.duration if path else None,
@@ -216,7 +238,11 @@ def run_plan(args: argparse.Namespace) -> int:
         if out["found"]:
             print(f"path: {len(out['segments'])} segments, {out['duration']:.1f} s, length <= {out['cost']:.2f} m")
         else:
-            print("no path")
+            print(f"no path: {out['no_path_reason']}")
+        if out["densified"] is not None:
+            d = out["densified"]
+            print(f"densified: {d['rounds']} rounds, {d['nodes_added']} nodes, {d['edges_added']} edges "
+                  f"in {d['spent_ms']:.0f} ms (finest lattice {d['finest_grid']:.3f} m)")
         print(f"clearance {out['clearance']:.3f} m, graph {out['nodes']} nodes / {out['edges']} edges "
               f"({out['edges_free']} free), plan {out['plan_ms']:.1f} ms, graph {out['graph_ms']:.0f} ms"
               f"{' (cached)' if out['graph_cached'] else ''}")

@@ -1,0 +1,153 @@
+"""Densification of the Bezier graph after a failed search (onboard/densify.py), its report in
+`archer plan`, and completeness against an independent oracle (OMPL's RRTConnect)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from onboard import bezier as bz
+from onboard import bezier_graph as bg
+from onboard import collision as col
+from onboard import densify as dn
+from onboard import graph_planner as gp
+from onboard.params import PlannerParams
+from services.bench.ompl_oracle import RrtConnectOracle
+from services.bench.planner import compare_queries
+from services.cli.plan import parse_scene, plan_scene
+
+RADIUS = 0.13
+PARAMS = PlannerParams(nodes=300, rest_grid=0.0, tube=0.1)  # margin 0.23 m
+MARGIN = RADIUS + PARAMS.tube
+BOUNDS = (0.0, 0.0, 4.0, 4.0)
+START = np.array([0.8, 0.8])
+GOAL = np.array([3.2, 3.2])
+SEED = 0  # the bench world of `archer bench planner --oracle ompl` (its first queries include misses of the bare graph)
+
+
+def wall_with_gap(width: float) -> list[np.ndarray]:
+    """A wall across the whole region at x = 2 m with one gap of ``width`` [m] centred at y = 1.7 m."""
+    lo, hi = 1.7 - width / 2, 1.7 + width / 2
+    return [np.array([[1.9, -0.5], [2.1, -0.5], [2.1, lo], [1.9, lo]]),
+            np.array([[1.9, hi], [2.1, hi], [2.1, 4.5], [1.9, 4.5]])]
+
+
+def planner_for(obstacles: list[np.ndarray], **changes) -> gp.GraphPlanner:
+    params = dataclasses.replace(PARAMS, **changes)
+    planner = gp.GraphPlanner(params, RADIUS, bounds=BOUNDS, nodes=params.nodes)
+    planner.set_obstacles(obstacles)
+    planner.set_goal(GOAL, 0.1)
+    return planner
+
+
+def path_clearance(planner: gp.GraphPlanner) -> float:
+    ctrl = planner.path.control_points
+    pts = np.einsum("sk,ekd->esd", bz.bernstein(ctrl.shape[1] - 1, np.linspace(0, 1, 200)), ctrl).reshape(1, -1, 2)
+    return float(col.samples_clearance(pts, planner.obstacles, reach=MARGIN + 1.0)[0])
+
+
+def test_densification_passes_a_gap_the_graph_misses_and_the_graph_is_reused():
+    gap = 2 * MARGIN + 0.04
+    assert planner_for(wall_with_gap(gap), densify_budget_s=0.0).plan(START, (0, 0)) is None  # the graph alone misses it
+    planner = planner_for(wall_with_gap(gap))
+    ref = planner.plan(START, (0, 0))  # no clock: until a path or the finest resolution
+    assert ref is not None
+    report = planner.last_densify
+    assert report is not None and report.found and report.reason == "" and report.rounds >= 1
+    assert planner.graph.densified == report.nodes_added > 0
+    assert planner.graph.n_nodes == planner.graph.spec.total_nodes + report.nodes_added
+    assert planner.stats.densify_plans == 1 and planner.stats.densify_rounds == report.rounds
+    assert path_clearance(planner) > MARGIN  # densified edges are cut like the others
+    xs = planner.path.states[:, 0]
+    assert xs.min() < 2.0 < xs.max()
+    # the next plan in the region searches the densified graph: no new densification
+    graph = planner.graph
+    assert planner.plan(START + 0.05, (0, 0)) is not None
+    assert planner.graph is graph and planner.last_densify is None and planner.stats.densify_plans == 1
+
+
+def test_closed_gap_is_unreachable_at_the_finest_resolution():
+    planner = planner_for(wall_with_gap(2 * MARGIN - 0.02))
+    assert planner.plan(START, (0, 0)) is None
+    report = planner.last_densify
+    assert report.reason == dn.UNREACHABLE and not report.found
+    assert report.rounds >= 1 and report.finest_grid == pytest.approx(planner._densifier.levels[-1])
+    assert report.finest_grid >= PARAMS.densify_min_grid
+    # a replan of the same world and goal keeps the answer without densifying again
+    nodes = planner.graph.n_nodes
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.last_densify is report and planner.stats.densify_plans == 1 and planner.graph.n_nodes == nodes
+    planner.set_goal(GOAL + 0.1, 0.1)  # a new question: densified again (nothing left to add there)
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.stats.densify_plans == 2 and planner.last_densify.reason == dn.UNREACHABLE
+    # RRTConnect cannot pass either: the two see the same clearance
+    oracle = RrtConnectOracle(BOUNDS, wall_with_gap(2 * MARGIN - 0.02), MARGIN)
+    assert oracle.solve(START, GOAL, 0.3) is None
+    assert RrtConnectOracle(BOUNDS, wall_with_gap(2 * MARGIN + 0.04), MARGIN).solve(START, GOAL, 1.0) is not None
+
+
+def test_budget_and_node_limit_stop_densification():
+    ticks = iter(range(1000))
+    planner = planner_for(wall_with_gap(2 * MARGIN + 0.04), densify_budget_s=0.5)
+    assert planner.plan(START, (0, 0), clock=lambda: float(next(ticks))) is None  # each reading 1 s later
+    assert planner.last_densify.reason == dn.BUDGET_SPENT and planner.last_densify.rounds == 0
+    assert planner.graph.densified == 0
+    planner = planner_for(wall_with_gap(2 * MARGIN + 0.04), densify_max_nodes=3)
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.last_densify.reason == dn.NODE_LIMIT and planner.graph.densified == 3
+    planner = planner_for(wall_with_gap(2 * MARGIN + 0.04), densify_budget_s=0.0)
+    assert planner.plan(START, (0, 0)) is None and planner.last_densify is None
+
+
+def test_a_densified_graph_is_never_written_to_the_cache(tmp_path):
+    scene = {"bounds": [[0, 0], [4, 4]], "obstacles": [p.tolist() for p in wall_with_gap(2 * MARGIN + 0.04)],
+             "start": START.tolist(), "goal": GOAL.tolist(), "robot_radius": RADIUS, "tube": 0.1, "nodes": 300,
+             "densify_budget_s": 30.0}
+    out = plan_scene(parse_scene(json.dumps(scene), PARAMS), tmp_path)
+    assert out["path"] is True and out["found"] is True and out["no_path_reason"] is None
+    assert out["densified"]["rounds"] >= 1 and out["densified"]["nodes_added"] > 0
+    assert out["nodes"] == 300 + out["densified"]["nodes_added"]
+    (cached,) = tmp_path.glob("*.npz")
+    before = cached.read_bytes()
+    again = plan_scene(parse_scene(json.dumps(scene), PARAMS), tmp_path)
+    assert again["graph_cached"] is True and again["densified"]["nodes_added"] == out["densified"]["nodes_added"]
+    assert cached.read_bytes() == before  # the base graph, not the densified one
+    spec = bg.spec_from_params(dataclasses.replace(PARAMS, tube=0.1), (0.0, 0.0, 4.0, 4.0), nodes=300)
+    planner = planner_for(wall_with_gap(2 * MARGIN + 0.04))
+    planner.plan(START, (0, 0))
+    with pytest.raises(bg.PlanningError):
+        planner.graph.to_arrays()
+    assert bg.build_graph(spec).n_nodes == 300
+    closed = dict(scene, obstacles=[p.tolist() for p in wall_with_gap(2 * MARGIN - 0.02)])
+    out = plan_scene(parse_scene(json.dumps(closed), PARAMS), tmp_path)
+    assert out["path"] is False and out["no_path_reason"] == dn.UNREACHABLE
+    out = plan_scene(parse_scene(json.dumps(dict(closed, densify_budget_s=0.0)), PARAMS), tmp_path)
+    assert out["path"] is False and out["no_path_reason"] == "densification off" and out["densified"] is None
+
+
+def test_segment_clearance_is_exact():
+    from services.bench.planner import random_obstacles
+
+    rng = np.random.default_rng(4)
+    oracle = RrtConnectOracle((0.0, 0.0, 5.0, 5.0), random_obstacles(rng, 60, 5.0), MARGIN)
+    for _ in range(300):
+        a = rng.uniform(0, 5, 2)
+        b = a + rng.normal(0, 0.4, 2)
+        pts = a + np.linspace(0, 1, 4001)[:, None] * (b - a)
+        sampled = min(max(float(col.samples_clearance(pts[None], oracle.obstacles, reach=oracle.reach)[0]), 0.0), oracle.reach)
+        assert oracle.clearance(a, b) == pytest.approx(sampled, abs=2e-3)
+
+
+def test_every_query_rrtconnect_solves_we_solve():
+    """8 seeded queries in the planner bench's world (10 m, 150 obstacles, 5000 random nodes, no
+    rest lattice): every query RRTConnect solves in 1 s, the graph planner solves after
+    densifying for at most 5 s of wall clock (a shared machine: the budget leaves room)."""
+    out = compare_queries(side=10.0, obstacle_count=150, nodes=5000, queries=8, seed=SEED, rrt_s=1.0, budget_s=5.0,
+                          robot_radius=RADIUS, tube=0.1)
+    assert out["rrt_solved"] >= 6
+    assert out["missed_before"] >= 1  # the graph alone misses some: densification is what is tested
+    assert out["missed_after"] == 0, [r for r in out["records"] if r["rrt"] and not r["ours_after"]]
+    assert out["path_clearance_min"] > out["margin_m"]
