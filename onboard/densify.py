@@ -22,7 +22,8 @@ again after each:
 - **how far**: a level is done when it adds no node on the frontier; the finest level
   done without a path means the goal is unreachable in the graph at the finest
   resolution. Rounds stop earlier when the time budget (``densify_budget_s``, read from
-  the caller's clock) or the node limit (``densify_max_nodes`` per graph) is spent.
+  the caller's clock), the rounds of one call (``densify_max_rounds``) or the node limit
+  (``densify_max_nodes`` per graph) is spent.
 
 The densified graph replaces the planner's graph (same :class:`GraphSpec`, ``densified``
 counts the nodes added), so later plans in the same region reuse it; it is never written
@@ -322,6 +323,7 @@ class DensifyLimits:
     min_grid: float  # [m] no level finer than this
     max_nodes: int  # nodes added to one graph at most
     round_nodes: int  # nodes added per round at most (bounds one round's time)
+    max_rounds: int  # rounds per call at most without a clock (lockstep's bound, the same on any machine)
 
 
 class Densifier:
@@ -370,6 +372,9 @@ class Densifier:
         frontier_of: tuple | None = None  # (graph, frontier per pass) of the last graph seen
         while True:
             if clock is not None and clock() - t0 + last_round_s > lim.budget_s:
+                reason = BUDGET_SPENT
+                break
+            if clock is None and rounds >= lim.max_rounds:
                 reason = BUDGET_SPENT
                 break
             room = lim.max_nodes - view.graph.densified

@@ -441,6 +441,7 @@ class PlannerParams(_Section):
     densify_min_grid: Annotated[float, above(0.0, 10.0)] = 0.02  # [m] finest lattice spacing: below it the goal is unreachable "at the finest resolution"
     densify_max_nodes: Annotated[int, within(1, 1_000_000)] = 40_000  # nodes densification may add to one graph (memory, cut time)
     densify_round_nodes: Annotated[int, within(1, 1_000_000)] = 500  # nodes added per round at most (one round, ~0.1-0.3 s on a shared 2-core machine, is what may overrun the budget)
+    densify_max_rounds: Annotated[int, within(1, 10_000)] = 4  # rounds per plan call at most when the caller has no clock (lockstep): the same on any machine
     seed: Seed = 0  # node sampling seed
     tube: Annotated[float, within(0.0, 5.0)] = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
     tube_growth: Annotated[float, within(1.0, 10.0)] = 1.1  # on a broken promise, plan with the achieved tube times this

@@ -216,8 +216,8 @@ class GraphPlannerPlug:
             self._next_replan = now_ns + self._replan_ns
             if self.reference is None or pl.needs_replan(pos, now_ns, self.REPLAN_DEVIATION_M):
                 # no clock: planning takes no simulated time, and a densification cut short by the
-                # wall clock would make a run differ from machine to machine; the node limit
-                # (densify_max_nodes per graph) bounds it instead
+                # wall clock would make a run differ from machine to machine; densify_max_rounds
+                # bounds it instead
                 ref = pl.plan(pos, vel, now_ns)
                 self.plans += 1
                 if ref is None:

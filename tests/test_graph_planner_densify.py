@@ -20,7 +20,8 @@ from services.bench.planner import compare_queries
 from services.cli.plan import parse_scene, plan_scene
 
 RADIUS = 0.13
-PARAMS = PlannerParams(nodes=300, rest_grid=0.0, tube=0.1)  # margin 0.23 m
+# margin 0.23 m; without a clock the rounds of a call are unbounded here (lockstep bounds them)
+PARAMS = PlannerParams(nodes=300, rest_grid=0.0, tube=0.1, densify_max_rounds=10_000)
 MARGIN = RADIUS + PARAMS.tube
 BOUNDS = (0.0, 0.0, 4.0, 4.0)
 START = np.array([0.8, 0.8])
@@ -74,6 +75,9 @@ def test_closed_gap_is_unreachable_at_the_finest_resolution():
     assert planner.plan(START, (0, 0)) is None
     report = planner.last_densify
     assert report.reason == dn.UNREACHABLE and not report.found
+    bounded = planner_for(wall_with_gap(2 * MARGIN - 0.02), densify_max_rounds=2)
+    assert bounded.plan(START, (0, 0)) is None  # lockstep's bound: so many rounds, then no path for now
+    assert bounded.last_densify.reason == dn.BUDGET_SPENT and bounded.last_densify.rounds == 2
     assert report.rounds >= 1 and report.finest_grid == pytest.approx(planner._densifier.levels[-1])
     assert report.finest_grid >= PARAMS.densify_min_grid
     # a replan of the same world and goal keeps the answer without densifying again
