@@ -33,6 +33,13 @@ def _state(x: float, y: float) -> m.StateEstimate:
     )
 
 
+async def _stream_resting_state(client, ns: str, stop: asyncio.Event) -> None:
+    """The estimator at 50 Hz, the robot resting at the origin."""
+    while not stop.is_set():
+        client.put(TOPICS["state"].key(ns), m.encode(_state(0.0, 0.0)))
+        await asyncio.sleep(0.02)
+
+
 def _box(cx: float, cy: float, h: float) -> m.Polytope:
     verts = [[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]]
     A, b = pg.polygon_halfspaces(np.array(verts))
@@ -54,13 +61,7 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             client.declare_subscriber(TOPICS["contract"].key(NS), lambda s: reports.append(m.decode(s.payload.to_bytes(), m.ContractReport))),
         ]
         stop_state = asyncio.Event()
-
-        async def stream_state() -> None:  # the estimator at 50 Hz, robot resting at the start
-            while not stop_state.is_set():
-                client.put(TOPICS["state"].key(NS), m.encode(_state(0.0, 0.0)))
-                await asyncio.sleep(0.02)
-
-        feeder = asyncio.create_task(stream_state())
+        feeder = asyncio.create_task(_stream_resting_state(client, NS, stop_state))
         try:
             await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
@@ -130,13 +131,7 @@ def test_perceived_obstacles_commit_the_robot_only_over_ground_the_grid_saw_free
         refs: list[m.ComReference] = []
         sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
         stop_state = asyncio.Event()
-
-        async def stream_state() -> None:
-            while not stop_state.is_set():
-                client.put(TOPICS["state"].key(ns), m.encode(_state(0.0, 0.0)))
-                await asyncio.sleep(0.02)
-
-        feeder = asyncio.create_task(stream_state())
+        feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
         try:
             await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
