@@ -24,6 +24,7 @@ from services.runtime.realtime import die_with_parent
 
 STOP_GRACE_S = 5.0  # [s] a worker asked to stop has this long before SIGTERM, then as long again before SIGKILL
 RAY_LOCAL = "local"  # --ray local: a private Ray instance on 127.0.0.1, stopped with the campaign
+RAY_SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 Crash = Callable[[Any, str], Any]
 
@@ -124,12 +125,17 @@ class LocalPool:
 class RayPool:
     """Runs as Ray tasks (one CPU each) on the cluster at ``address`` (``local``: a private instance).
 
-    Ray is an optional extra (``pip install -e '.[cluster]'``). Ray's usage statistics stay off:
-    nothing leaves the machine.
+    Ray is an optional extra (``pip install -e '.[cluster]'``). Ray's usage statistics stay off.
+    A private instance listens on 127.0.0.1 only when this process has not imported Ray before
+    (Ray fixes its node address at import).
     """
 
     def __init__(self, address: str, workers: int) -> None:
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        if address == RAY_LOCAL:
+            # Ray's single-machine mode (its default on macOS and Windows): the node's address is the
+            # loopback one and every Ray server listens on 127.0.0.1 only. Read when ray is imported.
+            os.environ.setdefault(RAY_SINGLE_MACHINE_ENV, "0")
         try:
             import ray
         except ImportError:
