@@ -34,6 +34,7 @@ from onboard import messages as m
 from onboard.params import SafetyLimits, TwinParams, with_overrides
 from onboard.topics import TOPICS
 from robot_description import params as rd
+from sim_twin import compiled
 from sim_twin import model as tm
 from sim_twin import perception_plug
 from sim_twin import scenarios as sc
@@ -100,6 +101,7 @@ class LockstepRunner:
     """One run of one scenario; build, then :meth:`run`."""
 
     def __init__(self, cfg: RunConfig) -> None:
+        compiled.check_fresh()
         self.cfg = cfg
         self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles)
         self.robot = rd.robot_params(cfg.variant)
