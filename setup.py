@@ -26,6 +26,7 @@ COMPILED_MODULES = [
     "sim_twin/metrics.py",
     "sim_twin/actuation.py",
 ]
+COMPILED_GROUP = "onboard.compiled_tick"
 # mypy checks the compiled modules only; what they import is taken as it is typed
 MYPYC_FLAGS = ["--ignore-missing-imports", "--follow-imports=silent"]
 
@@ -33,6 +34,7 @@ ext_modules = []
 if os.environ.get("ARCHER_COMPILE") == "1":
     from mypyc.build import mypycify
 
-    ext_modules = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3")
+    # the shared runtime of the group inside a package: a top-level module is not importable from every directory
+    ext_modules = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3", group_name=COMPILED_GROUP)
 
 setup(ext_modules=ext_modules)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib
 import importlib.machinery
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -35,3 +37,14 @@ def test_compiled_modules_are_the_ones_imported() -> None:
         pytest.skip("no compiled build in this checkout (ARCHER_COMPILE=1 python setup.py build_ext --inplace)")
     for name in names:
         assert importlib.import_module(name).__file__.endswith(SUFFIX), name
+
+
+def test_the_compiled_build_imports_from_any_directory(tmp_path) -> None:
+    """Its shared runtime lives in a package, not at the checkout's top, which only a process
+    started there has on its path (the archer command, a campaign worker, do not)."""
+    names = compiled_modules()
+    if not names:
+        pytest.skip("no compiled build in this checkout")
+    code = f"import importlib; [importlib.import_module(n) for n in {names!r}]"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, check=True, timeout=120)
