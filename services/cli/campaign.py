@@ -211,7 +211,7 @@ class Progress:
 
 
 def sweep(specs: list[dict], out: Path, workers: int, ray_address: str | None = None,
-                 retry_errors: bool = False, progress: bool = False) -> dict[str, dict]:
+          retry_errors: bool = False, progress: bool = False) -> dict[str, dict]:
     """Run the specs not finished yet in ``out/runs.jsonl``, appending each record as it comes;
     the records of every spec of the sweep, by key."""
     from services.cli import campaign_pool

@@ -127,7 +127,9 @@ class RayPool:
 
     Ray is an optional extra (``pip install -e '.[cluster]'``). Ray's usage statistics stay off.
     A private instance listens on 127.0.0.1 only when this process has not imported Ray before
-    (Ray fixes its node address at import).
+    (Ray fixes its node address at import). It stops with the campaign however the campaign
+    ends, except by SIGKILL: then its GCS, raylet and workers go, but Ray's dashboard agent and
+    runtime-env agent were seen still running 45 s later (Ray 2.60).
     """
 
     def __init__(self, address: str, workers: int) -> None:
