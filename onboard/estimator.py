@@ -68,7 +68,7 @@ Frames: world z up; body = torso frame, origin at the point the pose sensor repo
 from __future__ import annotations
 
 import math
-from typing import Protocol
+from typing import Protocol, cast
 
 from scipy.stats import chi2
 
@@ -358,7 +358,9 @@ class StateEstimator:
         the foot is about to be yanked off its stop, an internal impulse the accelerometer
         sees and the CoM does not. Projectile dynamics are exact once the foot is airborne.
         """
-        t, dt, sx, sy, sz = self._pending
+        pending = self._pending
+        assert pending is not None  # every caller checks first
+        t, dt, sx, sy, sz = pending
         self._pending = None
         gap = dt - self._period_ns / NS
         gap_cov = self._gap_cov(gap, self._gap_contact or self._switch) if gap > 0.0 else None
@@ -386,10 +388,10 @@ class StateEstimator:
 
     def _start(self, msg: ImuSample) -> bool:
         """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
-        q0 = tuple(float(v) for v in msg.quat)
+        q0 = cast(quat.Quat, tuple(float(v) for v in msg.quat))
         n = quat.norm(q0) if quat.is_finite(q0) else 0.0
         q_start = quat.normalize(q0) if abs(n - 1.0) < QUAT_NORM_TOL else quat.IDENTITY
-        self.att.initialize(q_start, msg.stamp_ns, tuple(float(v) for v in msg.gyro))
+        self.att.initialize(q_start, msg.stamp_ns, cast(quat.Vec3, tuple(float(v) for v in msg.gyro)))
         self.com.start(msg.stamp_ns)
         self._t_imu = msg.stamp_ns
         self._accel = (0.0, 0.0, -self._g)

@@ -54,7 +54,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
@@ -378,7 +378,7 @@ class LowLevelController:
             q_des = self.q_des
             ff = self._zero3
         else:  # stance: the PD follows the estimate, the wheels spin down through the feed-forward
-            q_des, omega = tuple(state.quat), list(state.omega)
+            q_des, omega = cast(qt.Quat, tuple(state.quat)), list(state.omega)
             ff = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
             wm = self._wheel_max
             ff = (max(-wm, min(wm, ff[0])), max(-wm, min(wm, ff[1])), max(-wm, min(wm, ff[2])))

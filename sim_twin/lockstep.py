@@ -21,17 +21,20 @@ first fall unless told otherwise.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import mujoco
+from threadpoolctl import threadpool_limits
 
 from onboard import messages as m
 from onboard.params import SafetyLimits, TwinParams, with_overrides
 from onboard.topics import TOPICS
 from robot_description import params as rd
+from sim_twin import compiled
 from sim_twin import model as tm
 from sim_twin import perception_plug
 from sim_twin import scenarios as sc
@@ -42,6 +45,7 @@ from sim_twin.sensors import SensorOutage, SensorSuite
 
 NS = 1_000_000_000
 PROGRESS_EVERY_S = 0.5  # [s of sim] between progress callbacks
+BLAS_THREADS = 1  # see LockstepRunner.run
 
 
 @dataclass
@@ -97,6 +101,7 @@ class LockstepRunner:
     """One run of one scenario; build, then :meth:`run`."""
 
     def __init__(self, cfg: RunConfig) -> None:
+        compiled.check_fresh()
         self.cfg = cfg
         self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles)
         self.robot = rd.robot_params(cfg.variant)
@@ -128,6 +133,23 @@ class LockstepRunner:
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, safety)
 
     def run(self, progress: Callable[[float, float], None] | None = None) -> RunResult:
+        """The run, with BLAS on one thread and the build's objects out of the collector's sight.
+
+        One BLAS thread: a multithreaded LAPACK solve (the planner's MPC polish) rounds differently
+        with each thread count, so a run's bits would depend on the machine's cores (and
+        ``OPENBLAS_NUM_THREADS``); and two spinning BLAS threads on a shared 2-core machine made
+        runs up to 7x slower. gc.freeze: a full collection walks every object the build left
+        (MuJoCo, numba, the planner's graph) again and again; frozen, only the run's own
+        allocations are walked. Unfrozen afterwards, so a worker doing many runs frees each one.
+        """
+        gc.freeze()  # no collection first: one costs ~40 ms here, 4 us a tick of a 10 s run
+        try:
+            with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+                return self._run(progress)
+        finally:
+            gc.unfreeze()
+
+    def _run(self, progress: Callable[[float, float], None] | None) -> RunResult:
         cfg, model, data = self.cfg, self.model, self.data
         scenario, sensors, actuation = self.scenario, self.sensors, self.actuation
         estimator, planner, controller, metrics = self.estimator, self.planner, self.controller, self.metrics

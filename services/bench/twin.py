@@ -2,6 +2,7 @@
 
 ``archer bench twin [--duration S] [--scenario NAME] [--planner-scenario NAME] [--json]`` prints:
 
+- ``compiled_modules``: how many of the tick's modules run compiled (``setup.py``, mypyc);
 - ``mj_step_us``: one physics step of the robot hopping (mean);
 - ``twin_tick_us`` / ``twin_realtime_factor``: a lockstep tick with no stack (truth estimate, passive
   controller): physics, sensors, actuation, metrics and the loop;
@@ -19,6 +20,7 @@ import mujoco
 
 from robot_description import params as rd
 from sim_twin import model as tm
+from sim_twin.compiled import compiled_modules
 from sim_twin.lockstep import RunConfig, run
 
 
@@ -39,7 +41,7 @@ def _mj_step_us(steps: int = 5000) -> float:
 
 
 def measure(args: argparse.Namespace) -> dict:
-    out: dict[str, float | int | str] = {"mj_step_us": round(_mj_step_us(), 2)}
+    out: dict[str, float | int | str] = {"compiled_modules": len(compiled_modules()), "mj_step_us": round(_mj_step_us(), 2)}
     twin = run(RunConfig(scenario="hop-in-place", duration_s=args.duration, estimator="truth", controller="passive")).metrics
     out["twin_tick_us"] = twin["tick_us_mean"]
     out["twin_realtime_factor"] = twin["realtime_factor"]

@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("services.cli.view", "live Foxglove view of a running stack: a WebSocket server on 127.0.0.1:8765"),
     "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
     "sim": ("services.cli.sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
+    "campaign": ("services.cli.campaign", "a sweep of lockstep runs (scenarios x seeds x variants x options) on a process pool or Ray; JSONL + summary + plot"),
     "bench": ("services.bench.main", "measure speed and print figures"),
     "plot": ("services.cli.plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
     "deploy": ("services.cli.deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),

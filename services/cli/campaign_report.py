@@ -1,0 +1,155 @@
+"""A campaign's summary: per group of runs (same scenario, variant and options; seeds vary).
+
+Definitions, per group:
+
+- ``success``: the run produced a report, reached its goal (``goal_reached``: within tolerance
+  and never fell) and touched no obstacle (``collisions == 0``). A run that failed with an error
+  counts as a run without success, so the rate never looks better for a crashing stack;
+- ``success_ci95``: the Wilson score interval of the success rate at 95 % (sound at 0 or all
+  successes and for small groups, where the normal approximation is not);
+- ``runs_with_falls`` / ``runs_with_collisions`` and the totals ``falls`` / ``collisions``;
+- percentiles (p50, p90, max) of ``final_goal_error_m`` and ``rms_tracking_error_m`` over the
+  runs that report them; ``realtime_factor`` median and minimum.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+WILSON_Z = 1.959964  # two-sided 95 %
+PERCENTILES = (50, 90)
+SUMMARY_JSON, SUMMARY_TXT, PLOT_PNG = "summary.json", "summary.txt", "campaign.png"
+
+
+def wilson_interval(successes: int, n: int, z: float = WILSON_Z) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion; (0, 1) when there is no trial."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def group_name(spec: dict) -> str:
+    options = " ".join(f"{k}={v}" for k, v in sorted(spec["options"].items()))
+    return " ".join(filter(None, (spec["scenario"], spec["variant"], options)))
+
+
+def succeeded(record: dict) -> bool:
+    report = record.get("report")
+    return report is not None and bool(report["goal_reached"]) and report["collisions"] == 0
+
+
+def _spread(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {**{f"p{q}": None for q in PERCENTILES}, "max": None}
+    out: dict[str, float | None] = {f"p{q}": round(float(np.percentile(values, q)), 4) for q in PERCENTILES}
+    out["max"] = round(max(values), 4)
+    return out
+
+
+def _reported(reports: list[dict], field: str) -> list[float]:
+    return [float(r[field]) for r in reports if r.get(field) is not None]
+
+
+def summarize(records: list[dict]) -> dict:
+    """The campaign's figures per group (see the module docstring), groups in first-seen order."""
+    groups: dict[str, list[dict]] = {}
+    for record in records:
+        groups.setdefault(group_name(record["spec"]), []).append(record)
+    out = []
+    for name, members in groups.items():
+        reports = [r["report"] for r in members if "report" in r]
+        successes = sum(succeeded(r) for r in members)
+        low, high = wilson_interval(successes, len(members))
+        rtf = _reported(reports, "realtime_factor")
+        out.append({
+            "group": name,
+            "runs": len(members),
+            "errors": len(members) - len(reports),
+            "successes": successes,
+            "success_rate": round(successes / len(members), 4),
+            "success_ci95": [round(low, 4), round(high, 4)],
+            "runs_with_falls": sum(r["falls"] > 0 for r in reports),
+            "falls": sum(r["falls"] for r in reports),
+            "runs_with_collisions": sum(r["collisions"] > 0 for r in reports),
+            "collisions": sum(r["collisions"] for r in reports),
+            "final_goal_error_m": _spread(_reported(reports, "final_goal_error_m")),
+            "rms_tracking_error_m": _spread(_reported(reports, "rms_tracking_error_m")),
+            "realtime_factor_median": round(float(np.median(rtf)), 2) if rtf else None,
+            "realtime_factor_min": round(min(rtf), 2) if rtf else None,
+            "sim_time_s": round(sum(_reported(reports, "sim_time_s")), 3),
+            "error_examples": sorted({r["error"] for r in members if "error" in r})[:3],
+        })
+    return {"groups": out, "runs": len(records), "errors": sum(g["errors"] for g in out)}
+
+
+def _fmt(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def table(summary: dict) -> str:
+    """The summary as an aligned text table, one line per group."""
+    head = ("group", "runs", "err", "success", "95% CI", "falls", "coll.", "goal err p50/p90/max [m]",
+            "rms track p50/p90 [m]", "RTF med/min")
+    rows = [head]
+    for g in summary["groups"]:
+        ge, te = g["final_goal_error_m"], g["rms_tracking_error_m"]
+        rows.append((
+            g["group"], str(g["runs"]), str(g["errors"]), f"{g['successes']}/{g['runs']} {100 * g['success_rate']:.0f}%",
+            f"[{100 * g['success_ci95'][0]:.0f}, {100 * g['success_ci95'][1]:.0f}]%",
+            f"{g['runs_with_falls']} ({g['falls']})", f"{g['runs_with_collisions']} ({g['collisions']})",
+            f"{_fmt(ge['p50'])}/{_fmt(ge['p90'])}/{_fmt(ge['max'])}", f"{_fmt(te['p50'])}/{_fmt(te['p90'])}",
+            f"{_fmt(g['realtime_factor_median'], 1)}/{_fmt(g['realtime_factor_min'], 1)}",
+        ))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    lines.append(f"{summary['runs']} runs, {summary['errors']} errors"
+                 + (f", {summary['campaign_wall_s']} s wall ({summary['executor']})" if "campaign_wall_s" in summary else ""))
+    return "\n".join(lines)
+
+
+def plot(summary: dict, records: list[dict], path: Path) -> None:
+    """Success rate with its Wilson interval, and the final goal errors, per group."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display
+    import matplotlib.pyplot as plt
+
+    groups = summary["groups"]
+    names = [g["group"] for g in groups]
+    fig, (ax_rate, ax_err) = plt.subplots(1, 2, figsize=(12, 1.5 + 0.6 * len(groups)), squeeze=True)
+    rates = [g["success_rate"] for g in groups]
+    lows = [g["success_rate"] - g["success_ci95"][0] for g in groups]
+    highs = [g["success_ci95"][1] - g["success_rate"] for g in groups]
+    y = np.arange(len(groups))
+    ax_rate.barh(y, rates, xerr=[lows, highs], color="tab:blue", alpha=0.7, capsize=4)
+    ax_rate.set_yticks(y, names)
+    ax_rate.set_xlim(0, 1)
+    ax_rate.set_xlabel("success rate (95 % Wilson interval)")
+    ax_rate.invert_yaxis()
+    errors = [[r["report"]["final_goal_error_m"] for r in records
+               if "report" in r and group_name(r["spec"]) == name] for name in names]
+    for i, values in enumerate(errors):
+        ax_err.plot(values, np.full(len(values), i), "|", color="tab:red", ms=12, alpha=0.6)
+    ax_err.set_yticks(y, [""] * len(y))
+    ax_err.set_ylim(ax_rate.get_ylim())
+    ax_err.set_xscale("symlog", linthresh=0.1)
+    ax_err.set_xlabel("final goal error per run [m]")
+    fig.suptitle(f"campaign: {summary['runs']} runs, {summary['errors']} errors")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write(summary: dict, records: list[dict], out: Path) -> None:
+    """``summary.json``, ``summary.txt`` and ``campaign.png`` into ``out``."""
+    (out / SUMMARY_JSON).write_text(json.dumps(summary, indent=1) + "\n")
+    (out / SUMMARY_TXT).write_text(table(summary) + "\n")
+    plot(summary, records, out / PLOT_PNG)

@@ -1,0 +1,41 @@
+"""Packaging lives in pyproject.toml; this file only adds the optional compiled build.
+
+``ARCHER_COMPILE=1 python setup.py build_ext --inplace`` (with ``pip install -e '.[compile]'``
+first) compiles the modules below with mypyc, next to their sources: the lockstep tick's
+scalar-arithmetic modules, which the profile of ``archer sim`` puts on top (docs/twin_speed.md).
+mypyc compiles the same source to C with the same IEEE double operations, so runs are bit for
+bit the pure-Python ones (tests/test_lockstep_pinned.py holds that in either mode). Without the
+variable, or on the robot, nothing is compiled. ``sim_twin.compiled`` refuses a stale build.
+"""
+
+import os
+
+from setuptools import setup
+
+COMPILED_MODULES = [
+    "onboard/quaternion.py",
+    "onboard/attitude_filter.py",
+    "onboard/estimator.py",
+    "onboard/phase.py",
+    "onboard/foot_control.py",
+    "onboard/attitude_control.py",
+    "onboard/supervisor.py",
+    "onboard/low_level.py",
+    "sim_twin/sensors.py",
+    "sim_twin/metrics.py",
+    "sim_twin/actuation.py",
+]
+COMPILED_GROUP = "onboard.compiled_tick"
+# Not onboard/com_filter.py: its filterpy reference filter forwards **kwargs to the compiled base
+# class's __init__, which mypyc's build refuses at run time ("float object expected; got dict").
+# mypy checks the compiled modules only; what they import is taken as it is typed
+MYPYC_FLAGS = ["--ignore-missing-imports", "--follow-imports=silent"]
+
+ext_modules = []
+if os.environ.get("ARCHER_COMPILE") == "1":
+    from mypyc.build import mypycify
+
+    # the shared runtime of the group inside a package: a top-level module is not importable from every directory
+    ext_modules = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3", group_name=COMPILED_GROUP)
+
+setup(ext_modules=ext_modules)

@@ -1,0 +1,50 @@
+"""The optional compiled build (setup.py, mypyc): a stale build is refused, a fresh one is what runs."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.machinery
+import os
+import subprocess
+import sys
+
+import pytest
+
+from sim_twin.compiled import check_fresh, compiled_modules
+
+SUFFIX = importlib.machinery.EXTENSION_SUFFIXES[0]
+
+
+def test_a_build_older_than_its_source_is_refused(tmp_path) -> None:
+    package = tmp_path / "onboard"
+    package.mkdir()
+    source, build = package / "estimator.py", package / f"estimator{SUFFIX}"
+    source.write_text("")
+    build.write_bytes(b"")
+    (package / f"orphan{SUFFIX}").write_bytes(b"")  # no source beside it: not ours
+    os.utime(source, (1000.0, 1000.0))
+    os.utime(build, (2000.0, 2000.0))
+    assert compiled_modules(tmp_path) == ["onboard.estimator"]
+    check_fresh(tmp_path)
+    os.utime(source, (3000.0, 3000.0))  # edited after the build
+    with pytest.raises(ImportError, match="onboard.estimator"):
+        check_fresh(tmp_path)
+
+
+def test_compiled_modules_are_the_ones_imported() -> None:
+    names = compiled_modules()
+    if not names:
+        pytest.skip("no compiled build in this checkout (ARCHER_COMPILE=1 python setup.py build_ext --inplace)")
+    for name in names:
+        assert importlib.import_module(name).__file__.endswith(SUFFIX), name
+
+
+def test_the_compiled_build_imports_from_any_directory(tmp_path) -> None:
+    """Its shared runtime lives in a package, not at the checkout's top, which only a process
+    started there has on its path (the archer command, a campaign worker, do not)."""
+    names = compiled_modules()
+    if not names:
+        pytest.skip("no compiled build in this checkout")
+    code = f"import importlib; [importlib.import_module(n) for n in {names!r}]"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, check=True, timeout=120)
