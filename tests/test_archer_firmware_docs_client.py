@@ -60,11 +60,12 @@ class Emulator:
             return True
         return False
 
-    def command_for(self, duration_s: float, payload: bytes) -> list[tuple[float, tuple[float, ...]]]:
-        """Send ``payload`` every 2 ms for ``duration_s``: (local time, reply) of each."""
+    def command_for(self, duration_s: float, payload: bytes, min_replies: int = 20) -> list[tuple[float, tuple[float, ...]]]:
+        """Send ``payload`` every 2 ms for ``duration_s``, and on until ``min_replies`` came (a
+        stalled test process gets only a few in the time): (local time, reply) of each."""
         out = []
         end = time.monotonic() + duration_s
-        while time.monotonic() < end:
+        while time.monotonic() < end or len(out) < min_replies:
             out.append((time.monotonic(), self.request(payload)))
             time.sleep(0.002)
         return out
