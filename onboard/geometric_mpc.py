@@ -329,8 +329,9 @@ class GeometricMpc:
 
     # --- linearization -----------------------------------------------------------------------
 
-    def _discretize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(A_d, B_d, C_d)`` of the knot about manifold ``x`` (= ``z``), torque ``u``."""
+    def _linearize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """A jump's ``(D, 0, E)`` (eq. 5.25), or a flow's augmented matrix ``[A B C; 0]``
+        (eq. 5.23, times the knot's duration) and two Nones to be exponentiated."""
         nz, nu = STATE_DIM, INPUT_DIM
         if knot.is_jump:
             x_plus, d = self.dyn.jump(knot.kind, x)
@@ -338,11 +339,40 @@ class GeometricMpc:
             return d, np.zeros((nz, nu)), z_plus - d @ z
         f, a, b = self.dyn.flow(knot.kind, x, u)
         aug = np.zeros((nz + nu + 1, nz + nu + 1))
-        aug[:nz, :nz] = a
-        aug[:nz, nz : nz + nu] = b
-        aug[:nz, -1] = f - a @ z - b @ u  # eq. 5.23's C
-        e = scipy.linalg.expm(aug * knot.h)
-        return e[:nz, :nz], e[:nz, nz : nz + nu], e[:nz, -1]
+        aug[:nz, :nz] = a * knot.h
+        aug[:nz, nz : nz + nu] = b * knot.h
+        aug[:nz, -1] = (f - a @ z - b @ u) * knot.h  # eq. 5.23's C
+        return None, aug, np.empty(0)
+
+    @staticmethod
+    def _exponentiate(aug: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A_d, B_d, C_d)`` of eq. 5.24 from the matrix exponential of the augmented system
+        (exact for the affine model; batched over a leading axis)."""
+        nz, nu = STATE_DIM, INPUT_DIM
+        e = scipy.linalg.expm(aug)
+        return e[..., :nz, :nz], e[..., :nz, nz : nz + nu], e[..., :nz, -1]
+
+    def _discretize_all(self, knots: list[Knot], q0, z_bar, u_bar, a, b, c, rollout: bool) -> bool:
+        """Fill ``a, b, c`` along ``(z_bar, u_bar)``; with ``rollout`` each knot's point is
+        the previous knot's prediction (sequential), else all flows exponentiate at once."""
+        flows, augs = [], []
+        for k, knot in enumerate(knots):
+            x_k = retract(z_bar[k], q0)
+            if not np.all(np.isfinite(x_k)):
+                return False
+            d, aug, e = self._linearize(knot, x_k, z_bar[k], u_bar[k])
+            if d is not None:
+                a[k], b[k], c[k] = d, aug, e
+            elif rollout:
+                a[k], b[k], c[k] = self._exponentiate(aug)
+            else:
+                flows.append(k)
+                augs.append(aug)
+            if rollout:
+                z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
+        if flows:
+            a[flows], b[flows], c[flows] = self._exponentiate(np.array(augs))
+        return bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(c)))
 
     def solve(self, x0: np.ndarray, knots: list[Knot], z_ref: np.ndarray) -> GmpcSolution:
         """Solve from the measured manifold state ``x0`` (21) along ``knots`` toward ``z_ref``
@@ -374,14 +404,8 @@ class GeometricMpc:
         y = None
         status = ""
         for it in range(self.p.sqp_iterations):
-            for k, knot in enumerate(knots):
-                x_k = retract(z_bar[k], q0)
-                if not np.all(np.isfinite(x_k)):
-                    return refuse("non-finite linearization point", iters)
-                a[k], b[k], c[k] = self._discretize(knot, x_k, z_bar[k], u_bar[k])
-                if it == 0:  # the first linearization point: the linearized model's own rollout
-                    z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
-            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(c))):
+            # the first linearization point: the linearized model's own rollout at zero torque
+            if not self._discretize_all(knots, q0, z_bar, u_bar, a, b, c, rollout=it == 0):
                 return refuse("non-finite linearization", iters)
             self._fill(a, b, c)
             self._bounds(z0, knots)

@@ -1,7 +1,7 @@
 """ARCHER's rigid-body dynamics per contact mode, for the geometric MPC (thesis section 5.3).
 
 Pinocchio builds the tree from the same MJCF the twin compiles, with the free joint replaced
-by a translation (world frame) followed by a spherical joint (body frame), so that the
+by three world-axis slides followed by a ball joint (body frame), so that the
 generalized velocity is ``(p_dot, omega, theta_dot, l_dot)``: the CoM-free coordinates of
 eq. 5.23 with ``omega`` in the Lie algebra. The spool joint is locked (the MPC plans the foot
 as a passive degree of freedom, thesis lines 2230-2236).
@@ -37,29 +37,40 @@ from robot_description.params import DEFAULT_VARIANT, FOOT_JOINT, FOOT_MOTOR_JOI
 NV = STATE_DIM // 2  # velocity coordinates: 3 linear, 3 angular, 3 wheels, 1 foot
 MANIFOLD_DIM = STATE_DIM + 1  # the quaternion takes four numbers for three directions
 _WHEEL_V = slice(6, 9)
+_SLIDES = ("gmpc_x", "gmpc_y", "gmpc_z")  # massless bodies and slides that carry the torso
 _FOOT_V = 9
 # Pinocchio's constrained solvers: exact (no proximal regularization) in one iteration
 _PROX = (1e-12, 1e-12, 0.0, 1)
 
 
 def _pin_model(variant: str) -> pin.Model:
+    """The MJCF's tree with the free joint split into three world-axis slides (on massless
+    bodies) and a ball joint on the torso (Pinocchio's derivatives of a composite root joint
+    disagree with finite differences of its own dynamics; separate joints agree)."""
     xml = load_xml(variant)
-    torso = next(b for b in xml.iter("body") if b.get("name") == TORSO)
+    world = xml.find("worldbody")
+    torso = next(b for b in world if b.tag == "body" and b.get("name") == TORSO)
     free = torso.find("freejoint")
     if free is None or free.get("name") != ROOT_JOINT:
         raise ValueError("the torso must carry the MJCF free joint")
     torso.remove(free)
-    root = pin.JointModelComposite()
-    root.addJoint(pin.JointModelTranslation())
-    root.addJoint(pin.JointModelSpherical())
+    torso.set("pos", "0 0 0")
+    torso.insert(0, ET.Element("joint", name=ROOT_JOINT, type="ball"))
+    world.remove(torso)
+    parent = world
+    for axis, name in zip(("1 0 0", "0 1 0", "0 0 1"), _SLIDES):  # one body each: Pinocchio would merge them
+        body = ET.SubElement(parent, "body", name=f"{name}_body", pos="0 0 0")
+        ET.SubElement(body, "inertial", pos="0 0 0", mass="0", diaginertia="0 0 0")
+        ET.SubElement(body, "joint", name=name, type="slide", axis=axis, limited="false")
+        parent = body
+    parent.append(torso)
     with tempfile.TemporaryDirectory() as tmp:  # Pinocchio's MJCF parser reads files only
         path = Path(tmp) / "robot.xml"
         ET.ElementTree(xml).write(path)
-        built = pin.buildModelFromMJCF(str(path), pin.JointModel(root), ROOT_JOINT)
-    model = built[0] if isinstance(built, tuple) else built
+        model = pin.buildModelFromMJCF(str(path))
     model = pin.buildReducedModel(model, [model.getJointId(FOOT_MOTOR_JOINT)], pin.neutral(model))
-    names = [model.names[j] for j in range(2, model.njoints)]
-    if names != [*WHEEL_JOINTS, FOOT_JOINT] or model.nv != NV:
+    names = [model.names[j] for j in range(1, model.njoints)]
+    if names != [*_SLIDES, ROOT_JOINT, *WHEEL_JOINTS, FOOT_JOINT] or model.nv != NV:
         raise ValueError(f"unexpected joint tree {names}")
     model.gravity.linear = np.array([0.0, 0.0, -robot_params(variant).gravity])
     return model
@@ -206,7 +217,7 @@ class HopperDynamics:
         if edge == TOUCHDOWN:
             pin.computeImpulseDynamicsDerivatives(self.model, self.data, self._contacts, self._contact_data, 0.0, self._prox)
             d[NV:, :NV] = self.data.ddq_dq
-            d[NV:, NV:] = self.data.ddq_dv
+            d[NV:, NV:] = self.data.ddq_dv + np.eye(NV)  # Pinocchio gives d(v+ - v-)/dv- (checked by the tests)
         else:  # the lock's projection, and its change with the configuration by central differences
             d[NV:, NV:] = np.eye(NV) - np.outer(self._lock_column(q)[1], self._lock)
             step = 1e-6
