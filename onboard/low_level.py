@@ -62,8 +62,8 @@ from onboard import attitude_control as ac
 from onboard import quaternion as qt
 from onboard import zdp
 from onboard.foot_control import FootPhysics, HopRegulator
-from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand,
-                              TrackingTube)
+from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
+                              TorqueCommand, TrackingTube)
 from onboard.mlp import Mlp
 from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.phase import PhaseDetector
@@ -228,6 +228,8 @@ class LowLevelController:
         self.holding = True
         self.armed_ticks = 0  # ticks that commanded torque
         self.saturated_ticks = 0  # of those, ticks whose wheel command hit the torque limit
+        self.mid_level_ticks = 0  # armed ticks that tracked the geometric MPC's setpoint
+        self.mid_level_fallback_ticks = 0  # mid_level = "geometric_mpc", but no fresh, finite setpoint: the ZDP's
 
     def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """What the gains and limits set directly: cheap enough for between two ticks."""
@@ -393,12 +395,25 @@ class LowLevelController:
         self._hold = None
         return sample_reference(ref, (now_ns - ref.t_ref_ns) / NS + t_ahead)
 
+    def _mid_level_usable(self, now_ns: int, sp: MidLevelSetpoint | None) -> bool:
+        """A setpoint of the geometric MPC that is fresh and finite (else the ZDP flies)."""
+        if self.p.mid_level != "geometric_mpc":
+            return False
+        ok = (sp is not None and 0 <= now_ns - sp.stamp_ns <= self.p.mid_level_stale_s * NS
+              and qt.is_finite(sp.quat_des) and all(map(math.isfinite, (*sp.omega_des, *sp.torque_ff))))
+        if ok:
+            self.mid_level_ticks += 1
+        else:
+            self.mid_level_fallback_ticks += 1
+        return ok
+
     def step(
         self,
         now_ns: int,
         state: StateEstimate,
         reference: ComReference | None,
         joints: JointSensors | None = None,
+        mid_level: MidLevelSetpoint | None = None,
     ) -> TorqueCommand:
         sup = self.supervisor
         if not self._check_and_arm(now_ns, state):
@@ -416,14 +431,19 @@ class LowLevelController:
         ref = sup.check_reference(now_ns, reference)
         self._phase_update(now_ns, state, ref)
 
-        if self.phase.phase == "flight":
+        stance = self.phase.phase != "flight"
+        if not stance:  # the ZDP's impact attitude (the fallback), and the hop regulator's apex
             self._flight_attitude(now_ns, state, ref)
+        if self._mid_level_usable(now_ns, mid_level):  # thesis 5.3: the PD on the MPC's plan, both phases
+            self.q_des = mid_level.quat_des
+            ff = self.alloc.body_torque(mid_level.torque_ff)
+            u = ac.pd_torque(state.quat, state.omega, self.q_des, mid_level.omega_des, ff, self._kp, self._kd, self.p.attitude_log)
+            wheel = self.alloc.wheel_torques(u)
+        elif not stance:
             u = ac.pd_torque(state.quat, state.omega, self.q_des, self._zero3, self._zero3, self._kp, self._kd, self.p.attitude_log)
             wheel = self.alloc.wheel_torques(u)
-            stance = False
         else:
             wheel = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
-            stance = True
         if math.isfinite(spool_pos):
             foot = self.foot.spool_torque(stance, state.foot_pos, spool_pos, self._spool_vel)
             foot = max(-self._foot_max, min(self._foot_max, foot))

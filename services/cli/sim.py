@@ -77,6 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--planner", choices=st.PLANNERS, default="auto",
                         help="scenario: the scenario's own reference; graph: the onboard planner; auto: graph when there are obstacles")
     parser.add_argument("--controller", choices=st.CONTROLLERS, default="lowlevel", help="passive: no torque (physics only)")
+    parser.add_argument("--mid-level", choices=("zdp", "geometric_mpc"), default=None,
+                        help="the low level's planning layer (default: control.mid_level of the config, zdp)")
     parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
                         help="lockstep: the planner sees ground-truth obstacles, or what perception makes of the depth camera")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
@@ -130,6 +132,8 @@ class _Progress:
 
 def build_config(args: argparse.Namespace) -> RunConfig:
     params = load_params(args.config)
+    if getattr(args, "mid_level", None):
+        params["control"] = with_overrides(params["control"], {"mid_level": args.mid_level})
     twin = params["twin"]
     if args.no_noise:
         twin = with_overrides(twin, {"noise": False})
@@ -147,6 +151,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         estimator_params=params.get("estimator"),
         planner_params=params.get("planner"),
         control_params=params.get("control"),
+        gmpc_params=params.get("gmpc"),
         perception=args.perception,
         perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
