@@ -216,7 +216,7 @@ class GeometricMpc:
         self.nvar = (n + 1) * nz + n * nu
         self.neq = (n + 1) * nz
         self._u0 = (n + 1) * nz
-        q_diag = self._state_weights()
+        q_diag = self.state_weights(params)
         r_diag = np.full(nu, params.weight_input)
         self.q_diag = q_diag
         self._p_diag = 2.0 * np.concatenate([np.tile(q_diag, n + 1), np.tile(r_diag, n)])
@@ -241,8 +241,9 @@ class GeometricMpc:
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
         self._setup()
 
-    def _state_weights(self) -> np.ndarray:
-        p = self.p
+    @staticmethod
+    def state_weights(p: GeometricMpcParams) -> np.ndarray:
+        """The diagonal of ``Q`` (and of the terminal ``V``) over ``z``."""
         w = np.zeros(STATE_DIM)
         w[0:2] = p.weight_position
         w[2] = p.weight_height
