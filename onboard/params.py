@@ -633,7 +633,7 @@ SECTIONS: dict[str, type] = {
 # its rate and scheduling when it starts: a change of those needs a restart of the service
 # (refused live); every other estimator field rebuilds the filter.
 NEEDS_RESTART: dict[str, frozenset[str]] = {
-    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "policy", "mlp_weights", "hop_height",
+    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "mid_level", "policy", "mlp_weights", "hop_height",
                           "zdp_q_pos", "zdp_q_vel", "zdp_q_tilt", "zdp_r", "tube_window"}),
     "estimator": frozenset({"rate_hz", "rt_priority", "cpu", "input_queue"}),
 }

@@ -309,6 +309,24 @@ class FirmwareRig:
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
+    """The services read their parameters from the config file: ``--mid-level`` joins the
+    user's config in a temporary file for the run."""
+    mid_level = getattr(args, "mid_level", None)
+    if not mid_level:
+        return _run_realtime(args)
+    load_params(args.config)  # the user's file is valid before anything is written
+    user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
+    user["control"] = {**user.get("control", {}), "mid_level": mid_level}
+    fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
+    with os.fdopen(fd, "w") as f:
+        f.write(_toml(user))
+    try:
+        return _run_realtime(argparse.Namespace(**{**vars(args), "config": path}))
+    finally:
+        os.unlink(path)
+
+
+def _run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
     from services.runtime.supervisor import Supervisor, sim_specs
