@@ -173,9 +173,10 @@ class GmpcSolution:
         knot = self.knots[first]
         s = min(1.0, max(0.0, (lead_s - knot.t) / knot.h))
         z = (1.0 - s) * self.z[first] + s * self.z[first + 1]
-        q = qt.normalize(qt.mul(self.q0, qt.exp(z[XI])))
+        w, x, y, zq = qt.normalize(qt.mul(self.q0, qt.exp(z[XI])))
         u = self.u[first]
-        return q, (float(z[13]), float(z[14]), float(z[15])), (float(u[0]), float(u[1]), float(u[2]))
+        # plain floats: the setpoint is encoded into a message
+        return (float(w), float(x), float(y), float(zq)), (float(z[13]), float(z[14]), float(z[15])), (float(u[0]), float(u[1]), float(u[2]))
 
 
 # --- the QP -----------------------------------------------------------------------------------

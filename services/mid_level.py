@@ -97,11 +97,16 @@ class MidLevelLoop:
             return
         ref = self.slots["reference"].get()
         t0 = time.perf_counter()
-        sp = self.mid.step(self.clock.now_ns(), st[0], ref[0] if ref is not None else None)
+        try:
+            sp = self.mid.step(self.clock.now_ns(), st[0], ref[0] if ref is not None else None)
+            why = self.mid.last_status
+        except Exception as exc:  # a solver's or the model's failure on this input: refused, the loop goes on
+            self.mid.rejected += 1
+            sp, why = None, f"{type(exc).__name__}: {exc}"[:200]
         dt = time.perf_counter() - t0
         self.solve_s.append(dt)
         if sp is None:
-            self.refusals[self.mid.last_status] += 1
+            self.refusals[why] += 1
             return
         sp.solve_ms = dt * 1e3
         self.pub.put(sp)
