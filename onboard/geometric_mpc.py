@@ -17,7 +17,9 @@ Per solve:
    (the first along a rollout of the linearization itself with zero torque), discretizes
    each flow knot exactly with the matrix exponential of the affine system (eq. 5.24) and
    each jump by its momentum-transfer Jacobian (eq. 5.25), and solves the QP. The QP is set
-   up once; an iteration updates values only (never the sparsity pattern) and warm starts.
+   up once; an iteration updates values only (never the sparsity pattern). The second
+   iteration starts from the first's answer (its linearization point); OSQP also warm starts
+   from its last iterate (PIQP, an interior-point method, starts afresh by design).
 3. Every answer is checked (solver status, finiteness, dynamics residual, input bounds)
    before it may be used; :class:`GmpcSolution.ok` is that verdict.
 
@@ -268,13 +270,13 @@ class GeometricMpc:
         self.A_eq.data[:] = self._values[self._perm]
         self.b_eq[nz:] = c.reshape(-1)
 
-    def _bounds(self, z0: np.ndarray, knots: list[Knot]) -> tuple[np.ndarray, np.ndarray]:
+    def _set_start_and_bounds(self, z0: np.ndarray, knots: list[Knot]) -> None:
+        """``z_0 = z(t)`` (eq. 5.26c) and the input box (5.26d), zero on jumps."""
         lo, hi = self.u_lo.reshape(self.n, INPUT_DIM), self.u_hi.reshape(self.n, INPUT_DIM)
         jump = np.array([k.is_jump for k in knots])
         lo[:], hi[:] = -self.limit, self.limit
         lo[jump], hi[jump] = 0.0, 0.0  # a jump takes no time: no torque acts
         self.b_eq[:STATE_DIM] = z0
-        return self.u_lo, self.u_hi
 
     def _setup(self) -> None:
         q = np.zeros(self.nvar)
@@ -413,7 +415,7 @@ class GeometricMpc:
             if not self._discretize_all(knots, q0, z_bar, u_bar, a, b, c, rollout=it == 0):
                 return refuse("non-finite linearization", iters)
             self._fill(a, b, c)
-            self._bounds(z0, knots)
+            self._set_start_and_bounds(z0, knots)
             y, status, count = self._solve_qp(q_cost)
             iters.append(count)
             if y is None:
