@@ -101,6 +101,8 @@ class HopperDynamics:
         self._select[_WHEEL_V, :] = np.eye(INPUT_DIM)
         self._lock = np.zeros(NV)  # the foot joint's row of the joint lock
         self._lock[_FOOT_V] = 1.0
+        self._jac_template = np.zeros((STATE_DIM, STATE_DIM))
+        self._jac_template[:NV, NV:] = np.eye(NV)
 
     # --- coordinates ---------------------------------------------------------------------------
 
@@ -138,14 +140,6 @@ class HopperDynamics:
             tau[_FOOT_V] = -self.spring_k * x[10] - self.spring_c * x[11 + _FOOT_V]
         return tau
 
-    def _tau_jacobian(self, mode: str) -> tuple[np.ndarray, np.ndarray]:
-        """d tau / d(dq), d tau / dv of the spring (constant)."""
-        dq, dv = np.zeros((NV, NV)), np.zeros((NV, NV))
-        if mode == STANCE:
-            dq[_FOOT_V, _FOOT_V] = -self.spring_k
-            dv[_FOOT_V, _FOOT_V] = -self.spring_c
-        return dq, dv
-
     # --- flows ---------------------------------------------------------------------------------
 
     def acceleration(self, mode: str, x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -160,8 +154,7 @@ class HopperDynamics:
     def _lock_column(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(M^-1, M^-1 e / e' M^-1 e)``: the foot lock removes ``a_foot`` (or ``v_foot``)
         along that column, the response to the lock's force."""
-        m_inv = pin.computeMinverse(self.model, self.data, q)
-        m_inv = np.triu(m_inv) + np.triu(m_inv, 1).T  # Pinocchio fills the upper triangle
+        m_inv = pin.computeMinverse(self.model, self.data, q).copy()  # full and symmetric (the tests check B)
         return m_inv, m_inv[:, _FOOT_V] / m_inv[_FOOT_V, _FOOT_V]
 
     def flow(self, mode: str, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,33 +164,35 @@ class HopperDynamics:
         """
         q, v = self.configuration(x), x[11:]
         tau = self._tau(mode, x, u)
-        tq, tv = self._tau_jacobian(mode)
+        jac = self._jac_template.copy()  # p_dot = v, xi_dot = omega (eq. 5.19), theta_dot, l_dot
         if mode == STANCE:
             a = pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox).copy()
             da_dq, da_dv, da_dtau = pin.computeConstraintDynamicsDerivatives(
                 self.model, self.data, self._contacts, self._contact_data, self._prox)[:3]
-            da_dq, da_dv, da_dtau = da_dq.copy(), da_dv.copy(), da_dtau.copy()
+            jac[NV:, :NV] = da_dq
+            jac[NV:, NV:] = da_dv
+            # the spring's force on the foot joint: -k l - c l_dot
+            jac[NV:, _FOOT_V] -= self.spring_k * da_dtau[:, _FOOT_V]
+            jac[NV:, NV + _FOOT_V] -= self.spring_c * da_dtau[:, _FOOT_V]
+            wheels = da_dtau[:, _WHEEL_V]
         elif mode == FLIGHT:
             # the lock's force enters as a generalized force: differentiate ABA there, then
-            # project (the lock row is constant, so d a = P d a_free, P = I - col e')
+            # project (the lock row is constant, so d a = P d a_free with P = I - col e')
             m_inv, col = self._lock_column(q)
             a_free = pin.aba(self.model, self.data, q, v, tau)
             a = a_free - col * a_free[_FOOT_V]
             tau_locked = tau.copy()
             tau_locked[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]
             pin.computeABADerivatives(self.model, self.data, q, v, tau_locked)
-            proj = np.eye(NV) - np.outer(col, self._lock)
-            da_dq, da_dv, da_dtau = proj @ self.data.ddq_dq, proj @ self.data.ddq_dv, proj @ m_inv
+            dq, dv = self.data.ddq_dq, self.data.ddq_dv
+            jac[NV:, :NV] = dq - np.outer(col, dq[_FOOT_V])
+            jac[NV:, NV:] = dv - np.outer(col, dv[_FOOT_V])
+            wheels = m_inv[:, _WHEEL_V] - np.outer(col, m_inv[_FOOT_V, _WHEEL_V])
         else:
             raise ValueError(f"unknown mode {mode!r}")
-        z_dot = np.concatenate([v, a])
-        jac = np.zeros((STATE_DIM, STATE_DIM))
-        jac[:NV, NV:] = np.eye(NV)  # p_dot = v, xi_dot = omega (eq. 5.19), theta_dot, l_dot
-        jac[NV:, :NV] = da_dq + da_dtau @ tq
-        jac[NV:, NV:] = da_dv + da_dtau @ tv
         b = np.zeros((STATE_DIM, INPUT_DIM))
-        b[NV:, :] = da_dtau @ self._select
-        return z_dot, jac, b
+        b[NV:, :] = wheels
+        return np.concatenate([v, a]), jac, b
 
     # --- jumps ---------------------------------------------------------------------------------
 
