@@ -38,6 +38,10 @@ NV = STATE_DIM // 2  # velocity coordinates: 3 linear, 3 angular, 3 wheels, 1 fo
 MANIFOLD_DIM = STATE_DIM + 1  # the quaternion takes four numbers for three directions
 _WHEEL_V = slice(6, 9)
 _SLIDES = ("gmpc_x", "gmpc_y", "gmpc_z")  # massless bodies and slides that carry the torso
+# the configuration coordinates the mass matrix depends on: the attitude and the foot (not the
+# position, and not the wheel angles: the wheels are symmetric about their axes)
+_MASS_MATRIX_COORDS = (3, 4, 5, 9)
+_FD_STEP = 1e-6  # central-difference step of the lift-off Jacobian's configuration columns
 _FOOT_V = 9
 # Pinocchio's constrained solvers: exact (no proximal regularization) in one iteration
 _PROX = (1e-12, 1e-12, 0.0, 1)
@@ -215,13 +219,12 @@ class HopperDynamics:
             d[NV:, NV:] = self.data.ddq_dv + np.eye(NV)  # Pinocchio gives d(v+ - v-)/dv- (checked by the tests)
         else:  # the lock's projection, and its change with the configuration by central differences
             d[NV:, NV:] = np.eye(NV) - np.outer(self._lock_column(q)[1], self._lock)
-            step = 1e-6
-            for i in range(NV):
+            for i in _MASS_MATRIX_COORDS:
                 e = np.zeros(NV)
-                e[i] = step
+                e[i] = _FD_STEP
                 hi = self._jump_velocity(edge, pin.integrate(self.model, q, e), v)
                 lo = self._jump_velocity(edge, pin.integrate(self.model, q, -e), v)
-                d[NV:, i] = (hi - lo) / (2.0 * step)
+                d[NV:, i] = (hi - lo) / (2.0 * _FD_STEP)
         return np.concatenate([x[:11], v_plus]), d
 
 
