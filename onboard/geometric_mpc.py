@@ -181,6 +181,23 @@ class GmpcSolution:
         return (float(w), float(x), float(y), float(zq)), (float(z[13]), float(z[14]), float(z[15])), (float(u[0]), float(u[1]), float(u[2]))
 
 
+    def plan(self, span_s: float) -> tuple[list[float], list[tuple[float, ...]], list[tuple[float, ...]], list[tuple[float, ...]]]:
+        """The knots up to ``span_s`` seconds ahead: times, attitudes ``q0 exp(xi_k)``, rates,
+        and the torque from each knot to the next (one fewer); a jump repeats its time."""
+        times, quats, omegas, torques = [], [], [], []
+        for k in range(len(self.knots) + 1):
+            t = self.knots[k].t if k < len(self.knots) else self.knots[-1].t + self.knots[-1].h
+            z = self.z[k]
+            times.append(float(t))
+            quats.append(tuple(float(v) for v in qt.normalize(qt.mul(self.q0, qt.exp(z[XI])))))
+            omegas.append((float(z[13]), float(z[14]), float(z[15])))
+            if t >= span_s or k == len(self.knots):
+                break
+            u = self.u[k]
+            torques.append((float(u[0]), float(u[1]), float(u[2])))
+        return times, quats, omegas, torques
+
+
 # --- the QP -----------------------------------------------------------------------------------
 
 

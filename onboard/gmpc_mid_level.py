@@ -123,4 +123,6 @@ class GmpcMidLevel:
             self.rejected += 1
             return None
         q_d, w_d, u_ff = sol.setpoint(self.lead_s)
-        return MidLevelSetpoint(stamp_ns=now_ns, quat_des=q_d, omega_des=w_d, torque_ff=u_ff, qp_iterations=list(sol.qp_iterations))
+        times, quats, omegas, torques = sol.plan(self.p.setpoint_plan_s)
+        return MidLevelSetpoint(stamp_ns=now_ns, quat_des=q_d, omega_des=w_d, torque_ff=u_ff, qp_iterations=list(sol.qp_iterations),
+                                plan_t=times, plan_quat=quats, plan_omega=omegas, plan_torque=torques)

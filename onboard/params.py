@@ -375,6 +375,13 @@ class GeometricMpcParams(_Section):
     """
 
     rate_hz: Annotated[float, above(0.0, 1000.0)] = 100.0  # solves per second (thesis: 100 Hz)
+    # SCHED_FIFO priority of the MPC's process: below the control loop (80), the estimator (75) and the
+    # hardware exchange (70); at normal priority on a loaded 2-core machine a 6 ms solve took 20 ms (p50)
+    rt_priority: RtPriority = 60
+    cpu: Cpu = -1  # CPU the MPC's process is pinned to (-1: no pinning)
+    # [s] of the plan sent with each answer: the loop follows the plan at the time it acts, so an
+    # answer that arrives late (a loaded machine: solves of 20 ms) still acts where it was meant to
+    setpoint_plan_s: Annotated[float, above(0.0, 1.0)] = 0.1
     horizon: Annotated[int, within(2, 200)] = 20  # knots, jumps included (thesis: 20)
     sqp_iterations: Annotated[int, within(1, 10)] = 2  # thesis: 2
     flight_step_s: Annotated[float, above(0.0, 0.2)] = 0.04  # [s] flight knot

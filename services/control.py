@@ -391,7 +391,7 @@ class ControlService(Service):
         await asyncio.to_thread(proc.start)
         self._mid_proc = proc
         self.log.info("geometric MPC started", extra={"fields": {"pid": proc.proc.pid, "rate_hz": gmpc.rate_hz,
-                                                                 "backend": gmpc.backend}})
+                                                                 "backend": gmpc.backend, "realtime": proc.realtime}})
 
     async def _stop_mid_level(self) -> None:
         proc, self._mid_proc = self._mid_proc, None

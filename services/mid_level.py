@@ -11,7 +11,7 @@ is published, so the loop falls back to the ZDP once its last setpoint is stale.
 
 Why a process of its own: a solve takes milliseconds of Python and C++ holding the GIL; in the
 loop's process it would delay the 1 kHz ticks by as much (ARCHITECTURE.md, Timing). It runs
-at normal priority, below the loop's real-time one. The control service starts and stops it
+at a real-time priority below the loop's, the estimator's and the hardware's (``gmpc.rt_priority``). The control service starts and stops it
 with the loop and reads its reports (solves, refusals and why, solve times) over a pipe.
 """
 
@@ -33,7 +33,7 @@ from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
 from onboard.topics import TOPICS
 from robot_description.controller import build_gmpc_mid_level
 from services.runtime.clock import WallClock
-from services.runtime.realtime import DeadlineLoop, die_with_parent
+from services.runtime.realtime import DeadlineLoop, die_with_parent, make_realtime_from
 from services.runtime.service import LatestSlot, TypedPublisher, check_publisher
 from services.runtime.zenoh_session import open_session
 
@@ -132,11 +132,12 @@ def mid_level_process_main(cfg: MidLevelConfig, conn: Connection) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     die_with_parent(cfg.parent_pid)
     try:
+        applied = make_realtime_from(cfg.gmpc.rt_priority, cfg.gmpc.cpu)  # before any thread: they inherit it
         loop = MidLevelLoop(cfg)
     except Exception as exc:  # reported to the parent, which fails the service
         conn.send({"error": repr(exc)})
         return
-    conn.send({"ready": True})
+    conn.send({"ready": True, "realtime": applied})
     loop.loop.start()
     try:
         while True:
@@ -165,6 +166,7 @@ class MidLevelProcess:
         self._conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=mid_level_process_main, args=(cfg, child), name="archer-gmpc", daemon=True)
         self.last: dict[str, Any] = {}
+        self.realtime: dict[str, str] = {}
         self._lock = threading.Lock()
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
@@ -176,6 +178,7 @@ class MidLevelProcess:
         if "error" in first:
             self.proc.join(1.0)
             raise RuntimeError(f"mid-level process failed: {first['error']}")
+        self.realtime = first.get("realtime", {})
 
     def poll(self) -> list[dict[str, Any]]:
         out = []
