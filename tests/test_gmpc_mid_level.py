@@ -117,3 +117,53 @@ def test_on_the_twin_the_mpc_tracks_the_square_closer_than_the_zdp():
     assert gmpc["mid_level_solves"] >= 790  # 100 Hz
     assert gmpc["mid_level_fallback_ticks"] < 0.01 * gmpc["mid_level_ticks"]  # the first ms only
     assert gmpc["rms_tracking_error_m"] < 0.7 * zdp["rms_tracking_error_m"]
+
+
+def plan_setpoint(t_ns: int, **change) -> m.MidLevelSetpoint:
+    """A plan of two flight knots (0-20 ms, 20-40 ms) turning about body x, then a touchdown."""
+    q1, q2 = qt.from_euler(0.04, 0.0, 0.0), qt.from_euler(0.08, 0.0, 0.0)
+    fields = dict(plan_t=[0.0, 0.02, 0.04, 0.04], plan_quat=[list(qt.IDENTITY), list(q1), list(q2), list(q2)],
+                  plan_omega=[[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.2, 0.0, 0.0]],
+                  plan_torque=[[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    fields.update(change)
+    return m.MidLevelSetpoint(stamp_ns=t_ns, quat_des=list(qt.IDENTITY), omega_des=[0.0, 0.0, 0.0], torque_ff=[0.0, 0.0, 0.0],
+                              qp_iterations=[7, 7], **fields)
+
+
+def test_the_loop_follows_the_plan_at_the_time_it_acts():
+    c = controller()
+    sp = plan_setpoint(0)
+    q, w, ff = c._mid_level_target(10 * MS, sp)  # half-way through the first knot
+    assert qt.angle_between(q, qt.from_euler(0.02, 0.0, 0.0)) < 1e-9
+    assert w == pytest.approx((1.0, 0.0, 0.0)) and list(ff) == [0.5, 0.0, 0.0]
+    q, _, ff = c._mid_level_target(25 * MS, sp)  # the second knot: its own torque
+    assert qt.angle_between(q, qt.from_euler(0.05, 0.0, 0.0)) < 1e-9 and list(ff) == [-0.5, 0.0, 0.0]
+    q, w, ff = c._mid_level_target(45 * MS, sp)  # past the plan: its end, no feed-forward
+    assert qt.angle_between(q, qt.from_euler(0.08, 0.0, 0.0)) < 1e-9 and list(w) == [0.2, 0.0, 0.0] and ff == (0.0, 0.0, 0.0)
+    assert (c.mid_level_ticks, c.mid_level_fallback_ticks) == (3, 0)
+
+
+@pytest.mark.parametrize("bad", [
+    {"plan_t": [0.0, 0.02, 0.01, 0.04]},  # time goes back
+    {"plan_torque": [[0.5, 0.0, 0.0]]},  # a torque short
+    {"plan_omega": [[1.0, 0.0, 0.0]] * 3 + [[math.nan, 0.0, 0.0]]},
+    {"plan_quat": [list(qt.IDENTITY)] * 3 + [[math.inf, 0.0, 0.0, 0.0]]},
+])
+def test_a_malformed_plan_never_reaches_a_motor(bad):
+    gmpc, zdp = controller(), controller("zdp")
+    now = 10 * MS
+    st = estimate(now, quat=qt.from_euler(0.04, 0.0, 0.0))
+    cmd = gmpc.step(now, st, None, None, plan_setpoint(0, **bad))
+    assert cmd.wheel_torque == zdp.step(now, st, None, None).wheel_torque
+    assert (gmpc.mid_level_ticks, gmpc.mid_level_fallback_ticks) == (0, 1)
+
+
+def test_the_mid_levels_plan_is_the_solutions_first_stretch(mid):
+    sp = mid.step(70 * MS, estimate(70 * MS, z=0.5, vxy=(0.2, 0.0)), None)
+    sol = mid.last_solution
+    assert sp is not None and sp.plan_t[0] == 0.0 and sp.plan_t[-1] >= GeometricMpcParams().setpoint_plan_s
+    assert len(sp.plan_torque) == len(sp.plan_t) - 1
+    for k, t in enumerate(sp.plan_t):
+        assert t == pytest.approx(sol.knots[k].t if k < len(sol.knots) else sol.knots[-1].t + sol.knots[-1].h)
+        assert qt.angle_between(sp.plan_quat[k], qt.mul(sol.q0, qt.exp(sol.z[k][3:6]))) < 1e-9
+    msgspec.json.decode(m.encode(sp), type=m.MidLevelSetpoint)
