@@ -8,14 +8,22 @@ import asyncio
 import math
 import time
 
+import msgspec
+
 from onboard import messages as m
 from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
-from onboard.topics import TOPICS
+from onboard.topics import TOPICS, params_key
 from services.control import ControlService
 from services.runtime.peers import query_status
 from services.runtime.zenoh_session import open_session
 from helpers import wait_for
 from test_control_service import NS, Feeder
+
+def set_params(session, changes: dict) -> m.ParamReply:
+    body = msgspec.json.encode(m.ParamRequest(set=changes))
+    replies = list(session.get(params_key(NS, "control"), payload=body, timeout=5.0))
+    return msgspec.json.decode(replies[0].ok.payload.to_bytes(), type=m.ParamReply)
+
 
 PARAMS = {"control": ControlParams(mid_level="geometric_mpc", rt_priority=0, estimate_fault_disarm_s=1.0),
           "safety": SafetyLimits(estimate_stale_s=0.1),
@@ -48,6 +56,15 @@ def test_the_mpc_process_publishes_setpoints_the_loop_tracks(zenoh_router):
             assert status.extra["gmpc_published"] > 100 and status.extra["gmpc_solve_ms_p50"] > 0.0
             # the loop tracked the MPC rather than falling back (the first ticks before a setpoint aside)
             assert status.extra["mid_level_ticks"] > 10 * status.extra["mid_level_fallback_ticks"]
+
+            # new MPC parameters: its process restarts with them, the loop carries on
+            first_pid, loop_pid = service._mid_proc.proc.pid, service._loop_proc.proc.pid
+            reply = await asyncio.to_thread(set_params, client, {"gmpc.weight_position": 40.0})
+            assert not reply.error and reply.params["gmpc.weight_position"] == 40.0
+            await wait_for(lambda: service._mid_proc is not None and service._mid_proc.proc.pid != first_pid, timeout_s=60.0)
+            n1 = len(got)
+            await wait_for(lambda: len(got) > n1 + 20, timeout_s=60.0)
+            assert service._loop_proc.proc.pid == loop_pid
         finally:
             mid, loop = service._mid_proc, service._loop_proc
             feeder.running = False
