@@ -167,3 +167,27 @@ def test_the_mid_levels_plan_is_the_solutions_first_stretch(mid):
         assert t == pytest.approx(sol.knots[k].t if k < len(sol.knots) else sol.knots[-1].t + sol.knots[-1].h)
         assert qt.angle_between(sp.plan_quat[k], qt.mul(sol.q0, qt.exp(sol.z[k][3:6]))) < 1e-9
     msgspec.json.decode(m.encode(sp), type=m.MidLevelSetpoint)
+
+
+def test_realtime_mid_level_flag_joins_the_users_config(tmp_path, monkeypatch):
+    """The services read their parameters from the config file: the flag goes there, beside
+    the user's settings, for the run only."""
+    import argparse
+    import tomllib
+    from pathlib import Path
+
+    from services.cli import sim
+
+    user = tmp_path / "user.toml"
+    user.write_text('[control]\nkp_tilt = 30.0\n\n[gmpc]\nhorizon = 16\n')
+    seen: dict = {}
+
+    def fake_run(args):
+        seen["path"] = args.config
+        seen["config"] = tomllib.loads(Path(args.config).read_text())
+        return {}
+
+    monkeypatch.setattr(sim, "_run_realtime", fake_run)
+    sim.run_realtime(argparse.Namespace(config=str(user), mid_level="geometric_mpc"))
+    assert seen["config"] == {"control": {"kp_tilt": 30.0, "mid_level": "geometric_mpc"}, "gmpc": {"horizon": 16}}
+    assert not Path(seen["path"]).exists()  # gone after the run
