@@ -259,6 +259,7 @@ class GeometricMpc:
         self.u_hi = np.full(n * nu, self.limit)
         self._solver = None
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
+        self._build_tilt_rows()
         self._setup()
 
     @staticmethod
@@ -295,6 +296,33 @@ class GeometricMpc:
         lo[jump], hi[jump] = 0.0, 0.0  # a jump takes no time: no torque acts
         self.b_eq[:STATE_DIM] = z0
 
+    def _build_tilt_rows(self) -> None:
+        """With ``params.tilt_max_plan`` > 0: per knot 1..N, two rows bounding the world-horizontal
+        components of the body z axis, ``R0 exp(xi) e_z ~ R0 (e_z + xi x e_z)``, linear in
+        ``(xi_x, xi_y)``; their values follow ``q0`` at each solve (the pattern stays)."""
+        n, nz = self.n, STATE_DIM
+        self.n_tilt = 2 * n if self.p.tilt_max_plan > 0.0 else 0
+        knots = range(1, n + 1) if self.n_tilt else range(0)
+        rows = np.repeat(np.arange(self.n_tilt), 2)
+        cols = np.array([k * nz + XI.start + j for k in knots for _ in range(2) for j in range(2)], dtype=int)
+        marked = sp.csc_matrix((np.arange(1.0, len(rows) + 1.0), (rows, cols)), shape=(self.n_tilt, self.nvar))
+        marked.sort_indices()
+        self._tilt_perm = marked.data.astype(int) - 1
+        self.G_tilt = marked
+        self.tilt_lo = np.zeros(self.n_tilt)
+        self.tilt_hi = np.zeros(self.n_tilt)
+
+    def _set_tilt_rows(self, q0: Sequence[float]) -> None:
+        if not self.n_tilt:
+            return
+        r = qt.to_matrix(q0)
+        g = np.array([[-r[0][1], r[0][0]], [-r[1][1], r[1][0]]])  # rows: world x, y; columns: xi_x, xi_y
+        c = np.array([r[0][2], r[1][2]])  # the body z axis now
+        bound = max(math.sin(self.p.tilt_max_plan), float(np.abs(c).max()))  # the present tilt is always allowed
+        self.G_tilt.data[:] = np.tile(g.reshape(-1), self.n)[self._tilt_perm]
+        self.tilt_lo[:] = np.tile(-bound - c, self.n)
+        self.tilt_hi[:] = np.tile(bound - c, self.n)
+
     def _setup(self) -> None:
         q = np.zeros(self.nvar)
         if self.backend == "osqp":
@@ -303,9 +331,10 @@ class GeometricMpc:
             marked = self.A_eq.copy()
             marked.data = np.arange(1.0, marked.nnz + 1.0)
             box = sp.hstack([sp.csc_matrix((self.n * INPUT_DIM, self._u0)), sp.eye(self.n * INPUT_DIM)])
-            a = sp.vstack([marked, box]).tocsc()
+            a = sp.vstack([marked, box, self.G_tilt]).tocsc()
             a.sort_indices()
             self._osqp_pos = np.flatnonzero(a.indices < self.neq)
+            self._osqp_tilt_pos = np.flatnonzero(a.indices >= self.neq + self.n * INPUT_DIM)  # below the input rows
             if not np.array_equal(a.data[self._osqp_pos], marked.data):
                 raise RuntimeError("the stacked constraint matrix reordered the dynamics entries")
             a.data[self._osqp_pos] = self.A_eq.data
@@ -326,10 +355,13 @@ class GeometricMpc:
             # of the general sparse LDL' here (1.3 ms against 2.7 ms, measured)
             s.kkt_solver = piqp.KKTSolver.sparse_multistage
             x_l, x_u = self._piqp_box()
-            self._solver.setup(self.P, q, self.A_eq, self.b_eq, None, None, None, x_l, x_u)
+            if self.n_tilt:
+                self._solver.setup(self.P, q, self.A_eq, self.b_eq, self.G_tilt, self.tilt_lo, self.tilt_hi, x_l, x_u)
+            else:
+                self._solver.setup(self.P, q, self.A_eq, self.b_eq, None, None, None, x_l, x_u)
 
     def _osqp_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.concatenate([self.b_eq, self.u_lo]), np.concatenate([self.b_eq, self.u_hi])
+        return np.concatenate([self.b_eq, self.u_lo, self.tilt_lo]), np.concatenate([self.b_eq, self.u_hi, self.tilt_hi])
 
     def _piqp_box(self) -> tuple[np.ndarray, np.ndarray]:
         x_l = np.concatenate([np.full(self._u0, -np.inf), self.u_lo])
@@ -339,13 +371,17 @@ class GeometricMpc:
     def _solve_qp(self, q: np.ndarray) -> tuple[np.ndarray | None, str, int]:
         if self.backend == "osqp":
             self._A_full.data[self._osqp_pos] = self.A_eq.data
+            self._A_full.data[self._osqp_tilt_pos] = self.G_tilt.data
             lo, hi = self._osqp_bounds()
             self._solver.update(q=q, l=lo, u=hi, Ax=self._A_full.data)
             res = self._solver.solve(raise_error=False)
             status = str(res.info.status)
             return (res.x.copy() if status == _OSQP_OK else None), status, int(res.info.iter)
         x_l, x_u = self._piqp_box()
-        self._solver.update(c=q, A=self.A_eq, b=self.b_eq, x_l=x_l, x_u=x_u)
+        if self.n_tilt:
+            self._solver.update(c=q, A=self.A_eq, b=self.b_eq, G=self.G_tilt, h_l=self.tilt_lo, h_u=self.tilt_hi, x_l=x_l, x_u=x_u)
+        else:
+            self._solver.update(c=q, A=self.A_eq, b=self.b_eq, x_l=x_l, x_u=x_u)
         st = self._solver.solve()
         status = str(st).split(".")[-1]
         res = self._solver.result
@@ -416,6 +452,7 @@ class GeometricMpc:
             return refuse("non-finite input", [])
         x0 = np.concatenate([x0[:3], q0, x0[7:]])
         z0 = lift(x0, q0)
+        self._set_tilt_rows(q0)
         q_lin = -2.0 * (self.q_diag * z_ref).reshape(-1)
         q_cost = np.concatenate([q_lin, np.zeros(n * nu)])
         a = np.empty((n, nz, nz))
@@ -448,6 +485,10 @@ class GeometricMpc:
         u_out = np.clip(u_bar, self.u_lo.reshape(n, nu), self.u_hi.reshape(n, nu))
         if np.abs(u_out - u_bar).max() > tol:
             return refuse("input bound violated", iters, resid)
+        if self.n_tilt:
+            g = self.G_tilt @ y
+            if np.any(g < self.tilt_lo - tol) or np.any(g > self.tilt_hi + tol):
+                return refuse("tilt bound violated", iters, resid)
         return GmpcSolution(True, status, q0, knots, z_bar.copy(), u_out, iters, resid)
 
 

@@ -398,6 +398,9 @@ class GeometricMpcParams(_Section):
     weight_wheel_speed: Annotated[float, within(0.0, 1e6)] = 1e-4  # keeps the wheels from spinning up [s^2/rad^2]
     weight_input: Annotated[float, above(0.0, 1e6)] = 0.001  # wheel torque [1/(N m)^2] (thesis: 0.001)
     weight_floor: Annotated[float, above(0.0, 1.0)] = 1e-8  # on unweighted states: keeps P positive definite
+    # [rad] bound on the planned tilt (body z from vertical, linearized about the present attitude,
+    # never tighter than the present tilt); 0: none (the thesis's problem has none)
+    tilt_max_plan: Annotated[float, within(0.0, 1.5)] = 0.0
     # PIQP by default: on this QP (stiff stance rows, 420 equalities) OSQP needed 400-1300 ADMM
     # iterations and ~50 ms a solve against PIQP's 8 iterations and ~2.5 ms (measured, shared 2-core machine)
     backend: Literal["osqp", "piqp"] = "piqp"

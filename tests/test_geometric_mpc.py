@@ -222,3 +222,25 @@ def test_bad_input_is_refused_not_solved(dyn):
     sol = starved.solve(x0, knots, z_ref)
     assert not sol.ok and "max" in sol.status.lower()
     assert mpc.solve(x0, knots, z_ref).ok  # and the solver works again after refusals
+
+
+def test_the_tilt_bound_holds_the_plan_and_both_backends_agree_on_it(dyn):
+    """Moving sideways at 1.2 m/s toward the held place the plan leans 0.26 rad; bounded at
+    0.1 rad (the rows linearized about the present attitude) it stays there."""
+    x0 = np.zeros(21)
+    x0[2], x0[3], x0[10], x0[11], x0[13] = 0.55, 1.0, 0.02, 1.2, -1.0
+    held = np.tile([0.0, 0.0, 0.55], (GeometricMpcParams().horizon + 1, 1))
+    z_ref = gm.reference_states(x0[3:7], held, np.zeros_like(held), (1.0, 0.0, 0.0, 0.0))
+
+    def max_tilt(p: GeometricMpcParams, backend: str) -> tuple[float, gm.GmpcSolution]:
+        knots = gm.mode_schedule(gm.FLIGHT, 0.12, p, 0.3, 0.065)
+        sol = gm.GeometricMpc(dyn, p, 15.0, backend).solve(x0, knots, z_ref)
+        assert sol.ok, sol.status
+        return max(qt.tilt(qt.mul(sol.q0, qt.exp(z[gm.XI]))) for z in sol.z), sol
+
+    free, _ = max_tilt(GeometricMpcParams(), "piqp")
+    bounded = GeometricMpcParams(tilt_max_plan=0.1)
+    held_piqp, sol_piqp = max_tilt(bounded, "piqp")
+    held_osqp, sol_osqp = max_tilt(dataclasses.replace(bounded, max_qp_iter=40_000), "osqp")
+    assert free > 0.2 and held_piqp < 0.1 * 1.01 and held_osqp < 0.1 * 1.01
+    assert np.abs(sol_piqp.u - sol_osqp.u).max() < 1e-2
