@@ -62,8 +62,8 @@ from onboard import attitude_control as ac
 from onboard import quaternion as qt
 from onboard import zdp
 from onboard.foot_control import FootPhysics, HopRegulator
-from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, PhaseEvent, SafetyEvent, StateEstimate, TorqueCommand,
-                              TrackingTube)
+from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
+                              TorqueCommand, TrackingTube)
 from onboard.mlp import Mlp
 from onboard.params import ControlParams, SafetyLimits, restart_changes
 from onboard.phase import PhaseDetector
@@ -106,6 +106,19 @@ def design_policy(params: ControlParams, hopper: zdp.HopperModel) -> PolicyDesig
     r = np.eye(2) * params.zdp_r
     lin = zdp.linear_zdp(a_zz, a_ze, q_eta, q_z, r)
     return PolicyDesign(d, 0.5 * hopper.spring_k * d * d, lin)
+
+
+def _setpoint_sound(sp: MidLevelSetpoint) -> bool:
+    """Every number finite and the plan's lists of matching lengths, times non-decreasing."""
+    n = len(sp.plan_t)
+    if len(sp.plan_quat) != n or len(sp.plan_omega) != n or len(sp.plan_torque) != max(0, n - 1) or n == 1:
+        return False
+    if any(b < a for a, b in zip(sp.plan_t, sp.plan_t[1:])):
+        return False
+    values = [*sp.quat_des, *sp.omega_des, *sp.torque_ff, *sp.plan_t]
+    for row in (*sp.plan_quat, *sp.plan_omega, *sp.plan_torque):
+        values.extend(row)
+    return all(map(math.isfinite, values)) and all(qt.is_finite(q) for q in (sp.quat_des, *sp.plan_quat))
 
 
 def _bernstein_point(pts: list[list[float]], s: float) -> tuple[float, float]:
@@ -234,6 +247,10 @@ class LowLevelController:
         self.holding = True
         self.armed_ticks = 0  # ticks that commanded torque
         self.saturated_ticks = 0  # of those, ticks whose wheel command hit the torque limit
+        self.mid_level_ticks = 0  # armed ticks that tracked the geometric MPC's setpoint
+        self.mid_level_fallback_ticks = 0  # mid_level = "geometric_mpc", but no fresh, finite setpoint: the ZDP's
+        self._mid_checked: MidLevelSetpoint | None = None  # the last setpoint checked, and its verdict
+        self._mid_ok = False
 
     def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """What the gains and limits set directly: cheap enough for between two ticks."""
@@ -401,12 +418,47 @@ class LowLevelController:
         self._hold = None
         return sample_reference(ref, (now_ns - ref.t_ref_ns) / NS + t_ahead)
 
+    def _mid_level_target(self, now_ns: int, sp: MidLevelSetpoint | None) -> tuple[qt.Quat, ac.Vec3, ac.Vec3] | None:
+        """``(q_d, omega_d, wheel feed-forward)`` of a fresh, finite setpoint of the geometric MPC
+        at ``now_ns``: along its plan (interpolated between knots), else its lead-time values.
+        None: no such setpoint, the ZDP flies (counted either way)."""
+        if self.p.mid_level != "geometric_mpc":
+            return None
+        if sp is None or not 0 <= now_ns - sp.stamp_ns <= self.p.mid_level_stale_s * NS:
+            self.mid_level_fallback_ticks += 1
+            return None
+        if sp is not self._mid_checked:  # a new setpoint: every number checked once
+            self._mid_checked, self._mid_ok = sp, _setpoint_sound(sp)
+        if not self._mid_ok:
+            self.mid_level_fallback_ticks += 1
+            return None
+        self.mid_level_ticks += 1
+        ts = sp.plan_t
+        if not ts:
+            return sp.quat_des, sp.omega_des, sp.torque_ff
+        tau = (now_ns - sp.stamp_ns) / NS
+        last = len(ts) - 1
+        if tau >= ts[last]:  # the plan ran out: hold its end, no feed-forward planned for now
+            return sp.plan_quat[last], sp.plan_omega[last], self._zero3
+        i = 0
+        while i < last - 1 and tau >= ts[i + 1]:
+            i += 1
+        span = ts[i + 1] - ts[i]
+        s = min(1.0, max(0.0, (tau - ts[i]) / span)) if span > 0.0 else 1.0
+        qa, qb = sp.plan_quat[i], sp.plan_quat[i + 1]
+        rot = qt.log(qt.mul(qt.conj(qa), qb))
+        q = qt.mul(qa, qt.exp((s * rot[0], s * rot[1], s * rot[2])))
+        wa, wb = sp.plan_omega[i], sp.plan_omega[i + 1]
+        w = (wa[0] + s * (wb[0] - wa[0]), wa[1] + s * (wb[1] - wa[1]), wa[2] + s * (wb[2] - wa[2]))
+        return q, w, sp.plan_torque[i]
+
     def step(
         self,
         now_ns: int,
         state: StateEstimate,
         reference: ComReference | None,
         joints: JointSensors | None = None,
+        mid_level: MidLevelSetpoint | None = None,
     ) -> TorqueCommand:
         sup = self.supervisor
         if not self._check_and_arm(now_ns, state):
@@ -424,14 +476,20 @@ class LowLevelController:
         ref = sup.check_reference(now_ns, reference)
         self._phase_update(now_ns, state, ref)
 
-        if self.phase.phase == "flight":
+        stance = self.phase.phase != "flight"
+        if not stance:  # the ZDP's impact attitude (the fallback), and the hop regulator's apex
             self._flight_attitude(now_ns, state, ref)
+        target = self._mid_level_target(now_ns, mid_level)
+        if target is not None:  # thesis 5.3: the PD on the MPC's plan, both phases
+            self.q_des, omega_des, wheel_ff = target
+            ff = self.alloc.body_torque(wheel_ff)
+            u = ac.pd_torque(state.quat, state.omega, self.q_des, omega_des, ff, self._kp, self._kd, self.p.attitude_log)
+            wheel = self.alloc.wheel_torques(u)
+        elif not stance:
             u = ac.pd_torque(state.quat, state.omega, self.q_des, self._zero3, self._zero3, self._kp, self._kd, self.p.attitude_log)
             wheel = self.alloc.wheel_torques(u)
-            stance = False
         else:
             wheel = ac.spin_down(state.wheel_vel, self.p.spin_down_gamma)
-            stance = True
         if math.isfinite(spool_pos):
             foot = self.foot.spool_torque(stance, state.foot_pos, spool_pos, self._spool_vel)
             foot = max(-self._foot_max, min(self._foot_max, foot))

@@ -129,6 +129,25 @@ class AttitudeSetpoint(Message):
     commander: str = ""  # instance id of the publishing control service (ServiceStatus.instance)
 
 
+class MidLevelSetpoint(Message):
+    """The geometric MPC's answer for the 1 kHz loop (thesis 5.3, "Quaternionic Feedback"):
+    track ``quat_des`` and ``omega_des`` with the quaternion PD and add ``torque_ff``.
+    Published only when the answer passed its checks (status, finiteness, bounds)."""
+
+    quat_des: Quat  # desired body->world [w, x, y, z], q0 exp(xi) a lead time ahead
+    omega_des: Vec3  # desired body rate [rad/s]
+    torque_ff: Vec3  # feed-forward wheel motor torques [N m] (the plan's first input)
+    qp_iterations: list[int]  # per SQP iteration
+    solve_ms: float = 0.0  # wall time of the solve [ms] (0 in lockstep)
+    # the plan's first stretch, so that the loop tracks the plan at the time it acts, however late
+    # the answer arrives: knot times [s after stamp_ns] (a jump repeats a time), attitudes and
+    # rates at them, and the wheel torques [N m] from each knot to the next
+    plan_t: list[float] = []
+    plan_quat: list[Quat] = []
+    plan_omega: list[Vec3] = []
+    plan_torque: list[Vec3] = []
+
+
 # --- planning -------------------------------------------------------------------
 
 

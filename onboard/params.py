@@ -360,6 +360,55 @@ class ControlParams(_Section):
     # hops in place (no position feedback) for at most this long, then disarms (latched) [s]
     attitude_only_max_s: Annotated[float, within(0.0, 5.0)] = 0.5
     arm_tilt_max: Annotated[float, within(0.0, math.pi / 2)] = 0.35  # refuse to arm beyond this tilt [rad]
+    # mid level: "zdp" (the impact attitude of the policy above) or "geometric_mpc" (thesis 5.3: the
+    # loop tracks the MPC's attitude, rate and feed-forward with the quaternion PD in both phases,
+    # and falls back to the ZDP while no fresh, checked MPC answer is at hand)
+    mid_level: Literal["zdp", "geometric_mpc"] = "zdp"
+    mid_level_stale_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] an MPC setpoint older than this is not tracked
+
+
+@dataclass(frozen=True)
+class GeometricMpcParams(_Section):
+    """The geometric MPC (:mod:`onboard.geometric_mpc`, thesis section 5.3, Table 5.3).
+
+    Weights are the diagonal of ``Q`` (also the terminal ``V``, as in the thesis) and ``R``;
+    the vertical position and velocity are left to the hop-height regulator.
+    """
+
+    rate_hz: Annotated[float, above(0.0, 1000.0)] = 100.0  # solves per second (thesis: 100 Hz)
+    # SCHED_FIFO priority of the MPC's process: below the control loop (80), the estimator (75) and the
+    # hardware exchange (70); at normal priority on a loaded 2-core machine a 6 ms solve took 20 ms (p50)
+    rt_priority: RtPriority = 60
+    cpu: Cpu = -1  # CPU the MPC's process is pinned to (-1: no pinning)
+    # [s] of the plan sent with each answer: the loop follows the plan at the time it acts, so an
+    # answer that arrives late (a loaded machine: solves of 20 ms) still acts where it was meant to
+    setpoint_plan_s: Annotated[float, above(0.0, 1.0)] = 0.1
+    horizon: Annotated[int, within(2, 200)] = 20  # knots, jumps included (thesis: 20)
+    sqp_iterations: Annotated[int, within(1, 10)] = 2  # thesis: 2
+    flight_step_s: Annotated[float, above(0.0, 0.2)] = 0.04  # [s] flight knot
+    stance_step_s: Annotated[float, above(0.0, 0.2)] = 0.01  # [s] stance knot (finer: the spring is stiff)
+    min_step_s: Annotated[float, above(0.0, 0.05)] = 0.002  # [s] a mode remainder shorter than this joins the knot before
+    # position and velocity: the thesis's Table 5.3 has 10 and 1; on the twin (sim15nm square, seed 0, 12 s)
+    # 30 and 10 tracked to 0.033 m RMS against 0.33 m (it hopped, but drifted behind the reference)
+    weight_position: Annotated[float, within(0.0, 1e6)] = 30.0  # horizontal position [1/m^2]
+    weight_height: Annotated[float, within(0.0, 1e6)] = 0.0  # vertical position [1/m^2]
+    weight_orientation: Annotated[float, within(0.0, 1e6)] = 10.0  # xi, the Lie-algebra attitude [1/rad^2] (thesis: 10)
+    weight_velocity: Annotated[float, within(0.0, 1e6)] = 10.0  # horizontal velocity [s^2/m^2]
+    weight_vertical_velocity: Annotated[float, within(0.0, 1e6)] = 0.0  # [s^2/m^2]
+    weight_omega: Annotated[float, within(0.0, 1e6)] = 0.01  # body rate [s^2/rad^2] (thesis: 0.01)
+    weight_wheel_speed: Annotated[float, within(0.0, 1e6)] = 1e-4  # keeps the wheels from spinning up [s^2/rad^2]
+    weight_input: Annotated[float, above(0.0, 1e6)] = 0.001  # wheel torque [1/(N m)^2] (thesis: 0.001)
+    weight_floor: Annotated[float, above(0.0, 1.0)] = 1e-8  # on unweighted states: keeps P positive definite
+    # [rad] bound on the planned tilt (body z from vertical, linearized about the present attitude,
+    # never tighter than the present tilt); 0: none (the thesis's problem has none)
+    tilt_max_plan: Annotated[float, within(0.0, 1.5)] = 0.0
+    # PIQP by default: on this QP (stiff stance rows, 420 equalities) OSQP needed 400-1300 ADMM
+    # iterations and ~50 ms a solve against PIQP's 8 iterations and ~2.5 ms (measured, shared 2-core machine)
+    backend: Literal["osqp", "piqp"] = "piqp"
+    eps: Annotated[float, above(0.0, 1.0)] = 1e-5  # QP tolerance (absolute and relative)
+    max_qp_iter: Annotated[int, within(1, 100_000)] = 4000  # per QP: bounds the solve time
+    osqp_check_termination: Annotated[int, within(1, 1000)] = 10  # OSQP checks convergence this often
+    residual_tol: Annotated[float, above(0.0, 1.0)] = 1e-3  # largest dynamics residual an answer may keep [state units]
 
 
 @dataclass(frozen=True)
@@ -591,6 +640,7 @@ SECTIONS: dict[str, type] = {
     "perception": PerceptionParams,
     "planner": PlannerParams,
     "control": ControlParams,
+    "gmpc": GeometricMpcParams,
     "safety": SafetyLimits,
     "messaging": MessagingParams,
     "hardware": HardwareParams,
@@ -610,7 +660,7 @@ SECTIONS: dict[str, type] = {
 # its rate and scheduling when it starts: a change of those needs a restart of the service
 # (refused live); every other estimator field rebuilds the filter.
 NEEDS_RESTART: dict[str, frozenset[str]] = {
-    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "policy", "mlp_weights", "hop_height",
+    "control": frozenset({"rate_hz", "robot", "rt_priority", "cpu", "output", "mid_level", "policy", "mlp_weights", "hop_height",
                           "zdp_q_pos", "zdp_q_vel", "zdp_q_tilt", "zdp_r", "tube_window"}),
     "estimator": frozenset({"rate_hz", "rt_priority", "cpu", "input_queue"}),
 }

@@ -69,6 +69,7 @@ _TABLE = [
     # low level
     Topic("torque_cmd", "control/torque", m.TorqueCommand, 1000, ("control",), priority="real_time", express=True),
     Topic("attitude_cmd", "control/attitude", m.AttitudeSetpoint, 1000, ("control",), priority="real_time", express=True),
+    Topic("mid_level", "control/mid_level", m.MidLevelSetpoint, 100, ("control",), priority="real_time", express=True),
     Topic("tube", "control/tube", m.TrackingTube, 2, ("control",), reliability="reliable"),
     Topic("safety", "control/safety", m.SafetyEvent, 0, ("control", "hardware", "twin"), reliability="reliable", congestion="block", priority="interactive_high"),
     # high level

@@ -8,8 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.low_level import LowLevelController
-from onboard.params import ControlParams, SafetyLimits
+from onboard.geometric_mpc import GeometricMpc
+from onboard.gmpc_mid_level import GmpcMidLevel
+from onboard.low_level import LowLevelController, design_policy
+from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
+from robot_description.hopper_dynamics import HopperDynamics
 from robot_description.params import DEFAULT_VARIANT, hopper_model, robot_params
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "onboard" / "data"
@@ -33,3 +36,23 @@ def build_controller(
     params = params or ControlParams()
     weights = load_policy_weights(params.mlp_weights) if params.policy == "mlp" else None
     return LowLevelController(params, robot_params(variant), hopper_model(variant), safety, weights)
+
+
+def build_gmpc_mid_level(
+    variant: str = DEFAULT_VARIANT,
+    params: GeometricMpcParams | None = None,
+    control: ControlParams | None = None,
+    safety: SafetyLimits | None = None,
+) -> GmpcMidLevel:
+    """The geometric MPC mid level for robot ``variant``: Pinocchio dynamics from the same MJCF,
+    the input set the wheels' torque limit (the safety limit, capped at the drive's peak)."""
+    params = params or GeometricMpcParams()
+    control = control or ControlParams()
+    safety = safety or SafetyLimits()
+    robot, hopper = robot_params(variant), hopper_model(variant)
+    dynamics = HopperDynamics(variant)
+    limit = min(safety.wheel_torque_max, robot.wheel_torque_peak)
+    touchdown = hopper.touchdown_height(design_policy(control, hopper).preload_nominal)
+    stance_omega = (robot.spring_stiffness / robot.sprung_mass) ** 0.5
+    return GmpcMidLevel(GeometricMpc(dynamics, params, limit), dynamics.com_offset, params, control, touchdown, stance_omega,
+                        robot.gravity)

@@ -1,8 +1,11 @@
 """The ``control`` service: the 1 kHz low level (issue 4).
 
 Subscribes (latest value): ``state`` (StateEstimate), ``reference`` (ComReference),
-``joints`` (JointSensors: the foot's cable spool angle).
-Computes: :class:`onboard.low_level.LowLevelController` every 1 ms.
+``joints`` (JointSensors: the foot's cable spool angle), ``mid_level`` (MidLevelSetpoint).
+Computes: :class:`onboard.low_level.LowLevelController` every 1 ms; with
+``control.mid_level = "geometric_mpc"`` the geometric MPC runs beside it in a process of its own
+(:mod:`services.mid_level`, ``gmpc.rate_hz``) and the loop tracks its setpoints (torque output
+only: with ``output = "attitude"`` the board's PD tracks the ZDP's attitude as before).
 Publishes: ``torque_cmd`` every tick (disarmed zeros until a valid estimate arms it),
 or with ``control.output = "attitude"`` (hardware that runs the attitude PD and the foot's
 hop cycle itself: ARCHER's firmware) ``attitude_cmd`` instead
@@ -45,15 +48,16 @@ from multiprocessing.connection import Connection
 from typing import Any, ClassVar
 
 from onboard import messages as msgs
-from onboard.params import ControlParams, SafetyLimits, restart_changes
+from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits, restart_changes
 from onboard.topics import TOPICS
 from robot_description.controller import build_controller
 from services.runtime.clock import WallClock
 from services.runtime.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
 from services.runtime.service import LatestSlot, Service, TypedPublisher, check_publisher
 from services.runtime.zenoh_session import open_session
+from services.mid_level import MidLevelConfig, MidLevelProcess
 
-LOOP_READS = ("state", "reference", "joints")  # what the loop process subscribes to (latest values)
+LOOP_READS = ("state", "reference", "joints", "mid_level")  # what the loop process subscribes to (latest values)
 
 STATS_PERIOD_S = 0.5  # child -> parent report period [s]
 START_TIMEOUT_S = 30.0  # building the controller (linearization) and opening Zenoh [s]
@@ -159,7 +163,9 @@ class ControlLoop:
                 cmd = ctrl.step_attitude(now, st[0], ref[0] if ref is not None else None)
             else:
                 jn = self.slots["joints"].get()
-                cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None)
+                mid = self.slots["mid_level"].get()
+                cmd = ctrl.step(now, st[0], ref[0] if ref is not None else None, jn[0] if jn is not None else None,
+                                mid[0] if mid is not None else None)
         if not cmd.armed:
             self.safe_ticks += 1
         cmd.commander = self.cfg.commander
@@ -198,6 +204,8 @@ class ControlLoop:
             "control": self.ctrl.p,  # what the controller runs with, read back from it
             "safety": self.ctrl.safety,
             "hops": self.ctrl.phase.hop,
+            "mid_level_ticks": self.ctrl.mid_level_ticks,
+            "mid_level_fallback_ticks": self.ctrl.mid_level_fallback_ticks,
             "safe_ticks": self.safe_ticks,
             "tube_p95_m": tube.impact_err_p95,
             "trip_counts": dict(self.ctrl.supervisor.counts),
@@ -348,19 +356,22 @@ class LoopProcess:
 
 class ControlService(Service):
     name: ClassVar[str] = "control"
-    params_sections: ClassVar[tuple[str, ...]] = ("control", "safety")
+    params_sections: ClassVar[tuple[str, ...]] = ("control", "safety", "gmpc")
     subscribes: ClassVar[tuple[str, ...]] = LOOP_READS  # read by the loop process
     # parameter state, read by the parameter queryable from the moment run() declares it
     _loop_proc: LoopProcess | None = None
     _restart_pending = False  # a restart for new parameters is accepted and not done yet
     _restart_deadline: float | None = None  # monotonic bound of the restart under way
     _restarted_from: LoopProcess | None = None  # the loop that restart replaces
+    _mid_proc: MidLevelProcess | None = None  # the geometric MPC's process (control.mid_level)
+    _mid_restart = False  # new gmpc parameters: the MPC process restarts with them
 
     async def setup(self) -> None:
         self._restart = asyncio.Event()
         self._trips_logged = 0
         self._progress_ticks = 0
         self._params_seq = 0  # numbers the gains and limits sent to the loop
+        self._mid_refused_logged = 0
         await self._start_loop()
 
     def _loop_config(self, hold_disarmed: bool) -> LoopConfig:
@@ -369,7 +380,37 @@ class ControlService(Service):
                           control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid(),
                           commander=self.instance, hold_disarmed=hold_disarmed)
 
+    async def _start_mid_level(self) -> None:
+        """The geometric MPC's process, when ``control.mid_level`` asks for it."""
+        control: ControlParams = self.params["control"]
+        if control.mid_level != "geometric_mpc":
+            return
+        gmpc: GeometricMpcParams = self.params["gmpc"]
+        proc = MidLevelProcess(MidLevelConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
+                                              control=control, gmpc=gmpc, safety=self.params["safety"], parent_pid=os.getpid()))
+        await asyncio.to_thread(proc.start)
+        self._mid_proc = proc
+        self.log.info("geometric MPC started", extra={"fields": {"pid": proc.proc.pid, "rate_hz": gmpc.rate_hz,
+                                                                 "backend": gmpc.backend, "realtime": proc.realtime}})
+
+    async def _stop_mid_level(self) -> None:
+        proc, self._mid_proc = self._mid_proc, None
+        if proc is not None:
+            self._absorb_mid(await asyncio.to_thread(proc.stop))
+
+    def _absorb_mid(self, rep: dict[str, Any]) -> None:
+        """Log refused MPC answers (counted by reason) as they are reported."""
+        refused = int(rep.get("refused", 0))
+        if refused > self._mid_refused_logged:
+            self.count("mid_level.refused", refused - self._mid_refused_logged)
+            self.log.warning("geometric MPC answers refused (the loop falls back to the ZDP while stale)",
+                             extra={"fields": {"new": refused - self._mid_refused_logged, "by_reason": rep.get("refusals", {})}})
+            self._mid_refused_logged = refused
+        if "error" in rep:
+            self.fail(f"geometric MPC: {rep['error']}")
+
     async def _start_loop(self, hold_disarmed: bool = False) -> None:
+        await self._start_mid_level()
         proc = LoopProcess(self._loop_config(hold_disarmed))
         await asyncio.to_thread(proc.start)
         self._progress_ticks = 0  # a new loop counts its ticks from zero
@@ -390,6 +431,7 @@ class ControlService(Service):
         final = await asyncio.to_thread(proc.stop)
         if final:
             self._absorb(final)
+        await self._stop_mid_level()
         await self._start_loop(hold_disarmed=True)
 
     async def main(self) -> None:
@@ -403,6 +445,17 @@ class ControlService(Service):
                 continue
             for rep in proc.poll():
                 self._absorb(rep)
+            mid = self._mid_proc
+            if mid is not None:
+                for rep in mid.poll():
+                    self._absorb_mid(rep)
+                if self._mid_restart:
+                    self._mid_restart = False
+                    await self._stop_mid_level()
+                    await self._start_mid_level()
+                elif not mid.alive:
+                    self.state = "error"
+                    raise RuntimeError(f"geometric MPC process exited with code {mid.proc.exitcode}")
             if self._restart.is_set():
                 self._restart.clear()
                 await self._restart_loop(proc)
@@ -425,6 +478,7 @@ class ControlService(Service):
         self.state = "running" if rep.get("armed") else "degraded"
 
     async def teardown(self) -> None:
+        await self._stop_mid_level()
         if self._loop_proc is not None:
             final = await asyncio.to_thread(self._loop_proc.stop)
             for rep in ([final] if final else []):
@@ -467,6 +521,9 @@ class ControlService(Service):
         return ""
 
     def on_params_changed(self, section: str) -> None:
+        if section == "gmpc":  # the MPC process takes its parameters when it starts
+            self._mid_restart = self._mid_proc is not None
+            return
         self._sync_loop()
 
     def _sync_loop(self) -> None:
@@ -526,6 +583,12 @@ class ControlService(Service):
         for name, n in rep.get("rejected", {}).items():
             out[f"rejected_{name}"] = float(n)
         out["safety_trips_logged"] = float(self._trips_logged)
+        out["mid_level_ticks"] = float(rep.get("mid_level_ticks", 0))
+        out["mid_level_fallback_ticks"] = float(rep.get("mid_level_fallback_ticks", 0))
+        mid = self._mid_proc.last if self._mid_proc is not None else {}
+        for key in ("solves", "published", "refused", "solve_ms_p50", "solve_ms_p99"):
+            if key in mid:
+                out[f"gmpc_{key}"] = float(mid[key])
         out["params_seq_sent"] = float(self._params_seq)
         out["params_seq_applied"] = float(rep.get("params_seq", 0))
         return out

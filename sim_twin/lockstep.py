@@ -63,6 +63,7 @@ class RunConfig:
     estimator_params: object | None = None
     planner_params: object | None = None
     control_params: object | None = None
+    gmpc_params: object | None = None  # the geometric MPC's, when control_params.mid_level says so
     perception: str = "truth"  # "depth": the planner sees what onboard.perception makes of the depth camera
     perception_params: object | None = None
     stop_on_fall: bool = True
@@ -129,7 +130,7 @@ class LockstepRunner:
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
-        self.controller = st.make_controller(cfg.controller, cfg.variant, safety, cfg.control_params)
+        self.controller = st.make_controller(cfg.controller, cfg.variant, safety, cfg.control_params, cfg.gmpc_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, safety)
 
     def run(self, progress: Callable[[float, float], None] | None = None) -> RunResult:
@@ -250,6 +251,13 @@ class LockstepRunner:
             "phase_events": phase_events,
             "estimator_counters": estimator.counters(),
         })
+        mid = getattr(controller, "mid_level", None)
+        if mid is not None:
+            out["mid_level"] = "geometric_mpc"
+            out["mid_level_solves"] = mid.solves
+            out["mid_level_rejected"] = mid.rejected
+            out["mid_level_ticks"] = controller.ctrl.mid_level_ticks
+            out["mid_level_fallback_ticks"] = controller.ctrl.mid_level_fallback_ticks
         if isinstance(planner, st.GraphPlannerPlug):
             out["planner_plans"] = planner.plans
             out["planner_no_path"] = planner.no_path

@@ -304,6 +304,13 @@ class Push(Scenario):
 
 
 @register
+class Shove(Push):
+    name = "shove"
+    description = "hop in place under lateral impulses three times the push's (1 m/s on the indoor robot)"
+    IMPULSE = 6.0  # [N s] per push
+
+
+@register
 class Step(Scenario):
     name = "step"
     description = "hop up a 3.8 cm step to a goal on it"

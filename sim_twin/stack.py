@@ -279,24 +279,44 @@ class LowLevelPlug:
 
     name = "lowlevel"
 
-    def __init__(self, variant: str, safety: SafetyLimits, params: object | None = None) -> None:
-        from robot_description.controller import build_controller
+    def __init__(self, variant: str, safety: SafetyLimits, params: object | None = None, gmpc: object | None = None) -> None:
+        from robot_description.controller import build_controller, build_gmpc_mid_level
 
         self.ctrl = build_controller(variant, params, safety)
         self.ctrl.request_arm()
-        self.step = self.ctrl.step
         self.drain_phase_events = self.ctrl.drain_phase_events
         self.drain_safety_events = self.ctrl.drain_safety_events
+        # mid_level = "geometric_mpc": the MPC solves every 1 / gmpc.rate_hz of simulated time on the
+        # tick's estimate; its answer reaches the loop one solve period later, as from its own process
+        self.mid_level = None
+        if self.ctrl.p.mid_level == "geometric_mpc":
+            self.mid_level = build_gmpc_mid_level(variant, gmpc, self.ctrl.p, safety)
+            self._solve_ns = int(round(NS / self.mid_level.p.rate_hz))
+        self._next_solve_ns = 0
+        self._pending: m.MidLevelSetpoint | None = None
+        self._setpoint: m.MidLevelSetpoint | None = None
+        self._setpoint_due_ns = 0
+
+    def step(self, now_ns: int, state: m.StateEstimate, reference: m.ComReference | None,
+             joints: m.JointSensors | None = None) -> m.TorqueCommand:
+        if self.mid_level is not None:
+            if now_ns >= self._setpoint_due_ns and self._pending is not None:
+                self._setpoint, self._pending = self._pending, None
+            if now_ns >= self._next_solve_ns:
+                self._next_solve_ns = now_ns + self._solve_ns
+                self._setpoint_due_ns = now_ns + self._solve_ns
+                self._pending = self.mid_level.step(now_ns, state, reference)
+        return self.ctrl.step(now_ns, state, reference, joints, self._setpoint)
 
     def tube(self, stamp_ns: int) -> m.TrackingTube:
         return self.ctrl.tube(stamp_ns)
 
 
-def make_controller(name: str, variant: str, safety: SafetyLimits, params: object | None = None):
+def make_controller(name: str, variant: str, safety: SafetyLimits, params: object | None = None, gmpc: object | None = None):
     if name == "passive":
         return PassiveController()
     if name == "lowlevel":
-        return LowLevelPlug(variant, safety, params)
+        return LowLevelPlug(variant, safety, params, gmpc)
     raise ValueError(f"unknown controller {name!r}; known: {', '.join(CONTROLLERS)}")
 
 

@@ -27,6 +27,7 @@ SAMPLES: list[msgspec.Struct] = [
     m.PhaseEvent(event="apex", hop=3, position=V3, velocity=V3),
     m.TorqueCommand(wheel_torque=V3, foot_torque=1.0, armed=True),
     m.AttitudeSetpoint(quat_des=Q, omega_des=V3, torque_ff=V3, foot_torque=0.0, armed=False),
+    m.MidLevelSetpoint(quat_des=Q, omega_des=V3, torque_ff=V3, qp_iterations=[7, 8], solve_ms=6.1),
     m.PolytopeSet(mode="free", polytopes=[POLY]),
     m.ComReference(t_ref_ns=10, segments=[m.BezierSegment(t0=0.0, duration=1.0, control_points=[[0, 0], [1, 1]])]),
     m.Waypoints(points=[[0.0, 0.0]], sets=[POLY]),

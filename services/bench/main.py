@@ -20,6 +20,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "messaging": ("services.bench.messaging", "Zenoh latency and loss between two processes at 1 kHz"),
     "hardware": ("services.bench.hardware", "four emulated ELMO drives at 1 kHz through the hardware service: late/lost frames, bus load"),
     "mpc": ("services.bench.mpc", "50-node planner Bezier MPC (OSQP, PIQP) solve times and the edge-test rate"),
+    "gmpc": ("services.bench.gmpc", "geometric MPC (thesis 5.3) on the twin: horizon, variables, constraints, solve p50/p99, SQP iterations, rate"),
     "planner": ("services.bench.planner", "Bezier graph planner: build, cut, search, refine; unsound and missed edges"),
     "estimator": ("services.bench.estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
     "mocap": ("services.bench.mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),

@@ -78,6 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--planner", choices=st.PLANNERS, default="auto",
                         help="scenario: the scenario's own reference; graph: the onboard planner; auto: graph when there are obstacles")
     parser.add_argument("--controller", choices=st.CONTROLLERS, default="lowlevel", help="passive: no torque (physics only)")
+    parser.add_argument("--mid-level", choices=("zdp", "geometric_mpc"), default=None,
+                        help="the low level's planning layer (default: control.mid_level of the config, zdp)")
     parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
                         help="the planner sees ground-truth obstacles, or what perception makes of the depth camera "
                              "(in real time: the perception service)")
@@ -132,6 +134,8 @@ class _Progress:
 
 def build_config(args: argparse.Namespace) -> RunConfig:
     params = load_params(args.config)
+    if getattr(args, "mid_level", None):
+        params["control"] = with_overrides(params["control"], {"mid_level": args.mid_level})
     twin = params["twin"]
     if args.no_noise:
         twin = with_overrides(twin, {"noise": False})
@@ -149,6 +153,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         estimator_params=params.get("estimator"),
         planner_params=params.get("planner"),
         control_params=params.get("control"),
+        gmpc_params=params.get("gmpc"),
         perception=args.perception,
         perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
@@ -306,6 +311,24 @@ class FirmwareRig:
 
 
 def run_realtime(args: argparse.Namespace) -> dict:
+    """The services read their parameters from the config file: ``--mid-level`` joins the
+    user's config in a temporary file for the run."""
+    mid_level = getattr(args, "mid_level", None)
+    if not mid_level:
+        return _run_realtime(args)
+    load_params(args.config)  # the user's file is valid before anything is written
+    user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
+    user["control"] = {**user.get("control", {}), "mid_level": mid_level}
+    fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
+    with os.fdopen(fd, "w") as f:
+        f.write(_toml(user))
+    try:
+        return _run_realtime(argparse.Namespace(**{**vars(args), "config": path}))
+    finally:
+        os.unlink(path)
+
+
+def _run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
     from services.runtime.peers import query_status
