@@ -39,7 +39,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import multiprocessing as mp
 import os
 import signal
 import threading
@@ -51,6 +50,7 @@ from onboard import messages as msgs
 from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits, restart_changes
 from onboard.topics import TOPICS
 from robot_description.controller import build_controller
+from services.runtime.child_process import STOP_TIMEOUT_S, ChildProcess
 from services.runtime.clock import WallClock
 from services.runtime.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
 from services.runtime.service import LatestSlot, Service, TypedPublisher, check_publisher
@@ -61,7 +61,6 @@ LOOP_READS = ("state", "reference", "joints", "mid_level")  # what the loop proc
 
 STATS_PERIOD_S = 0.5  # child -> parent report period [s]
 START_TIMEOUT_S = 30.0  # building the controller (linearization) and opening Zenoh [s]
-STOP_TIMEOUT_S = 3.0
 
 log = logging.getLogger("archer.control")
 
@@ -279,76 +278,21 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     loop.close()
 
 
-class LoopProcess:
+class LoopProcess(ChildProcess):
     """Starts and talks to the loop process (used by the service and the bench)."""
 
     def __init__(self, cfg: LoopConfig) -> None:
-        ctx = mp.get_context("spawn")  # a clean interpreter: no inherited threads or sessions
-        self._conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=loop_process_main, args=(cfg, child), name="archer-control-loop", daemon=True)
-        self.last: dict[str, Any] = {}
-        self.realtime: dict[str, str] = {}
+        super().__init__(loop_process_main, cfg, "archer-control-loop")
         self.arm_requests = 0  # sent; the loop reports how many it took
-        self._send_lock = threading.Lock()  # parameter changes come from Zenoh's threads
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
-        self.proc.start()
-        if not self._conn.poll(timeout_s):
-            self.proc.kill()
-            raise RuntimeError("control loop process did not start")
-        first = self._conn.recv()
-        if "error" in first:
-            self.proc.join(1.0)
-            raise RuntimeError(f"control loop process failed: {first['error']}")
-        self.realtime = first.get("realtime", {})
-
-    def poll(self) -> list[dict[str, Any]]:
-        """Reports received since the last call (non-blocking)."""
-        out = []
-        try:
-            while self._conn.poll():
-                rep = self._conn.recv()
-                out.append(rep)
-                self.last = rep
-        except (EOFError, OSError):
-            pass
-        return out
+        super().start(timeout_s)
 
     def send(self, request: str | tuple[Any, ...]) -> None:
         """``"stop"``, ``"arm"``, ``"disarm"`` or ``("params", seq, control, safety)``."""
-        with self._send_lock:
-            if request == "arm":
-                self.arm_requests += 1
-            try:
-                self._conn.send(request)
-            except (BrokenPipeError, OSError):
-                pass
-
-    def wait_final(self, timeout_s: float) -> dict[str, Any]:
-        """Wait for the loop's last report (after a stop or a timed run)."""
-        deadline = timeout_s
-        while deadline > 0:
-            if self._conn.poll(0.1):
-                try:
-                    rep = self._conn.recv()
-                except EOFError:
-                    break
-                self.last = rep
-                if rep.get("final"):
-                    break
-            deadline -= 0.1
-        self.proc.join(STOP_TIMEOUT_S)
-        if self.proc.is_alive():
-            self.proc.kill()
-        return self.last
-
-    def stop(self) -> dict[str, Any]:
-        self.send("stop")
-        return self.wait_final(STOP_TIMEOUT_S)
-
-    @property
-    def alive(self) -> bool:
-        return self.proc.is_alive()
+        if request == "arm":
+            self.arm_requests += 1
+        super().send(request)
 
 
 # --- the service ------------------------------------------------------------------------------------

@@ -18,9 +18,7 @@ with the loop and reads its reports (solves, refusals and why, solve times) over
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing as mp
 import signal
-import threading
 import time
 from collections import Counter, deque
 from multiprocessing.connection import Connection
@@ -32,6 +30,7 @@ from onboard import messages as msgs
 from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
 from onboard.topics import TOPICS
 from robot_description.controller import build_gmpc_mid_level
+from services.runtime.child_process import ChildProcess
 from services.runtime.clock import WallClock
 from services.runtime.realtime import DeadlineLoop, die_with_parent, make_realtime_from
 from services.runtime.service import LatestSlot, TypedPublisher, check_publisher
@@ -42,7 +41,6 @@ PUBLISHER = "control"  # the control service owns the process and its topic
 REPORT_PERIOD_S = 0.5  # [s] between reports to the control service
 SOLVE_WINDOW = 1000  # solve times kept for the reported percentiles
 START_TIMEOUT_S = 60.0  # [s] Pinocchio model, QP setup, Zenoh
-STOP_TIMEOUT_S = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,60 +156,11 @@ def mid_level_process_main(cfg: MidLevelConfig, conn: Connection) -> None:
     loop.session.close()
 
 
-class MidLevelProcess:
+class MidLevelProcess(ChildProcess):
     """Starts and talks to the mid-level process (used by the control service)."""
 
     def __init__(self, cfg: MidLevelConfig) -> None:
-        ctx = mp.get_context("spawn")  # a clean interpreter: no inherited threads or sessions
-        self._conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=mid_level_process_main, args=(cfg, child), name="archer-gmpc", daemon=True)
-        self.last: dict[str, Any] = {}
-        self.realtime: dict[str, str] = {}
-        self._lock = threading.Lock()
+        super().__init__(mid_level_process_main, cfg, "archer-gmpc")
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
-        self.proc.start()
-        if not self._conn.poll(timeout_s):
-            self.proc.kill()
-            raise RuntimeError("mid-level process did not start")
-        first = self._conn.recv()
-        if "error" in first:
-            self.proc.join(1.0)
-            raise RuntimeError(f"mid-level process failed: {first['error']}")
-        self.realtime = first.get("realtime", {})
-
-    def poll(self) -> list[dict[str, Any]]:
-        out = []
-        try:
-            while self._conn.poll():
-                rep = self._conn.recv()
-                out.append(rep)
-                self.last = rep
-        except (EOFError, OSError):
-            pass
-        return out
-
-    def stop(self) -> dict[str, Any]:
-        with self._lock:
-            try:
-                self._conn.send("stop")
-            except (BrokenPipeError, OSError):
-                pass
-        deadline = time.monotonic() + STOP_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if self._conn.poll(0.1):
-                try:
-                    rep = self._conn.recv()
-                except EOFError:
-                    break
-                self.last = rep
-                if rep.get("final"):
-                    break
-        self.proc.join(STOP_TIMEOUT_S)
-        if self.proc.is_alive():
-            self.proc.kill()
-        return self.last
-
-    @property
-    def alive(self) -> bool:
-        return self.proc.is_alive()
+        super().start(timeout_s)
