@@ -21,6 +21,23 @@ async def wait_for(predicate, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
         await asyncio.sleep(POLL_S)
 
 
+async def with_running_service(service, endpoint: str, body) -> None:
+    """Run ``service``; once it runs and its subscriptions reach the router, ``await
+    body(session)`` with a peer session of the test's; then stop the service, whatever happens."""
+    from services.runtime.zenoh_session import open_session
+
+    task = asyncio.create_task(service.run())
+    session = open_session(endpoint, "peer")
+    try:
+        await wait_for(lambda: service.state == "running")
+        await asyncio.sleep(0.3)  # the subscriptions reach the router
+        await body(session)
+    finally:
+        service.stopping.set()
+        await asyncio.wait_for(task, 10.0)
+        session.close()
+
+
 EMULATE = [sys.executable, "-m", "services.cli.main", "emulate"]
 
 

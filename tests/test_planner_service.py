@@ -17,7 +17,7 @@ from onboard.topics import TOPICS
 from services.runtime.peers import query_status
 from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
 from services.runtime.zenoh_session import open_session
-from helpers import wait_for
+from helpers import wait_for, with_running_service
 
 NS = "archer/planner-test"
 PARAMS = PlannerParams(nodes=900, tube=0.05)
@@ -126,39 +126,36 @@ def test_perceived_obstacles_commit_the_robot_only_over_ground_the_grid_saw_free
     async def scenario() -> None:
         service = PlannerService(ns=ns, endpoint=zenoh_router, params={"planner": PARAMS}, robot_radius=ROBOT_RADIUS,
                                  cache_dir=tmp_path)
-        task = asyncio.create_task(service.run())
-        client = open_session(zenoh_router, "peer")
         refs: list[m.ComReference] = []
-        sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
-        stop_state = asyncio.Event()
-        feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
-        try:
-            await wait_for(lambda: service.state == "running")
-            await asyncio.sleep(0.3)
-            # perception's obstacles (unknown counts as free there) and no grid yet: hold, facing the goal
-            client.put(TOPICS["polytopes"].key(ns), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[])))
-            client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
-            await wait_for(lambda: service.status_extra()["unseen_holds"] > 5 and refs)
-            assert all(r.hold for r in refs)
-            assert any(r.yaw is not None and abs(r.yaw) < 1.0 for r in refs)
-            # the grid says the way ahead was seen free: the robot may go
-            cells = np.full((80, 80), CELL_FREE, dtype=np.uint8)
-            grid = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=1, resolution=0.05, origin=(-2.0, -2.0), cells=cells)
-            client.put(TOPICS["grid"].key(ns), encode_grid(grid))
-            await wait_for(lambda: any(not r.hold for r in refs))
-            # a grid with nothing seen: held again
-            n = len(refs)
-            unseen = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=2, resolution=0.05, origin=(-2.0, -2.0),
-                                   cells=np.full((80, 80), CELL_UNKNOWN, dtype=np.uint8))
-            client.put(TOPICS["grid"].key(ns), encode_grid(unseen))
-            await wait_for(lambda: len(refs) > n + 3 and refs[-1].hold)
-        finally:
-            stop_state.set()
-            await feeder
-            sub.undeclare()
-            service.stopping.set()
-            await asyncio.wait_for(task, 10.0)
-            client.close()
+
+        async def drive(client) -> None:
+            sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
+            stop_state = asyncio.Event()
+            feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
+            try:
+                # perception's obstacles (unknown counts as free there) and no grid yet: hold, facing the goal
+                client.put(TOPICS["polytopes"].key(ns), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[])))
+                client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
+                await wait_for(lambda: service.status_extra()["unseen_holds"] > 5 and refs)
+                assert all(r.hold for r in refs)
+                assert any(r.yaw is not None and abs(r.yaw) < 1.0 for r in refs)
+                # the grid says the way ahead was seen free: the robot may go
+                cells = np.full((80, 80), CELL_FREE, dtype=np.uint8)
+                grid = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=1, resolution=0.05, origin=(-2.0, -2.0), cells=cells)
+                client.put(TOPICS["grid"].key(ns), encode_grid(grid))
+                await wait_for(lambda: any(not r.hold for r in refs))
+                # a grid with nothing seen: held again
+                n = len(refs)
+                unseen = OccupancyGrid(stamp_ns=time.monotonic_ns(), seq=2, resolution=0.05, origin=(-2.0, -2.0),
+                                       cells=np.full((80, 80), CELL_UNKNOWN, dtype=np.uint8))
+                client.put(TOPICS["grid"].key(ns), encode_grid(unseen))
+                await wait_for(lambda: len(refs) > n + 3 and refs[-1].hold)
+            finally:
+                stop_state.set()
+                await feeder
+                sub.undeclare()
+
+        await with_running_service(service, zenoh_router, drive)
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
 

@@ -20,6 +20,7 @@ from onboard.topics import TOPICS
 from services.runtime.peers import live_services
 from services.recorder import PART_SUFFIX, RecorderService, SeqStats, file_metadata, read_recording
 from services.runtime.zenoh_session import open_session
+from helpers import with_running_service
 
 NS = "archer/rectest"
 START_TIMEOUT_S = 20.0
@@ -80,18 +81,12 @@ def test_recorder_rotates_into_finished_files_with_schemas(tmp_path, zenoh_route
 
     async def scenario() -> RecorderService:
         rec = RecorderService(ns=NS, endpoint=zenoh_router, params={"recorder": params})
-        task = asyncio.create_task(rec.run())
-        session = open_session(zenoh_router, "peer")
-        try:
-            while rec.state != "running":
-                await asyncio.sleep(0.02)
-            await asyncio.sleep(0.3)  # subscription reaches the router
+
+        async def publish(session: zenoh.Session) -> None:
             await asyncio.to_thread(_publish, session, seqs, 0.005, 200)  # one stamp MCAP cannot store
             await asyncio.sleep(0.3)
-        finally:
-            rec.stopping.set()
-            await asyncio.wait_for(task, 10.0)
-            session.close()
+
+        await with_running_service(rec, zenoh_router, publish)
         return rec
 
     rec = asyncio.run(asyncio.wait_for(scenario(), 60))

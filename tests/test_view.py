@@ -29,6 +29,7 @@ from onboard.topics import TOPICS, namespace
 from robot_description.params import body_shapes
 from services.runtime.peers import live_services
 from services.runtime.zenoh_session import open_session
+from helpers import with_running_service
 from services.scene import BODY_FRAME, TF_CHANNEL, WORLD_FRAME, RobotDrawing, scene_channel
 
 NS = "archer/viewtest"
@@ -369,13 +370,8 @@ def test_the_recorder_writes_the_scene_with_foxglove_schemas_beside_the_raw_topi
 
     async def scenario() -> RecorderService:
         rec = RecorderService(ns=NS, endpoint=zenoh_router, params={"recorder": params, "view": ViewParams()})
-        task = asyncio.create_task(rec.run())
-        session = open_session(zenoh_router, "peer")
-        try:
-            while rec.state != "running":
-                await asyncio.sleep(0.02)
-            await asyncio.sleep(0.3)  # the subscription reaches the router
 
+        async def publish_states(session: zenoh.Session) -> None:
             def publish() -> None:
                 pub = session.declare_publisher(TOPICS["state"].key(NS), reliability=zenoh.Reliability.RELIABLE,
                                                 congestion_control=zenoh.CongestionControl.BLOCK)
@@ -386,11 +382,10 @@ def test_the_recorder_writes_the_scene_with_foxglove_schemas_beside_the_raw_topi
 
             await asyncio.to_thread(publish)
             await asyncio.sleep(0.3)
-        finally:
-            rec.stopping.set()
-            await asyncio.wait_for(task, 10.0)
-            session.close()
+
+        await with_running_service(rec, zenoh_router, publish_states)
         return rec
+
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
     schemas, tfs, states, robots = _scene_and_states(sorted(tmp_path.glob("*.mcap")))
