@@ -353,6 +353,27 @@ class Ramp(Scenario):
 
 
 @register
+class BlindSide(Scenario):
+    """The goal lies to the camera's side (it looks along +x at the start), behind a post it
+    cannot see from there: what the first plans cross is ground not yet seen (issue 16's
+    collision: the robot moved sideways into an unseen tree)."""
+
+    name = "blind-side"
+    description = "a goal 3 m to the camera's side, behind a post it cannot see from the start"
+    default_duration_s = 30.0
+    POST_CENTRE = (0.0, -1.5)
+    POST_RADIUS = 0.3  # [m] circumradius of the hexagonal post
+    GOAL = (0.0, -3.0)
+
+    def setup(self, obstacles: int | None) -> None:
+        (cx, cy), r = self.POST_CENTRE, self.POST_RADIUS
+        corners = tuple((cx + r * math.cos(a), cy + r * math.sin(a)) for a in np.arange(6) * (math.pi / 3))
+        self.obstacles = [Obstacle(corners)]
+        self.goal_xy = self.GOAL
+        self.segments = straight_reference(self.start, self.goal_xy)
+
+
+@register
 class Forest(Scenario):
     name = "forest"
     description = ("random convex obstacles between the start and a goal beyond them (--obstacles N; a count "

@@ -97,24 +97,8 @@ def test_the_heading_turns_the_short_way_at_a_bounded_rate() -> None:
     assert turn_toward(-3.0, 3.0, 0.1) == pytest.approx(-3.1)
 
 
-class BlindSide(sc.Scenario):
-    """The goal lies to the side of the camera (it looks along +x), behind a post it cannot see
-    from the start: the blind spot of issue 16 (the robot moved sideways into an unseen tree)."""
-
-    name = "blind-side"
-    default_duration_s = 30.0
-
-    def setup(self, obstacles: int | None) -> None:
-        cx, cy, r = 0.0, -1.5, 0.3
-        corners = [(cx + r * math.cos(a), cy + r * math.sin(a)) for a in np.arange(6) * (math.pi / 3)]
-        self.obstacles = [sc.Obstacle(tuple(corners))]
-        self.goal_xy = (0.0, -3.0)
-        self.segments = sc.straight_reference(self.start, self.goal_xy)
-
-
-def test_the_robot_looks_before_it_steps_sideways_and_goes_round_a_post_it_could_not_see(monkeypatch) -> None:
-    monkeypatch.setitem(sc.SCENARIOS, BlindSide.name, BlindSide)
-    runner = LockstepRunner(RunConfig(BlindSide.name, seed=0, perception="depth", estimator="truth", planner="graph"))
+def test_the_robot_looks_before_it_steps_sideways_and_goes_round_a_post_it_could_not_see() -> None:
+    runner = LockstepRunner(RunConfig(sc.BlindSide.name, seed=0, perception="depth", estimator="truth", planner="graph"))
     result = runner.run()
     m = result.metrics
     assert m["collisions"] == 0 and m["falls"] == 0
