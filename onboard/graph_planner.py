@@ -2,7 +2,7 @@
 
 Planning model: the CoM double integrator in the horizontal plane, state
 ``x = [px, py, vx, vy]`` (world frame, metres and m/s), input the CoM acceleration,
-bounded per axis (``PlannerParams.v_max``, ``a_max``).
+bounded (speed: ``PlannerParams.v_max``, an octagon; acceleration: ``a_max`` per axis).
 
 Pipeline (Algorithm 3):
 
@@ -81,10 +81,12 @@ from onboard.bezier_graph import (
     SearchResult,
     build_graph,
     chain_tail,
+    limit_speed,
     path_states,
     reach_scale,
     search,
     spec_from_params,
+    speed_limits,
 )
 from onboard.bezier_mpc import BezierMpc, MpcWeights
 from onboard.low_level import sample_reference
@@ -322,7 +324,7 @@ class GraphPlanner:
         if p.shape != (2,) or v.shape != (2,) or not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
             raise PlanningError("state must be finite position and velocity with at least x and y")
         # The planning model cannot start faster than its bound; the tube absorbs the rest.
-        return np.concatenate([p, np.clip(v, -self.params.v_max, self.params.v_max)])
+        return np.concatenate([p, limit_speed(v, self.params.v_max)])
 
     def _connect(self, x: np.ndarray, outgoing: bool, margin: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nodes joined to the virtual state ``x`` by a free segment: (nodes, costs, control points)."""
@@ -529,9 +531,7 @@ class GraphPlanner:
             prm = self.params
             model = reach.double_integrator(DIM)
             inf = math.inf
-            limits = reach.box_limits(model, prm.a_max, [-inf, -inf, -prm.v_max, -prm.v_max],
-                                      [inf, inf, prm.v_max, prm.v_max], tube=self.tube, tube_norm=2)
-            test = reach.BezierReachability(model, limits, prm.mpc_dt)
+            test = reach.BezierReachability(model, speed_limits(prm.a_max, prm.v_max, tube=self.tube, tube_norm=2), prm.mpc_dt)
             self._mpc = BezierMpc(test, prm.mpc_horizon, MPC_WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
                                   init_radius=self._init_radius(),
                                   max_planes=max(planes, prm.halfspaces), terminal="equal")

@@ -474,7 +474,7 @@ class PlannerParams(_Section):
     ``[x, y, vx, vy]`` (world frame). Limits are per axis (infinity norm).
     """
 
-    v_max: Annotated[float, above(0.0, 5.0)] = 0.35  # [m/s] planned CoM speed bound per axis (the twin's hopper cruises at 0.25)
+    v_max: Annotated[float, above(0.0, 5.0)] = 0.35  # [m/s] planned CoM speed bound in every direction (an octagon: onboard.bezier_graph.speed_limits); the twin's hopper cruises at 0.25
     a_max: Annotated[float, above(0.0, 20.0)] = 0.5  # [m/s^2] planned CoM acceleration (virtual input) bound per axis
     segment_s: Annotated[float, above(0.0, 60.0)] = 2.0  # [s] duration of one graph edge (a whole number of mpc_dt)
     nodes: Annotated[int, within(1, 1_000_000)] = 5000  # graph nodes over a given planning region; at most this many in an automatic one

@@ -15,6 +15,7 @@ from onboard import collision as col
 from onboard import polygons as pg
 from onboard import bezier_graph as bg
 from onboard import graph_planner as gp
+from onboard import reachability as reach
 from onboard.params import PlannerParams
 
 PARAMS = PlannerParams(nodes=1500)
@@ -96,7 +97,26 @@ def test_grid_sampling_has_the_requested_node_count_and_resting_nodes():
     nodes = bg.sample_nodes(spec)
     assert nodes.shape == (700, 4)
     assert np.any(np.all(nodes[:, 2:] == 0.0, axis=1))
-    assert np.all(np.abs(nodes[:, 2:]) <= spec.v_max)
+    assert np.all(bg.within_speed_bound(nodes[:, 2:], spec.v_max))
+    diagonal = nodes[np.abs(np.abs(nodes[:, 2]) - np.abs(nodes[:, 3])) < 1e-12]
+    assert np.max(np.hypot(diagonal[:, 2], diagonal[:, 3])) == pytest.approx(spec.v_max)  # the box's corners pulled in
+
+
+def test_the_planned_speed_is_bounded_in_every_direction_not_per_axis():
+    spec = bg.spec_from_params(dataclasses.replace(PARAMS, rest_grid=0.0), (0.0, 0.0, 3.0, 2.0), nodes=4000)
+    speeds = np.hypot(*bg.sample_nodes(spec)[:, 2:].T)
+    corner = spec.v_max / math.cos(math.pi / 8)  # the octagon's vertices
+    assert np.max(speeds) <= corner * (1 + 1e-12) and np.max(speeds) > 0.95 * corner  # the octagon filled
+    assert np.allclose(bg.limit_speed(np.array([1.0, 1.0]), spec.v_max), [spec.v_max * math.sqrt(0.5)] * 2)
+    assert np.array_equal(bg.limit_speed(np.array([0.1, -0.05]), spec.v_max), [0.1, -0.05])
+    # every edge's velocity control points stay in the octagon, diagonal included
+    test = spec.reachability()
+    model, inf, v = test.model, math.inf, spec.v_max
+    box = reach.BezierReachability(model, reach.box_limits(model, spec.a_max, [-inf, -inf, -v, -v], [inf, inf, v, v]), spec.tau)
+    x0 = np.array([0.0, 0.0, 0.0, 0.0])
+    fast_diagonal = np.array([0.4, 0.4, 0.3, 0.3])  # ends at 0.42 m/s > v_max
+    assert box.test(x0, fast_diagonal) and not test.test(x0, fast_diagonal)
+    assert test.test(x0, np.array([0.3, 0.3, 0.2, 0.2]))
 
 
 def test_rest_lattice_joins_neighbours_by_straight_segments():
@@ -108,7 +128,7 @@ def test_rest_lattice_joins_neighbours_by_straight_segments():
     # Each lattice node reaches its lattice neighbours 0.25 m away; those segments are straight.
     sel = np.isin(g.src, lattice) & np.isin(g.dst, lattice)
     steps = g.nodes[g.dst[sel], :2] - g.nodes[g.src[sel], :2]
-    assert np.any(np.all(np.isclose(steps, [0.25, 0.0]), axis=1)) and np.any(np.all(np.isclose(steps, [0.25, 0.25]), axis=1))
+    assert np.any(np.all(np.isclose(steps, [0.25, 0.0]), axis=1)) and np.any(np.all(np.isclose(steps, [0.0, -0.25]), axis=1))
     ctrl = g.control_points[sel]
     d = ctrl[:, -1] - ctrl[:, 0]
     cross = d[:, None, 0] * (ctrl[..., 1] - ctrl[:, :1, 1]) - d[:, None, 1] * (ctrl[..., 0] - ctrl[:, :1, 0])

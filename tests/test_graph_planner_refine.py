@@ -44,11 +44,7 @@ def _segments(ref) -> list[tuple[float, float, np.ndarray]]:
 
 
 def _mpc_test() -> reach.BezierReachability:
-    model = reach.double_integrator(2)
-    inf = math.inf
-    limits = reach.box_limits(model, PARAMS.a_max, [-inf, -inf, -PARAMS.v_max, -PARAMS.v_max],
-                              [inf, inf, PARAMS.v_max, PARAMS.v_max])
-    return reach.BezierReachability(model, limits, PARAMS.mpc_dt)
+    return reach.BezierReachability(reach.double_integrator(2), bg.speed_limits(PARAMS.a_max, PARAMS.v_max), PARAMS.mpc_dt)
 
 
 def test_refined_reference_is_continuous_feasible_and_clear(graph):

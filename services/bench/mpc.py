@@ -22,6 +22,7 @@ import time
 import numpy as np
 
 from onboard import reachability as rc
+from onboard.bezier_graph import speed_limits
 from onboard.bezier_mpc import BezierMpc, MpcWeights
 from onboard.params import PlannerParams
 
@@ -108,8 +109,7 @@ def _mpc_loop(mpc: BezierMpc, prm: PlannerParams, centres: np.ndarray, ticks: in
 def _build_mpc(prm: PlannerParams, backend: str, max_iter: int) -> BezierMpc:
     inf = math.inf
     md = rc.double_integrator(2)
-    lim = rc.box_limits(md, prm.a_max, [-inf, -inf, -prm.v_max, -prm.v_max], [inf, inf, prm.v_max, prm.v_max], tube=prm.tube, tube_norm=2)
-    reach = rc.BezierReachability(md, lim, prm.mpc_dt)
+    reach = rc.BezierReachability(md, speed_limits(prm.a_max, prm.v_max, tube=prm.tube, tube_norm=2), prm.mpc_dt)
     return BezierMpc(
         reach, prm.mpc_horizon, WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
         init_radius=[prm.tube, prm.tube, 0.0, 0.0], max_planes=prm.halfspaces, backend=backend, max_iter=max_iter,
@@ -117,10 +117,8 @@ def _build_mpc(prm: PlannerParams, backend: str, max_iter: int) -> BezierMpc:
 
 
 def _edge_rate(prm: PlannerParams, nodes: int, pairs: int, seed: int) -> dict[str, float]:
-    inf = math.inf
     md = rc.double_integrator(2)
-    lim = rc.box_limits(md, prm.a_max, [-inf, -inf, -prm.v_max, -prm.v_max], [inf, inf, prm.v_max, prm.v_max], tube=prm.tube)
-    reach = rc.BezierReachability(md, lim, prm.segment_s)
+    reach = rc.BezierReachability(md, speed_limits(prm.a_max, prm.v_max, tube=prm.tube), prm.segment_s)
     rng = np.random.default_rng(seed)
     side = math.sqrt(nodes) * 0.3  # about the planner's node density
     X = rng.uniform([0, 0, -prm.v_max, -prm.v_max], [side, side, prm.v_max, prm.v_max], size=(nodes, 4))

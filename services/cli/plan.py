@@ -6,7 +6,7 @@ SCENE (one JSON object)::
      "obstacles": [[[x, y], ...], ...],                 # convex polygons [m]
      "start": [x, y], "goal": [x, y],                   # [m]
      "start_velocity": [vx, vy],                        # optional [m/s], default at rest
-     "limits": {"v_max": .., "a_max": ..},              # optional [m/s], [m/s^2] per axis
+     "limits": {"v_max": .., "a_max": ..},              # optional [m/s] speed (octagon), [m/s^2] per axis
      "tube": .., "robot_radius": ..,                    # optional [m]; radius default from the MJCF
      "nodes": .., "seed": ..,                           # optional graph size and sampling seed
      "densify_budget_s": ..}                            # optional [s] densification after a failed search
