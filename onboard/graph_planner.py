@@ -122,6 +122,7 @@ class PlannerStats:
     densify_plans: int = 0  # plans whose search failed and densified the graph (onboard.densify)
     densify_rounds: int = 0  # densification rounds that added nodes
     densify_nodes: int = 0  # nodes they added
+    frontier_plans: int = 0  # free mode: plans that end at a frontier, the goal being beyond the known free cells
 
 
 class GraphPlanner:
@@ -166,6 +167,7 @@ class GraphPlanner:
         self._reports: list[msgs.ContractReport] = []
         self.seen: SeenSpace | None = None  # None: the world is known (ground truth), nothing to gate
         self.require_seen = False
+        self.frontier_goal: np.ndarray | None = None  # free mode: where the current path ends short of the goal
 
     # --- inputs ----------------------------------------------------------------------
 
@@ -345,12 +347,19 @@ class GraphPlanner:
 
     def start_margin(self, position: np.ndarray) -> float:
         """Clearance the segments leaving the start must keep: the margin, or, when the
-        robot already stands closer to an obstacle (its tube was exceeded), what it has
+        robot already stands closer to an obstacle (its tube was exceeded) or nearer the
+        edge of its free cell (the cells were fitted anew around it), what it has
         now -- so that it can leave (never below the robot radius: that is a collision)."""
-        if self.mode != "obstacles" or len(self.obstacles) == 0:
-            return self.margin
         p = np.asarray(position, dtype=float)[:2]
-        have = float(col.samples_clearance(p[None, None, :], self.obstacles, reach=self.margin)[0])
+        if self.mode == "free":
+            if len(self.cells) == 0:
+                return self.margin
+            inside = self.cells.face_offsets - self.cells.normals @ p  # per face: distance inside it
+            have = float(np.max(np.minimum.reduceat(inside, self.cells.offsets[:-1])))
+        elif len(self.obstacles) == 0:
+            return self.margin
+        else:
+            have = float(col.samples_clearance(p[None, None, :], self.obstacles, reach=self.margin)[0])
         if have >= self.margin:
             return self.margin
         return max(have - START_SLACK, self.robot_radius)
@@ -432,10 +441,55 @@ class GraphPlanner:
                 (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
                 & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
             goal_costs[at_goal] = 0.0
-        result = search(graph, self.free, x0, np.concatenate(start_nodes).astype(np.int64),
-                        np.concatenate(start_costs), goal_state, goal_costs,
-                        self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
+        all_starts = np.concatenate(start_nodes).astype(np.int64)
+        all_start_costs = np.concatenate(start_costs)
+        result = None
+        if len(g_nodes) or len(at_goal) or N in start_edge_ctrl:  # else nothing to search to
+            result = search(graph, self.free, x0, all_starts, all_start_costs, goal_state, goal_costs,
+                            self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
+        self.frontier_goal = None
+        if result is None and self.mode == "free":
+            via_graph = all_starts < N  # the direct segment to the goal is not free, or there would be a path
+            result = self._search_frontier(x0, all_starts[via_graph], all_start_costs[via_graph],
+                                           {n: c for n, c in start_edge_ctrl.items() if n < N}, goal_state, extra)
         return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
+
+    def frontier_costs(self, position: np.ndarray) -> np.ndarray:
+        """Per graph node, the cost of ending a path there toward a goal beyond the known free
+        cells: ``frontier_weight`` times its distance to the goal for nodes at rest within the
+        margin plus ``frontier_reach`` of a frontier cell (:meth:`SeenSpace.frontier`) at least
+        ``frontier_min`` from ``position``; inf elsewhere, and everywhere without a seen space."""
+        assert self.graph is not None and self.goal is not None
+        prm = self.params
+        nodes = self.graph.nodes
+        costs = np.full(len(nodes), np.inf)
+        if self.seen is None:
+            return costs
+        pts = self.seen.frontier()
+        pts = pts[np.hypot(*(pts - np.asarray(position, dtype=float)[:2]).T) >= prm.frontier_min]
+        if len(pts) == 0:
+            return costs
+        rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))
+        d, _ = cKDTree(pts).query(nodes[rest, :2], distance_upper_bound=self.margin + prm.frontier_reach)
+        near = rest[np.isfinite(d)]
+        costs[near] = prm.frontier_weight * np.hypot(*(nodes[near, :2] - self.goal).T)
+        return costs
+
+    def _search_frontier(self, x0: np.ndarray, start_nodes: np.ndarray, start_costs: np.ndarray,
+                         start_edge_ctrl: dict[int, np.ndarray], goal_state: np.ndarray, extra: float) -> SearchResult | None:
+        """Free mode, no path to the goal in the known cells: the path to the frontier node of
+        least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
+        heuristic admissible, every frontier cost being at least it)."""
+        assert self.graph is not None and self.free is not None
+        costs = self.frontier_costs(x0[:2])
+        if not np.isfinite(costs).any() or len(start_nodes) == 0:
+            return None
+        result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
+                        start_edge_ctrl, {}, extra)
+        if result is not None:
+            self.frontier_goal = result.states[-1, :2].copy()
+            self.stats.frontier_plans += 1
+        return result
 
     def _settled(self) -> bool:
         """The same world, goal and graph were densified to the finest level in vain: that answer
@@ -500,11 +554,12 @@ class GraphPlanner:
         camera its way, when the robot's footprint stays on seen-free ground along its first
         ``commit_s`` (the tube's clearance from what was seen occupied is the cut's); else hop in
         place where the robot is, turned that way, until the camera has seen it
-        (``stats.unseen_holds``)."""
-        if not self.require_seen:  # a world given whole: no camera to point, nothing unseen
+        (``stats.unseen_holds``). Free cells are seen free by construction: in free mode ``ref``
+        only gains the heading."""
+        if not self.require_seen and self.mode != "free":  # a world given whole: no camera to point, nothing unseen
             return ref
-        yaw = self.heading(ref, position, stamp_ns)
-        if not ref.hold:
+        yaw = self.heading(ref, position, stamp_ns)  # free cells are seen free, but the camera must find more
+        if self.require_seen and not ref.hold:
             prm = self.params
             t0 = (stamp_ns - ref.t_ref_ns) * 1e-9
             steps = int(math.ceil(prm.commit_s / prm.commit_step_s))
@@ -580,8 +635,7 @@ class GraphPlanner:
             shift = j0 - last[0]
             if 0 <= shift <= N:
                 warm[: N + 1 - shift] = last[1][shift:]
-        planes_needed = int(np.max(np.diff(self.cells.offsets), initial=0)) if self.mode == "free" else prm.halfspaces
-        mpc = self._ensure_mpc(planes_needed)
+        mpc = self._ensure_mpc(prm.halfspaces)
         warm_ctrl = mpc.reach.curve(warm[:-1], warm[1:])
         hs = self.segment_halfspaces(warm_ctrl, self.robot_radius, mpc.max_planes)  # the MPC adds the tube
         self.stats.refines += 1
@@ -659,12 +713,20 @@ class GraphPlanner:
         """``(S, count, 3)`` halfspaces ``a . x <= b`` keeping each segment ``margin`` [m] clear.
 
         Obstacle mode: separating planes to the nearest obstacles. Free mode: the faces
-        of the cell holding the segment (``count`` must cover them; the rest padded).
+        of the cell holding the segment, its ``count`` nearest when it has more (as the
+        nearest obstacles: a far face is not what a short segment runs into, and every
+        face costs the MPC ``p + 1`` rows per segment; the exact cut checks the answer
+        against them all); the rest padded.
         """
         S = len(ctrl)
         if self.mode == "obstacles":
             return col.separating_halfspaces(ctrl, self.obstacles, margin, count, self.params.halfspace_reach)
-        cells = col.free_cell_of(col.hull_set(ctrl), self.cells, 0.0)
+        hulls = col.hull_set(ctrl)
+        # a cell holding the segment margin deep (as the cut found the graph path), else any holding it
+        cells = col.free_cell_of(hulls, self.cells, self.margin)
+        shallow = cells < 0
+        if shallow.any():
+            cells[shallow] = col.free_cell_of(hulls, self.cells, 0.0, active=shallow)[shallow]
         out = np.zeros((S, count, 3))
         out[:, :, 2] = np.inf
         for s, c in enumerate(cells):
@@ -673,7 +735,9 @@ class GraphPlanner:
             a = self.cells.normals[self.cells.offsets[c]:self.cells.offsets[c + 1]]
             b = self.cells.face_offsets[self.cells.offsets[c]:self.cells.offsets[c + 1]] - margin
             if len(a) > count:
-                raise PlanningError(f"free cell {c} has {len(a)} faces, more than {count} planes")
+                slack = np.min(b[:, None] - a @ ctrl[s].T, axis=1)  # nearest control point's room to each face
+                keep = np.argsort(slack, kind="stable")[:count]
+                a, b = a[keep], b[keep]
             out[s, :len(a), :2] = a
             out[s, :len(a), 2] = b
         return out

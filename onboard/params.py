@@ -518,6 +518,12 @@ class PlannerParams(_Section):
     commit_step_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] reference samples checked along it (one cell at cruise speed)
     heading_lookahead_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] the camera points at where the reference is this far ahead (or a multiple, when that is near)
     heading_min_m: Annotated[float, within(0.0, 10.0)] = 0.15  # [m] nearer than this the heading is left alone (no turning on the spot at the goal)
+    # free mode (plans inside perceived free cells only): when no path in them reaches the goal, the
+    # path ends at rest near a frontier of the seen space (onboard.seen_space), the one best by path cost
+    # plus frontier_weight times its straight-line distance to the goal; replans move it as the map grows
+    frontier_reach: Annotated[float, within(0.0, 10.0)] = 0.3  # [m] a node at rest within the margin plus this of a frontier cell may end such a path
+    frontier_min: Annotated[float, within(0.0, 100.0)] = 1.0  # [m] frontier cells nearer the robot are ignored: beside or behind it the camera cannot see them, so standing by them would never resolve them
+    frontier_weight: Annotated[float, within(1.0, 100.0)] = 2.0  # [-] cost per metre from a frontier to the goal: at least 1 (the search's heuristic stays admissible), above a known path's cost per metre (1 + time_weight / cruise speed ~ 1.6) so progress toward the goal is worth its path
     nice: Annotated[int, within(0, 19)] = 10  # the planner process lowers its CPU priority by this much: it must never starve the 1 kHz loops
 
 
@@ -561,6 +567,12 @@ class PerceptionParams(_Section):
     decay_half_life_s: Annotated[float, above(0.0, 86_400.0)] = 10.0  # evidence of cells not seen in a view fades to unknown
     carve_range_m: Annotated[float, within(0.0, 100.0)] = 4.0  # ground seen along a ray up to this range is free
     footprint_radius_m: Annotated[float, within(0.0, 10.0)] = 0.15  # the robot stands here: free
+    # free mode only: the ground around where the robot stands or stood is free, out to this radius, where in
+    # sight of it past nothing seen occupied. The camera never sees it: ground within ~0.35 m ahead (its near
+    # blind zone) and beside the robot. Twice the planner's margin (robot radius 0.13 + tube 0.1): the
+    # corridor between the unseen ground beside the robot, from it to what the camera saw ahead, must be
+    # wider than the margin on both sides for a plan to leave through it
+    stand_radius_m: Annotated[float, within(0.0, 10.0)] = 0.5
     recenter_distance_m: Annotated[float, above(0.0, 1000.0)] = 2.0  # re-centre the grid when the robot is this far off centre
     # convex free cells (Algorithm 4)
     cluster_cells: Annotated[int, within(1, 10_000_000)] = 2500  # free cells per K-means cluster (sets k)
@@ -573,6 +585,12 @@ class PerceptionParams(_Section):
     residual_min_cells: Annotated[int, within(1, 10_000_000)] = 12  # missed pieces smaller than this are left alone
     repair_rounds: Annotated[int, within(0, 100)] = 2  # connectivity repairs between groups of polygons
     repair_radius_cells: Annotated[float, above(0.0, 1000.0)] = 6.0  # circle metric of repair and must-cover fits
+    # free mode: the robot gets cells of its own, fitted around it, so that plans can leave it: one in a circle
+    # (it stands as deep in it as its clearance allows) and, seen through the gap between its blind sides,
+    # corridors along ellipses of start_fit_aspect in start_fit_directions directions over a half turn
+    start_fit_radius_m: Annotated[float, within(0.0, 100.0)] = 2.0  # [m] the circle's radius and the ellipses' long half axis (0: no own cells)
+    start_fit_directions: Annotated[int, within(0, 64)] = 4  # ellipses, their long axes evenly spread over 180 deg
+    start_fit_aspect: Annotated[float, within(1.0, 100.0)] = 4.0  # long over short half axis: faces near the robot's sides run along the axis
     # convex obstacles
     obstacle_method: Literal["hull", "rect"] = "hull"  # "hull" or "rect" (minimum-area rectangle, as the thesis)
     obstacle_solidity_min: Probability = 0.6  # cells / hull area below which a blob is split

@@ -12,6 +12,11 @@ body lies the camera's blind zone (cells there are never seen, from anywhere).
 
     space = SeenSpace.from_grid(grid)
     k = space.first_unseen(samples_xy, radius, here_xy, own_radius)   # None: all seen free
+    pts = space.frontier()                                            # where seen free meets unknown
+
+In free mode the planner plans only inside seen-free cells; when the goal lies beyond
+them it heads for the frontier (Yamauchi's frontier-based exploration): the free cells
+that border cells never seen, where going on shows the camera more.
 """
 
 from __future__ import annotations
@@ -20,25 +25,49 @@ import math
 
 import numpy as np
 
-from onboard.binary_messages import CELL_FREE, OccupancyGrid
+from onboard.binary_messages import CELL_FREE, CELL_UNKNOWN, OccupancyGrid
 
 
 class SeenSpace:
     """The cells an occupancy grid holds as free (rows along world y, columns along x)."""
 
-    def __init__(self, free: np.ndarray, resolution: float, origin: tuple[float, float]) -> None:
+    def __init__(self, free: np.ndarray, resolution: float, origin: tuple[float, float],
+                 unknown: np.ndarray | None = None) -> None:
         free = np.asarray(free, dtype=bool)
         if free.ndim != 2 or not (math.isfinite(resolution) and resolution > 0):
             raise ValueError("seen space needs a 2-D mask and a positive resolution")
         if not all(math.isfinite(v) for v in origin):
             raise ValueError("seen space origin is not finite")
+        # without an unknown mask every cell not free counts as unknown (nothing seen occupied)
+        unknown = ~free if unknown is None else np.asarray(unknown, dtype=bool)
+        if unknown.shape != free.shape:
+            raise ValueError("seen space: unknown mask and free mask differ in shape")
         self.free = free
+        self.unknown = unknown
         self.resolution = float(resolution)
         self.origin = (float(origin[0]), float(origin[1]))
+        self._frontier: np.ndarray | None = None
 
     @classmethod
     def from_grid(cls, grid: OccupancyGrid) -> SeenSpace:
-        return cls(grid.cells == CELL_FREE, grid.resolution, grid.origin)
+        return cls(grid.cells == CELL_FREE, grid.resolution, grid.origin, grid.cells == CELL_UNKNOWN)
+
+    def frontier(self) -> np.ndarray:
+        """Centres ``(K, 2)`` [m] of the free cells 8-adjacent to an unknown cell or to the
+        grid's edge (beyond it nothing is known); a cell next to one seen occupied only is not
+        a frontier: going there shows nothing new."""
+        if self._frontier is None:
+            rows, cols = self.free.shape
+            unk = np.ones((rows + 2, cols + 2), dtype=bool)  # the grid's outside is unknown
+            unk[1:-1, 1:-1] = self.unknown
+            near = np.zeros((rows, cols), dtype=bool)
+            for dr in (0, 1, 2):
+                for dc in (0, 1, 2):
+                    near |= unk[dr:dr + rows, dc:dc + cols]
+            r, c = np.nonzero(self.free & near)
+            self._frontier = np.column_stack([self.origin[0] + (c + 0.5) * self.resolution,
+                                              self.origin[1] + (r + 0.5) * self.resolution])
+        return self._frontier
 
     def first_unseen(self, points: np.ndarray, radius: float, here: np.ndarray | tuple[float, float],
                      own_radius: float) -> int | None:

@@ -27,9 +27,10 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
     def __init__(self, scenario: Scenario, robot: rd.RobotParams, params: object | None = None,
                  perception_params: PerceptionParams | None = None) -> None:
         super().__init__(scenario, robot, params)
-        self.planner.set_obstacles([])  # nothing is known before the first view
         self.loop = PerceptionLoop(perception_params or PerceptionParams())
         self.mode = self.loop.params.mode
+        # nothing is known before the first view: no obstacle, or no free cell
+        (self.planner.set_free_cells if self.mode == "free" else self.planner.set_obstacles)([])
         if self.mode == "obstacles":  # unknown counts as free there: commit only to what was seen
             self.planner.set_seen(None, required=self.planner.params.require_seen)
         self._xy: tuple[float, float] = scenario.start
@@ -50,6 +51,8 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
             verts = [p.vertices for p in polys]
             if self.mode == "free":
                 self.planner.set_free_cells(verts)
+                # not a gate (free cells are seen free): the frontier to head for when the goal is beyond them
+                self.planner.set_seen(SeenSpace.from_grid(self.loop.view.grid()), required=False)
             else:
                 self.planner.set_obstacles(verts)
                 self.planner.set_seen(SeenSpace.from_grid(self.loop.view.grid()))

@@ -25,6 +25,14 @@ Where this module departs from the thesis, and why:
   clusters lies in neither, and its polygon adds nothing but time.
 - Coverage rounds: the free cells the polygons missed (in pieces of a useful size) are
   fitted again, seeded at each piece's deepest cell, a bounded number of times.
+- The robot's own cells: with a start (the robot), polygons are fitted seeded at the
+  robot itself, whatever already covers it: one in a large circle, and a few in long
+  ellipses in evenly spread directions. The clusters' polygons may hold the robot near
+  an edge, and a plan leaving it needs the robot deep in one cell (the planner's margin)
+  that also reaches out: in the circle metric the faces are tangent at the nearest
+  blocked cells, and the unseen ground just beside the robot's blind zone makes that a
+  short wedge; in an ellipse metric those faces run along its axis, a corridor out of
+  the blind zone.
 - Connectivity repair: a multi-source search from the cells each group of overlapping
   polygons covers finds where groups meet; along the 4-connected path of free cells
   between them, a polygon seeded (circular metric) on the shared edge of two cells
@@ -370,6 +378,19 @@ def decompose_free_space(
         seeds = np.column_stack([pu[deepest], pv[deepest]])
         stats.coverage_fits += len(big)
         dec.fit_moments(_moments(at, pu, pv, n_comp)[big], params.ellipse_sigmas, seeds)
+
+    if start is not None and params.start_fit_radius_m > 0:
+        big = params.start_fit_radius_m / res
+        su = ((start[0] - origin[0]) / res, (start[1] - origin[1]) / res)
+        cell = world_to_cell(start, res, origin)
+        if cell is not None and 0 <= cell[0] < dec.rows and 0 <= cell[1] < dec.cols and target[cell]:
+            dec.fit(su, np.array([[big, 0.0], [0.0, big]]))
+            n_dir = params.start_fit_directions
+            short = big / params.start_fit_aspect
+            for k in range(n_dir):
+                c, s_ = math.cos(math.pi * k / n_dir), math.sin(math.pi * k / n_dir)
+                rot = np.array([[c, -s_], [s_, c]])
+                dec.fit(su, np.linalg.cholesky(rot @ np.diag([big * big, short * short]) @ rot.T))
 
     radius = params.repair_radius_cells
     circle = np.array([[radius, 0.0], [0.0, radius]])

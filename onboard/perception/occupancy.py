@@ -6,6 +6,15 @@ ground return in it, or a ray passing over it on its way to a return within the
 carving range). Evidence saturates at ``+-evidence_max``; cells a view does not see
 fade to unknown with a half-life, so what moved away is forgotten. The grid follows
 the robot by whole cells, so it stays aligned with the world axes.
+
+In ``free`` mode the planner may only go where the grid holds free, so the grid keeps
+what it has seen (the world of a run stands still): free evidence does not fade, and a
+cell seen free turns occupied at once when it is seen occupied (its free evidence is
+dropped, not outweighed hit by hit). The ground the robot stands on and passed over,
+out to ``stand_radius_m``, is free unless seen occupied: the camera never sees it (its
+near blind zone), yet the robot must stand inside a free cell to plan from there; only
+cells in sight of the robot are cleared, past none with any occupied evidence (even
+faded below the threshold), so an obstacle seen on its near face keeps its inside.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ class OccupancyMap:
         self.origin = (self._snap(centre[0] - half), self._snap(centre[1] - half))
         self.last_stamp_s: float | None = None
         self.views = 0
+        self.keep_free = params.mode == "free"  # see the module docstring
 
     def _snap(self, x: float) -> float:
         return math.floor(x / self.res) * self.res
@@ -106,18 +116,48 @@ class OccupancyMap:
             K.carve(float(su), float(sv), u[ray].astype(float), v[ray].astype(float),
                     labels[ray] == TRAVERSABLE, rows, cols, ground)
         seen = occ | ground
+        e = self.evidence
         if self.last_stamp_s is not None and p.decay_half_life_s > 0:
             dt = max(stamp_s - self.last_stamp_s, 0.0)
-            self.evidence[~seen] *= np.float32(0.5 ** (dt / p.decay_half_life_s))
+            fade = ~seen & (e > 0) if self.keep_free else ~seen
+            e[fade] *= np.float32(0.5 ** (dt / p.decay_half_life_s))
         self.last_stamp_s = stamp_s if self.last_stamp_s is None else max(stamp_s, self.last_stamp_s)
-        e = self.evidence
+        if self.keep_free:
+            e[occ] = np.maximum(e[occ], 0.0)
         e[occ] += p.hit_evidence
         free_now = ground & ~occ
         e[free_now] -= p.miss_evidence
         np.clip(e, -p.evidence_max, p.evidence_max, out=e)
         if footprint_xy is not None:
+            if self.keep_free:
+                self.clear_in_sight(footprint_xy, p.stand_radius_m)
             self.clear_disc(footprint_xy, p.footprint_radius_m)
         self.views += 1
+
+    def clear_in_sight(self, xy: tuple[float, float], radius: float) -> None:
+        """Set to free the cells whose centre is within ``radius`` [m] of ``xy`` [m] and in sight
+        of it: neither the cell nor one the straight line to it crosses holds any occupied
+        evidence (even faded below the threshold). An obstacle seen only on its near face
+        keeps its unseen inside: the line to it crosses that face."""
+        rows, cols = self.shape
+        cu = (xy[0] - self.origin[0]) / self.res
+        cv = (xy[1] - self.origin[1]) / self.res
+        if not (math.isfinite(cu) and math.isfinite(cv)):
+            return
+        k = radius / self.res
+        c0, c1 = max(int(cu - k) - 1, 0), min(int(cu + k) + 2, cols)
+        r0, r1 = max(int(cv - k) - 1, 0), min(int(cv + k) + 2, rows)
+        if c0 >= c1 or r0 >= r1:
+            return
+        uu, vv = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
+        disc = (uu - cu) ** 2 + (vv - cv) ** 2 <= k * k
+        tu, tv = uu[disc], vv[disc]
+        # samples every half cell along each line: none can step over a cell unseen
+        t = np.linspace(0.0, 1.0, int(math.ceil(2 * k)) + 2)
+        su = np.clip((cu + np.outer(tu - cu, t)).astype(np.intp), 0, cols - 1)
+        sv = np.clip((cv + np.outer(tv - cv, t)).astype(np.intp), 0, rows - 1)
+        clear = ~np.any(self.evidence[sv, su] > 0.0, axis=1)
+        self.evidence[tv[clear].astype(np.intp), tu[clear].astype(np.intp)] = -self.params.evidence_max
 
     def clear_disc(self, xy: tuple[float, float], radius: float) -> None:
         """Set the cells whose centre is within ``radius`` [m] of ``xy`` [m] to free."""
