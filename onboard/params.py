@@ -495,6 +495,7 @@ class PlannerParams(_Section):
     tube: Annotated[float, within(0.0, 5.0)] = 0.1  # [m] promised low-level tracking tube (CoM position); obstacles grow by it
     tube_growth: Annotated[float, within(1.0, 10.0)] = 1.1  # on a broken promise, plan with the achieved tube times this
     robot_radius: Annotated[float, within(0.0, 2.0)] = 0.0  # [m] robot footprint radius; 0: read from the MJCF
+    robot: Name = "indoor"  # MJCF variant: its footprint (unless robot_radius) and the speed it sustains cap v_max
     bounds_padding: Annotated[float, within(0.0, 100.0)] = 0.5  # [m] planning region around start, goal and obstacles (plus twice the margin)
     region_tube: Annotated[float, within(0.0, 5.0)] = 0.2  # [m] the region leaves room for a tube this large: no new graph while the tube grows to it
     bounds_quantum: Annotated[float, above(0.0, 100.0)] = 1.0  # [m] region corners snap to this grid (graph cache hits)

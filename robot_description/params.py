@@ -21,6 +21,7 @@ Variants:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import tempfile
@@ -32,6 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from onboard import zdp
+from onboard.params import PlannerParams
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 VARIANT_FILES: dict[str, str] = {
@@ -100,6 +102,7 @@ class RobotParams:
     wheel_torque_peak: float  # wheel drive peak torque [N m]
     wheel_speed_knee: float  # full torque available below this speed when driving [rad/s]
     wheel_no_load_speed: float  # no torque left when driving at this speed [rad/s]
+    hop_speed_max: float  # CoM speed it sustains hopping [m/s]; faster, the wheels saturate (MJCF numeric)
 
     def wheel_torque_available(self, speed: float, torque: float) -> float:
         """Clip a wheel torque [N m] to what the motor delivers at ``speed`` [rad/s].
@@ -173,6 +176,8 @@ def load_xml(variant: str = DEFAULT_VARIANT) -> ET.Element:
     _inline_includes(root, path.parent)
     if variant == "outdoor":
         _fuse_welded_payload(root)
+        numerics = _numerics(root)
+        numerics["hop_speed_max"].set("data", numerics["outdoor_hop_speed_max"].get("data"))
     elif variant == "sim15nm":
         numerics = _numerics(root)
         peak = numerics["sim15nm_wheel_torque_peak"].get("data")
@@ -436,7 +441,16 @@ def robot_params(variant: str = DEFAULT_VARIANT) -> RobotParams:
         wheel_torque_peak=_numeric_value(xml, "wheel_torque_peak"),
         wheel_speed_knee=_numeric_value(xml, "wheel_speed_knee"),
         wheel_no_load_speed=_numeric_value(xml, "wheel_no_load_speed"),
+        hop_speed_max=_numeric_value(xml, "hop_speed_max"),
     )
+
+
+def planner_params_for(params: PlannerParams, robot: RobotParams) -> PlannerParams:
+    """The planner's bounds within what ``robot`` does: its speed bound at most the robot's
+    sustained hopping speed (``hop_speed_max``; faster, the wheels saturate)."""
+    if params.v_max <= robot.hop_speed_max:
+        return params
+    return dataclasses.replace(params, v_max=robot.hop_speed_max)
 
 
 @functools.lru_cache(maxsize=None)

@@ -175,14 +175,16 @@ class PlannerService(Service):
     async def setup(self) -> None:
         if self.prm.nice > 0:
             lower_priority(self.prm.nice, self.log)  # graph builds and the MPC yield to the hard-rate loops
+        robot = rd.robot_params(self.prm.robot)
         radius = self._robot_radius
         if radius is None:
-            radius = self.prm.robot_radius or robot_footprint_radius()
-        self.planner = gp.GraphPlanner(self.prm, radius)
+            radius = self.prm.robot_radius or robot.footprint_radius
+        params = rd.planner_params_for(self.prm, robot)  # no faster than the robot hops
+        self.planner = gp.GraphPlanner(params, radius)
         self.planner.set_seen(None, required=self.prm.require_seen)  # nothing seen yet, no world given
         # Load every compiled kernel now, before the service reports ready: done later, it
         # would cost the robot's first seconds CPU that the hard-rate loops need.
-        await asyncio.to_thread(warm_up, self.prm, radius)
+        await asyncio.to_thread(warm_up, params, radius)
         self.state_in = self.latest("state")
         self.goal_in = self.latest("goal")
         self.polytopes_in = self.latest("polytopes")

@@ -58,7 +58,8 @@ LIVE_TWIN_PARAMS = ("seed",)  # what a running twin takes (and restarts its scen
 
 
 def make_scenario(tp: TwinParams) -> sc.Scenario:
-    return sc.make(tp.scenario, tp.seed, None if tp.obstacles < 0 else tp.obstacles)
+    return sc.make(tp.scenario, tp.seed, None if tp.obstacles < 0 else tp.obstacles,
+                   sc.cruise_speed_for(rd.robot_params(tp.variant)))
 
 
 def twin_safety(safety: SafetyLimits, variant: str) -> SafetyLimits:

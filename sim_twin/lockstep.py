@@ -104,8 +104,8 @@ class LockstepRunner:
     def __init__(self, cfg: RunConfig) -> None:
         compiled.check_fresh()
         self.cfg = cfg
-        self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles)
         self.robot = rd.robot_params(cfg.variant)
+        self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles, sc.cruise_speed_for(self.robot))
         safety = cfg.safety or SafetyLimits()
         if cfg.safety is None and cfg.variant == "sim15nm":  # the thesis's raised simulation limit
             safety = with_overrides(safety, {"wheel_torque_max": self.robot.wheel_torque_peak})

@@ -50,6 +50,7 @@ def load_spec(variant: str = DEFAULT_VARIANT) -> mujoco.MjSpec:
     if variant == "outdoor":
         _fuse_welded_payload(spec)
         spec.sensor(FOOT_TOUCH_SENSOR).objname = OUTDOOR_FOOT_CONTACT_SITE  # the tennis ball touches first
+        _numeric(spec, "hop_speed_max").data = list(_numeric(spec, "outdoor_hop_speed_max").data)
     elif variant == "sim15nm":
         peak = float(_numeric(spec, "sim15nm_wheel_torque_peak").data[0])
         _numeric(spec, "wheel_torque_peak").data = [peak]

@@ -30,6 +30,7 @@ OBSTACLE_HEIGHT = 1.0  # [m] taller than the robot's hop: it cannot hop over an 
 START_DROP = 0.05  # [m] the robot starts upright at rest with its foot this high above the ground
 GOAL_TOLERANCE = 0.10  # [m] issue 4: "arrives within 0.10 m"
 REF_SPEED = 0.25  # [m/s] cruise speed of the scenarios' own references (ASSUMPTION, hop-sized)
+CUBIC_PEAK = 1.5  # a straight reference's peak speed, in cruise speeds (straight_reference)
 WORLD_RGBA = [0.55, 0.35, 0.3, 1.0]
 
 
@@ -78,7 +79,7 @@ def _segment(t0: float, duration: float, points: list[list[float]]) -> m.BezierS
 
 def straight_reference(start: tuple[float, float], goal: tuple[float, float], t0: float = 0.0,
                        speed: float = REF_SPEED) -> list[m.BezierSegment]:
-    """A cubic from ``start`` to ``goal`` leaving and arriving at rest (peak speed 1.5 x ``speed``)."""
+    """A cubic from ``start`` to ``goal`` leaving and arriving at rest (peak speed ``CUBIC_PEAK`` x ``speed``)."""
     dist = math.dist(start, goal)
     if dist < 1e-9:
         return [_segment(t0, 1.0, [list(start)])]
@@ -127,8 +128,13 @@ class Scenario:
     description: ClassVar[str] = ""
     default_duration_s: ClassVar[float] = 20.0
 
-    def __init__(self, seed: int = 0, obstacles: int | None = None) -> None:
+    def __init__(self, seed: int = 0, obstacles: int | None = None, cruise_speed: float = REF_SPEED) -> None:
+        if not 0.0 < cruise_speed <= REF_SPEED:
+            raise ValueError(f"cruise speed {cruise_speed} m/s outside (0, {REF_SPEED}]")
         self.seed = seed
+        self.cruise_speed = cruise_speed  # [m/s] of the scenario's own reference (cruise_speed_for)
+        # a slower robot is given the time its way takes (a scenario's setup may set it exactly)
+        self.default_duration_s = type(self).default_duration_s * REF_SPEED / cruise_speed
         self.rng = np.random.default_rng(seed)
         self.start: tuple[float, float] = (0.0, 0.0)
         self.start_ground: float = 0.0  # ground height under the start [m]
@@ -201,12 +207,18 @@ def register(cls: type[Scenario]) -> type[Scenario]:
     return cls
 
 
-def make(name: str, seed: int = 0, obstacles: int | None = None) -> Scenario:
+def cruise_speed_for(robot: rd.RobotParams) -> float:
+    """The scenarios' cruise speed for ``robot``: ``REF_SPEED``, or slower where the robot's
+    sustained hopping speed (``hop_speed_max``) is under a straight reference's peak."""
+    return min(REF_SPEED, robot.hop_speed_max / CUBIC_PEAK)
+
+
+def make(name: str, seed: int = 0, obstacles: int | None = None, cruise_speed: float = REF_SPEED) -> Scenario:
     try:
         cls = SCENARIOS[name]
     except KeyError:
         raise ValueError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
-    return cls(seed=seed, obstacles=obstacles)
+    return cls(seed=seed, obstacles=obstacles, cruise_speed=cruise_speed)
 
 
 @register
@@ -226,7 +238,7 @@ class Setpoint(Scenario):
     def setup(self, obstacles: int | None) -> None:
         heading = float(self.rng.uniform(-math.pi, math.pi)) if self.seed else 0.0
         self.goal_xy = (self.DISTANCE * math.cos(heading), self.DISTANCE * math.sin(heading))
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
 
 
 @register
@@ -241,7 +253,7 @@ class Square(Scenario):
         s = self.SIDE
         corners = [(0.0, 0.0), (s, 0.0), (s, s), (0.0, s)]
         pts = corners * self.LAPS + [corners[0]]
-        self.segments = polyline_reference(pts, speed=REF_SPEED)
+        self.segments = polyline_reference(pts, speed=self.cruise_speed)
         self.default_duration_s = self.segments[-1].t0 + self.segments[-1].duration + 4.0
 
 
@@ -323,7 +335,7 @@ class Step(Scenario):
         self.terrain = [("step", dict(type=mujoco.mjtGeom.mjGEOM_BOX, size=[2.0, 2.0, h / 2],
                                       pos=[self.EDGE + 2.0, 0.0, h / 2]))]
         self.goal_xy = (self.EDGE + 0.9, 0.0)
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
 
 
 @register
@@ -349,7 +361,7 @@ class Ramp(Scenario):
                           quat=[math.cos(a / 2), 0.0, math.sin(a / 2), 0.0])),
         ]
         self.goal_xy = (self.TOP + L + 0.8, 0.0)
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
 
 
 @register
@@ -370,7 +382,7 @@ class BlindSide(Scenario):
         corners = tuple((cx + r * math.cos(a), cy + r * math.sin(a)) for a in np.arange(6) * (math.pi / 3))
         self.obstacles = [Obstacle(corners)]
         self.goal_xy = self.GOAL
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
 
 
 @register
@@ -408,8 +420,8 @@ class Forest(Scenario):
         self.obstacles = placed
         self.goal_xy = (round(region[0][1] + self.GOAL_BEYOND, 6), 0.0)
         # the default duration covers the default walk; a grown field's longer walk takes longer
-        self.default_duration_s = type(self).default_duration_s * self.goal_xy[0] / (self.REGION[0][1] + self.GOAL_BEYOND)
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.default_duration_s = self.default_duration_s * self.goal_xy[0] / (self.REGION[0][1] + self.GOAL_BEYOND)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
 
     def _place(self, count: int, region: tuple[tuple[float, float], tuple[float, float]]) -> list[Obstacle] | None:
         """``count`` obstacles in ``region`` at least ``GAP`` apart, or None when they do not fit."""
@@ -464,4 +476,4 @@ class Maze(Scenario):
             walls.append(_box(x, (hi + w) / 2, t, (w - hi) / 2))
         self.obstacles = walls
         self.goal_xy = (4.3, float(self.rng.uniform(-w + 0.5, w - 0.5)))
-        self.segments = straight_reference(self.start, self.goal_xy)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)

@@ -194,7 +194,7 @@ class GraphPlannerPlug:
         from onboard.graph_planner import GraphPlanner
         from onboard.params import PlannerParams
 
-        p = params or PlannerParams()
+        p = rd.planner_params_for(params or PlannerParams(), robot)
         radius = p.robot_radius if p.robot_radius > 0 else robot.footprint_radius
         self.planner = GraphPlanner(p, robot_radius=radius)
         self.planner.set_obstacles([np.array(poly.vertices, dtype=float) for poly in scenario.polytopes().polytopes])

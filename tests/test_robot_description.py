@@ -142,6 +142,7 @@ def params_from_model(model: mujoco.MjModel, variant: str) -> rd.RobotParams:
         wheel_torque_peak=_numeric_value(model, "wheel_torque_peak"),
         wheel_speed_knee=_numeric_value(model, "wheel_speed_knee"),
         wheel_no_load_speed=_numeric_value(model, "wheel_no_load_speed"),
+        hop_speed_max=_numeric_value(model, "hop_speed_max"),
     )
 
 

@@ -168,7 +168,7 @@ def plan_scene(scene: Scene, cache_dir: Path | None) -> dict[str, Any]:
     """Plan in ``scene``; the output object of ``archer plan --json``."""
     from services.planner import load_or_build_graph, robot_footprint_radius
 
-    radius = scene.robot_radius if scene.robot_radius is not None else (scene.params.robot_radius or robot_footprint_radius())
+    radius = scene.robot_radius if scene.robot_radius is not None else (scene.params.robot_radius or robot_footprint_radius(scene.params.robot))
     planner = gp.GraphPlanner(scene.params, radius, bounds=scene.bounds, nodes=scene.nodes)
     planner.set_obstacles(scene.obstacles)
     planner.set_goal(scene.goal, GOAL_TOLERANCE)

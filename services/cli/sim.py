@@ -310,15 +310,20 @@ class FirmwareRig:
         os.unlink(self.config_path)
 
 
+ROBOT_SECTIONS = ("control", "estimator", "planner")  # the services that read the robot's parameters
+
+
 def run_realtime(args: argparse.Namespace) -> dict:
-    """The services read their parameters from the config file: ``--mid-level`` joins the
-    user's config in a temporary file for the run."""
-    mid_level = getattr(args, "mid_level", None)
-    if not mid_level:
-        return _run_realtime(args)
+    """The services read their parameters from the config file: the robot ``--variant`` (the
+    twin's, so every service reads the robot it drives) and ``--mid-level`` join the user's
+    config in a temporary file for the run."""
     load_params(args.config)  # the user's file is valid before anything is written
     user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
-    user["control"] = {**user.get("control", {}), "mid_level": mid_level}
+    for section in ROBOT_SECTIONS:
+        user[section] = {**user.get(section, {}), "robot": args.variant}
+    mid_level = getattr(args, "mid_level", None)
+    if mid_level:
+        user["control"] = {**user["control"], "mid_level": mid_level}
     fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
     with os.fdopen(fd, "w") as f:
         f.write(_toml(user))
@@ -342,7 +347,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     if args.record or args.plot:
         raise ValueError("--record and --plot are lockstep options (the flight recorder service records real-time runs)")
     params = load_params(args.config)
-    scenario = sc.make(args.scenario, args.seed, args.obstacles)
+    scenario = sc.make(args.scenario, args.seed, args.obstacles, sc.cruise_speed_for(rd.robot_params(args.variant)))
     duration = args.duration if args.duration is not None else scenario.default_duration_s
     if not (duration > 0 and math.isfinite(duration)):
         raise ValueError(f"duration must be positive, got {duration}")
