@@ -97,3 +97,20 @@ def test_sim_realtime_with_depth_perception_runs_the_perception_service_and_wait
     assert metrics["planner_plans"] >= 1
     assert metrics["planner_unseen_holds"] >= 1, metrics  # held, turned toward the goal, until the camera saw the way
     assert metrics["collisions"] == 0 and metrics["falls"] == 0, (metrics, err[-4000:])
+
+
+def test_a_realtime_run_tells_every_service_the_robot_the_twin_runs(tmp_path) -> None:
+    import argparse
+
+    from services.cli.sim import _toml, run_config
+    from services.runtime.config import load_params
+
+    user = tmp_path / "user.toml"
+    user.write_text('[control]\nkp_tilt = 30.0\n[planner]\nv_max = 0.3\n')
+    merged = run_config(argparse.Namespace(config=str(user), variant="outdoor", mid_level="geometric_mpc"))
+    written = tmp_path / "run.toml"
+    written.write_text(_toml(merged))
+    params = load_params(str(written))
+    assert params["control"].robot == params["estimator"].robot == params["planner"].robot == "outdoor"
+    assert params["control"].kp_tilt == 30.0 and params["planner"].v_max == 0.3  # the user's settings kept
+    assert params["control"].mid_level == "geometric_mpc"

@@ -313,10 +313,9 @@ class FirmwareRig:
 ROBOT_SECTIONS = ("control", "estimator", "planner")  # the services that read the robot's parameters
 
 
-def run_realtime(args: argparse.Namespace) -> dict:
-    """The services read their parameters from the config file: the robot ``--variant`` (the
-    twin's, so every service reads the robot it drives) and ``--mid-level`` join the user's
-    config in a temporary file for the run."""
+def run_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The config the services of a real-time run read: the user's file, with the robot
+    ``--variant`` (the twin's, so every service reads the robot it drives) and ``--mid-level``."""
     load_params(args.config)  # the user's file is valid before anything is written
     user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
     for section in ROBOT_SECTIONS:
@@ -324,6 +323,13 @@ def run_realtime(args: argparse.Namespace) -> dict:
     mid_level = getattr(args, "mid_level", None)
     if mid_level:
         user["control"] = {**user["control"], "mid_level": mid_level}
+    return user
+
+
+def run_realtime(args: argparse.Namespace) -> dict:
+    """The services read their parameters from the config file: :func:`run_config`, in a
+    temporary file for the run."""
+    user = run_config(args)
     fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
     with os.fdopen(fd, "w") as f:
         f.write(_toml(user))
