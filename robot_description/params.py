@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from onboard import zdp
-from onboard.params import PlannerParams
+from onboard.params import PlannerParams, SafetyLimits, with_overrides
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 VARIANT_FILES: dict[str, str] = {
@@ -443,6 +443,14 @@ def robot_params(variant: str = DEFAULT_VARIANT) -> RobotParams:
         wheel_no_load_speed=_numeric_value(xml, "wheel_no_load_speed"),
         hop_speed_max=_numeric_value(xml, "hop_speed_max"),
     )
+
+
+def safety_limits_for(safety: SafetyLimits, robot: RobotParams) -> SafetyLimits:
+    """The safety limits ``robot`` runs under: ``sim15nm`` with the thesis's raised wheel torque
+    limit (its drive's peak), every other variant as given."""
+    if robot.variant == "sim15nm":
+        return with_overrides(safety, {"wheel_torque_max": robot.wheel_torque_peak})
+    return safety
 
 
 def planner_params_for(params: PlannerParams, robot: RobotParams) -> PlannerParams:

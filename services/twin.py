@@ -40,7 +40,7 @@ import mujoco
 
 from onboard import messages as msgs
 from onboard.binary_messages import DepthImage, encode_depth
-from onboard.params import SafetyLimits, TwinParams, as_dict, with_overrides
+from onboard.params import TwinParams, as_dict
 from robot_description import params as rd
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import Service
@@ -60,13 +60,6 @@ LIVE_TWIN_PARAMS = ("seed",)  # what a running twin takes (and restarts its scen
 def make_scenario(tp: TwinParams) -> sc.Scenario:
     return sc.make(tp.scenario, tp.seed, None if tp.obstacles < 0 else tp.obstacles,
                    sc.cruise_speed_for(rd.robot_params(tp.variant)))
-
-
-def twin_safety(safety: SafetyLimits, variant: str) -> SafetyLimits:
-    """The sim15nm variant runs with the thesis's raised wheel torque limit."""
-    if variant == "sim15nm":
-        return with_overrides(safety, {"wheel_torque_max": rd.robot_params(variant).wheel_torque_peak})
-    return safety
 
 
 class TwinService(Service):
@@ -89,7 +82,7 @@ class TwinService(Service):
         tp: TwinParams = self.params["twin"]
         self.scenario = make_scenario(tp)
         self.robot = rd.robot_params(tp.variant)
-        self.safety = twin_safety(self.params["safety"], tp.variant)
+        self.safety = rd.safety_limits_for(self.params["safety"], rd.robot_params(tp.variant))
         spec = tm.load_spec(tp.variant)
         self.scenario.build(spec)
         self.model = spec.compile()

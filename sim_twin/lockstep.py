@@ -31,7 +31,7 @@ import mujoco
 from threadpoolctl import threadpool_limits
 
 from onboard import messages as m
-from onboard.params import SafetyLimits, TwinParams, with_overrides
+from onboard.params import SafetyLimits, TwinParams
 from onboard.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
@@ -106,10 +106,7 @@ class LockstepRunner:
         self.cfg = cfg
         self.robot = rd.robot_params(cfg.variant)
         self.scenario = sc.make(cfg.scenario, cfg.seed, cfg.obstacles, sc.cruise_speed_for(self.robot))
-        safety = cfg.safety or SafetyLimits()
-        if cfg.safety is None and cfg.variant == "sim15nm":  # the thesis's raised simulation limit
-            safety = with_overrides(safety, {"wheel_torque_max": self.robot.wheel_torque_peak})
-        self.safety = safety
+        self.safety = cfg.safety or rd.safety_limits_for(SafetyLimits(), self.robot)
         spec = tm.load_spec(cfg.variant)
         self.scenario.build(spec)
         self.model = spec.compile()
@@ -125,13 +122,13 @@ class LockstepRunner:
         if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
             raise ValueError(f"duration must be positive, got {self.duration_s}")
         self.sensors = SensorSuite(self.model, cfg.twin, cfg.seed, cfg.sensor_outages)
-        self.actuation = Actuation(self.model, self.robot, safety)
+        self.actuation = Actuation(self.model, self.robot, self.safety)
         self.truth = st.TruthEstimator(self.model, self.robot)
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
-        self.controller = st.make_controller(cfg.controller, cfg.variant, safety, cfg.control_params, cfg.gmpc_params)
-        self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, safety)
+        self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
+        self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
     def run(self, progress: Callable[[float, float], None] | None = None) -> RunResult:
         """The run, with BLAS on one thread and the build's objects out of the collector's sight.

@@ -188,6 +188,8 @@ def test_realtime_mid_level_flag_joins_the_users_config(tmp_path, monkeypatch):
         return {}
 
     monkeypatch.setattr(sim, "_run_realtime", fake_run)
-    sim.run_realtime(argparse.Namespace(config=str(user), mid_level="geometric_mpc"))
-    assert seen["config"] == {"control": {"kp_tilt": 30.0, "mid_level": "geometric_mpc"}, "gmpc": {"horizon": 16}}
+    sim.run_realtime(argparse.Namespace(config=str(user), mid_level="geometric_mpc", variant="indoor"))
+    robot = {"robot": "indoor"}  # every service reads the twin's robot
+    assert seen["config"] == {"control": {"kp_tilt": 30.0, "mid_level": "geometric_mpc", **robot}, "gmpc": {"horizon": 16},
+                              "estimator": robot, "planner": robot}
     assert not Path(seen["path"]).exists()  # gone after the run

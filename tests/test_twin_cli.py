@@ -114,3 +114,18 @@ def test_a_realtime_run_tells_every_service_the_robot_the_twin_runs(tmp_path) ->
     assert params["control"].robot == params["estimator"].robot == params["planner"].robot == "outdoor"
     assert params["control"].kp_tilt == 30.0 and params["planner"].v_max == 0.3  # the user's settings kept
     assert params["control"].mid_level == "geometric_mpc"
+    assert params["safety"].wheel_torque_max == 1.5  # the outdoor robot's drives are the indoor one's
+    fast = load_params_of(run_config(argparse.Namespace(config=None, variant="sim15nm", mid_level=None)), tmp_path)
+    assert fast["control"].robot == "sim15nm" and fast["safety"].wheel_torque_max == 15.0  # the thesis's raised limit
+    user.write_text('[safety]\nwheel_torque_max = 5.0\n')
+    mine = load_params_of(run_config(argparse.Namespace(config=str(user), variant="sim15nm", mid_level=None)), tmp_path)
+    assert mine["safety"].wheel_torque_max == 5.0  # the user's limit stays
+
+
+def load_params_of(config: dict, tmp_path) -> dict:
+    from services.cli.sim import _toml
+    from services.runtime.config import load_params
+
+    path = tmp_path / "merged.toml"
+    path.write_text(_toml(config))
+    return load_params(str(path))

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.udp import free_udp_port
-from onboard.params import with_overrides
+from onboard.params import as_dict, with_overrides
 from robot_description import params as rd
 from services.runtime.config import ConfigError, load_params
 from services.runtime.service import EXIT_SIGINT
@@ -320,6 +320,13 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
     user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
     for section in ROBOT_SECTIONS:
         user[section] = {**user.get(section, {}), "robot": args.variant}
+    # the safety limits of the robot the twin runs (sim15nm: its raised wheel torque), as the
+    # twin's own; a limit the user's file sets stays
+    given = load_params(args.config, ("safety",))["safety"]
+    robots = as_dict(rd.safety_limits_for(given, rd.robot_params(args.variant)))
+    raised = {k: v for k, v in robots.items() if v != as_dict(given)[k]}
+    if raised:
+        user["safety"] = {**raised, **user.get("safety", {})}
     mid_level = getattr(args, "mid_level", None)
     if mid_level:
         user["control"] = {**user["control"], "mid_level": mid_level}
