@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from onboard.binary_messages import CELL_FREE, CELL_UNKNOWN, OccupancyGrid
@@ -46,28 +47,39 @@ class SeenSpace:
         self.unknown = unknown
         self.resolution = float(resolution)
         self.origin = (float(origin[0]), float(origin[1]))
-        self._frontier: np.ndarray | None = None
+        self._frontier: tuple[float, np.ndarray] | None = None  # (width, frontier) last asked for
 
     @classmethod
     def from_grid(cls, grid: OccupancyGrid) -> SeenSpace:
         return cls(grid.cells == CELL_FREE, grid.resolution, grid.origin, grid.cells == CELL_UNKNOWN)
 
-    def frontier(self) -> np.ndarray:
-        """Centres ``(K, 2)`` [m] of the free cells 8-adjacent to an unknown cell or to the
-        grid's edge (beyond it nothing is known); a cell next to one seen occupied only is not
-        a frontier: going there shows nothing new."""
-        if self._frontier is None:
+    def frontier(self, width: float = 0.0) -> np.ndarray:
+        """Centres ``(K, 2)`` [m] of the free cells 8-adjacent to unknown ground at least
+        ``width`` [m] wide (a morphological opening by a disc of that diameter) or to the
+        grid's edge (beyond it nothing is known). A cell next to one seen occupied only is not
+        a frontier: going there shows nothing new; nor is one next to a sliver of unknown
+        narrower than the robot, such as the strip at a wall's foot whose cells flicker between
+        a noisy hit and a miss: nothing the robot could go to fits in it, and standing by it
+        would never make it known."""
+        cached = self._frontier
+        if cached is None or cached[0] != width:
             rows, cols = self.free.shape
-            unk = np.ones((rows + 2, cols + 2), dtype=bool)  # the grid's outside is unknown
-            unk[1:-1, 1:-1] = self.unknown
+            k = int(math.ceil(width / self.resolution))
+            unk = np.ones((rows + 2 * k + 2, cols + 2 * k + 2), dtype=np.uint8)  # the grid's outside is unknown
+            unk[k + 1:k + 1 + rows, k + 1:k + 1 + cols] = self.unknown
+            if k > 0:
+                disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+                unk = cv2.morphologyEx(unk, cv2.MORPH_OPEN, disc)
+            unk = unk[k:k + rows + 2, k:k + cols + 2] > 0
             near = np.zeros((rows, cols), dtype=bool)
             for dr in (0, 1, 2):
                 for dc in (0, 1, 2):
                     near |= unk[dr:dr + rows, dc:dc + cols]
             r, c = np.nonzero(self.free & near)
-            self._frontier = np.column_stack([self.origin[0] + (c + 0.5) * self.resolution,
-                                              self.origin[1] + (r + 0.5) * self.resolution])
-        return self._frontier
+            pts = np.column_stack([self.origin[0] + (c + 0.5) * self.resolution,
+                                   self.origin[1] + (r + 0.5) * self.resolution])
+            cached = self._frontier = (width, pts)
+        return cached[1]
 
     def first_unseen(self, points: np.ndarray, radius: float, here: np.ndarray | tuple[float, float],
                      own_radius: float) -> int | None:
