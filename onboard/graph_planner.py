@@ -459,8 +459,8 @@ class GraphPlanner:
     def frontier_costs(self, position: np.ndarray) -> np.ndarray:
         """Per graph node, the cost of ending a path there toward a goal beyond the known free
         cells: ``frontier_weight`` times its distance to the goal for nodes at rest within the
-        margin plus ``frontier_reach`` of a frontier cell (:meth:`SeenSpace.frontier`, beside unknown
-        ground as wide as the robot) at least
+        margin plus ``frontier_reach`` of a frontier cell (:meth:`SeenSpace.frontier`: connected to
+        ``position`` through free cells, beside unknown ground as wide as the robot) at least
         ``frontier_min`` from ``position``; inf elsewhere, and everywhere without a seen space."""
         assert self.graph is not None and self.goal is not None
         prm = self.params
@@ -468,8 +468,9 @@ class GraphPlanner:
         costs = np.full(len(nodes), np.inf)
         if self.seen is None:
             return costs
-        pts = self.seen.frontier(2 * self.robot_radius)
-        pts = pts[np.hypot(*(pts - np.asarray(position, dtype=float)[:2]).T) >= prm.frontier_min]
+        here = np.asarray(position, dtype=float)[:2]
+        pts = self.seen.frontier(2 * self.robot_radius, here)
+        pts = pts[np.hypot(*(pts - here).T) >= prm.frontier_min]
         if len(pts) == 0:
             return costs
         rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))

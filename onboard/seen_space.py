@@ -47,22 +47,25 @@ class SeenSpace:
         self.unknown = unknown
         self.resolution = float(resolution)
         self.origin = (float(origin[0]), float(origin[1]))
-        self._frontier: tuple[float, np.ndarray] | None = None  # (width, frontier) last asked for
+        self._frontier: tuple[tuple, np.ndarray] | None = None  # ((width, here), frontier) last asked for
 
     @classmethod
     def from_grid(cls, grid: OccupancyGrid) -> SeenSpace:
         return cls(grid.cells == CELL_FREE, grid.resolution, grid.origin, grid.cells == CELL_UNKNOWN)
 
-    def frontier(self, width: float = 0.0) -> np.ndarray:
+    def frontier(self, width: float = 0.0, here: tuple[float, float] | np.ndarray | None = None) -> np.ndarray:
         """Centres ``(K, 2)`` [m] of the free cells 8-adjacent to unknown ground at least
         ``width`` [m] wide (a morphological opening by a disc of that diameter) or to the
         grid's edge (beyond it nothing is known). A cell next to one seen occupied only is not
         a frontier: going there shows nothing new; nor is one next to a sliver of unknown
         narrower than the robot, such as the strip at a wall's foot whose cells flicker between
         a noisy hit and a miss: nothing the robot could go to fits in it, and standing by it
-        would never make it known."""
+        would never make it known. With ``here`` [m], only the free cells 4-connected to its
+        cell count (none when it is not free): a free cell seen behind a wall is next to the
+        unknown, but not a way on."""
+        key = (float(width), None if here is None else (float(here[0]), float(here[1])))
         cached = self._frontier
-        if cached is None or cached[0] != width:
+        if cached is None or cached[0] != key:
             rows, cols = self.free.shape
             k = int(math.ceil(width / self.resolution))
             unk = np.ones((rows + 2 * k + 2, cols + 2 * k + 2), dtype=np.uint8)  # the grid's outside is unknown
@@ -75,10 +78,19 @@ class SeenSpace:
             for dr in (0, 1, 2):
                 for dc in (0, 1, 2):
                     near |= unk[dr:dr + rows, dc:dc + cols]
-            r, c = np.nonzero(self.free & near)
+            mine = self.free
+            if here is not None:
+                hr = int(math.floor((key[1][1] - self.origin[1]) / self.resolution))
+                hc = int(math.floor((key[1][0] - self.origin[0]) / self.resolution))
+                if not (0 <= hr < rows and 0 <= hc < cols and self.free[hr, hc]):
+                    mine = np.zeros_like(self.free)
+                else:
+                    _, comp = cv2.connectedComponents(self.free.astype(np.uint8), connectivity=4)
+                    mine = comp == comp[hr, hc]
+            r, c = np.nonzero(mine & near)
             pts = np.column_stack([self.origin[0] + (c + 0.5) * self.resolution,
                                    self.origin[1] + (r + 0.5) * self.resolution])
-            cached = self._frontier = (width, pts)
+            cached = self._frontier = (key, pts)
         return cached[1]
 
     def first_unseen(self, points: np.ndarray, radius: float, here: np.ndarray | tuple[float, float],
