@@ -170,6 +170,7 @@ class GraphPlanner:
         self.seen: SeenSpace | None = None  # None: the world is known (ground truth), nothing to gate
         self.require_seen = False
         self.frontier_goal: np.ndarray | None = None  # free mode: where the current path ends short of the goal
+        self._frontier_target: np.ndarray | None = None  # the last frontier a path was found to (kept while none reaches the goal)
 
     # --- inputs ----------------------------------------------------------------------
 
@@ -450,7 +451,9 @@ class GraphPlanner:
             result = search(graph, self.free, x0, all_starts, all_start_costs, goal_state, goal_costs,
                             self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
         self.frontier_goal = None
-        if result is None and self.mode == "free":
+        if result is not None:
+            self._frontier_target = None
+        elif self.mode == "free":
             via_graph = all_starts < N  # the direct segment to the goal is not free, or there would be a path
             result = self._search_frontier(x0, all_starts[via_graph], all_start_costs[via_graph],
                                            {n: c for n, c in start_edge_ctrl.items() if n < N}, goal_state, extra)
@@ -484,14 +487,21 @@ class GraphPlanner:
         """Free mode, no path to the goal in the known cells: the path to the frontier node of
         least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
         heuristic admissible, every frontier cost being at least it)."""
-        assert self.graph is not None and self.free is not None
+        assert self.graph is not None and self.free is not None and self.goal is not None
+        prm = self.params
         costs = self.frontier_costs(x0[:2])
         if not np.isfinite(costs).any() or len(start_nodes) == 0:
             return None
+        if self._frontier_target is not None:  # hysteresis: the frontier already headed for keeps an advantage
+            nodes = self.graph.nodes[:, :2]
+            kept = np.isfinite(costs) & (np.hypot(*(nodes - self._frontier_target).T) <= max(prm.rest_grid, 1e-9))
+            # never below the straight line to the goal: the search's heuristic stays admissible
+            costs[kept] = np.maximum(costs[kept] - prm.frontier_hysteresis, np.hypot(*(nodes[kept] - self.goal).T))
         result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
                         start_edge_ctrl, {}, extra)
         if result is not None:
             self.frontier_goal = result.states[-1, :2].copy()
+            self._frontier_target = self.frontier_goal
             self.stats.frontier_plans += 1
         return result
 
