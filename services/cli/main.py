@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
     "sim": ("services.cli.sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "campaign": ("services.cli.campaign", "a sweep of lockstep runs (scenarios x seeds x variants x options) on a process pool or Ray; JSONL + summary + plot"),
+    "train": ("services.cli.train", "offline training: 'zdp' (the thesis's Algorithm 2) and 'zdp-compare' (a campaign against the other policies)"),
     "bench": ("services.bench.main", "measure speed and print figures"),
     "plot": ("services.cli.plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
     "deploy": ("services.cli.deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),
