@@ -189,6 +189,7 @@ class GraphPlanner:
         self.goal_tolerance = float(tolerance)
         if changed:
             self.path = None
+            self._frontier_target = None  # a new goal: explore toward it afresh
 
     def set_obstacles(self, polygons: list) -> None:
         """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""

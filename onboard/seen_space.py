@@ -67,11 +67,14 @@ class SeenSpace:
         cached = self._frontier
         if cached is None or cached[0] != key:
             rows, cols = self.free.shape
-            k = int(math.ceil(width / self.resolution))
+            # the disc's diameter in cells, odd: an even kernel's anchor is off centre and its
+            # opening would shift the unknown by a cell (one side's frontier lost, the other's doubled)
+            d = 2 * int(round((width / self.resolution - 1.0) / 2.0)) + 1 if width > 0 else 1
+            k = d
             unk = np.ones((rows + 2 * k + 2, cols + 2 * k + 2), dtype=np.uint8)  # the grid's outside is unknown
             unk[k + 1:k + 1 + rows, k + 1:k + 1 + cols] = self.unknown
-            if k > 0:
-                disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+            if d > 1:
+                disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (d, d))
                 unk = cv2.morphologyEx(unk, cv2.MORPH_OPEN, disc)
             unk = unk[k:k + rows + 2, k:k + cols + 2] > 0
             near = np.zeros((rows, cols), dtype=bool)

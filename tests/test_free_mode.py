@@ -71,6 +71,20 @@ def test_the_frontier_is_where_seen_free_ground_meets_the_unknown_not_a_wall() -
     edge = SeenSpace(np.ones((4, 5), dtype=bool), RES, (0.0, 0.0), np.zeros((4, 5), dtype=bool)).frontier()
     assert len(edge) == 4 * 5 - 2 * 3
 
+    # A 10 cm strip of unknown at the wall's foot (cells flickering between a noisy hit and a
+    # miss) is no frontier for a robot 26 cm wide: nothing it could go to fits there
+    cells[(x > 0.9) & (x < 1.0) & (np.abs(y) < 1.0)] = CELL_UNKNOWN
+    strip = SeenSpace.from_grid(OccupancyGrid(cells, RES, ORIGIN))
+    assert np.any((strip.frontier()[:, 0] > 0.8) & (np.abs(strip.frontier()[:, 1]) < 0.8))
+    assert not np.any((strip.frontier(0.26)[:, 0] > 0.8) & (np.abs(strip.frontier(0.26)[:, 1]) < 0.8))
+    # free ground seen behind the wall borders the unknown, but is no way on from the robot's side
+    cells[(x > 1.1) & (x < 1.5) & (np.abs(y) < 0.3)] = CELL_FREE
+    behind = SeenSpace.from_grid(OccupancyGrid(cells, RES, ORIGIN))
+    assert np.any(behind.frontier(0.26)[:, 0] > 1.1)
+    assert not np.any(behind.frontier(0.26, here=(0.0, 0.0))[:, 0] > 1.1)
+    assert len(behind.frontier(0.26, here=(0.0, 0.0))) > 0
+    assert len(behind.frontier(0.26, here=(3.0, 0.0))) == 0  # the robot on no free cell: no way on at all
+
 
 def test_free_mode_grid_keeps_what_it_saw_and_frees_the_ground_in_sight_where_the_robot_stands() -> None:
     kept, faded = OccupancyMap(FREE), OccupancyMap(PerceptionParams(mode="obstacles"))
@@ -141,3 +155,28 @@ def test_free_mode_lockstep_forest_heads_into_the_unseen_toward_the_goal() -> No
     assert metrics["collisions"] == 0 and metrics["falls"] == 0
     assert plug.planner.stats.frontier_plans > 0  # the goal, 6 m off, lies beyond what was seen
     assert metrics["final_goal_error_m"] < goal_distance - 0.8  # it moved toward it (before: 0 of 10 runs moved)
+
+
+def test_the_frontier_headed_for_keeps_an_advantage_as_the_views_shift_the_costs() -> None:
+    """A corridor with walls along its sides, unknown beyond both ends, the goal unseen to the
+    north and a little east: from the middle the east end is the better frontier; 0.3 m west
+    of the middle the west end is, by less than frontier_hysteresis."""
+    x, y = xy_of(SHAPE)
+    cells = np.full(SHAPE, CELL_UNKNOWN, dtype=np.uint8)
+    cells[(np.abs(x) < 1.8) & (np.abs(y) < 0.5)] = CELL_FREE
+    cells[(np.abs(x) < 1.8) & (np.abs(y) >= 0.5) & (np.abs(y) < 0.6)] = CELL_OCCUPIED
+    grid = OccupancyGrid(cells, RES, ORIGIN)
+    goal, west_of_middle = (0.2, 2.5), (-0.3, 0.0)
+
+    fresh = free_planner(grid, goal, start=west_of_middle)
+    assert fresh.plan(np.array(west_of_middle), np.zeros(2), 0) is not None
+    assert fresh.frontier_goal[0] < -1.0  # on its own, the west end
+
+    heading_east = free_planner(grid, goal, start=(0.0, 0.0))
+    assert heading_east.plan(np.zeros(2), np.zeros(2), 0) is not None
+    assert heading_east.frontier_goal[0] > 1.0
+    assert heading_east.plan(np.array(west_of_middle), np.zeros(2), 0) is not None
+    assert heading_east.frontier_goal[0] > 1.0  # still east: no turning back and forth
+    heading_east.set_goal((-0.2, 2.5))  # a new goal: its frontier is chosen afresh
+    assert heading_east.plan(np.array(west_of_middle), np.zeros(2), 0) is not None
+    assert heading_east.frontier_goal[0] < -1.0
