@@ -478,9 +478,11 @@ class GraphPlanner:
         if len(pts) == 0:
             return costs
         rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))
-        d, _ = cKDTree(pts).query(nodes[rest, :2], distance_upper_bound=self.margin + prm.frontier_reach)
-        near = rest[np.isfinite(d)]
-        costs[near] = prm.frontier_weight * np.hypot(*(nodes[near, :2] - self.goal).T)
+        d, _ = cKDTree(pts).query(nodes[rest, :2])
+        short = np.maximum(d - (self.margin + prm.frontier_reach), 0.0)  # how far a node falls short of the frontier
+        ok = (short == 0.0) | (prm.frontier_approach_weight > 0)
+        costs[rest[ok]] = (prm.frontier_weight * np.hypot(*(nodes[rest[ok], :2] - self.goal).T)
+                           + prm.frontier_approach_weight * short[ok])
         return costs
 
     def _search_frontier(self, x0: np.ndarray, start_nodes: np.ndarray, start_costs: np.ndarray,
