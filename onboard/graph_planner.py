@@ -393,6 +393,8 @@ class GraphPlanner:
             self.last_densify = None
         elif not self._settled():
             result = self._densify(x0, start_seeds, goal_seeds, clock)
+        if result is None and self.mode == "free" and self.params.frontier_approach_weight > 0:
+            result = self._search(x0, approach=True)[0]  # no frontier within reach even densified: go nearer one
         self.path = result
         self.path_t0_ns = int(stamp_ns)
         self.path_world_version = self._world_version
@@ -402,9 +404,10 @@ class GraphPlanner:
             return None
         return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
 
-    def _search(self, x0: np.ndarray) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
-        """Search the cut graph from state ``x0`` to the goal at rest: the path (None: none)
-        and the graph nodes joined to the start and to the goal."""
+    def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
+        """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
+        with ``approach`` as near one as the cells allow): the path (None: none) and the graph nodes
+        joined to the start and to the goal."""
         graph = self.graph
         assert graph is not None and self.goal is not None and self.free is not None
         N = graph.n_nodes
@@ -457,15 +460,20 @@ class GraphPlanner:
         elif self.mode == "free":
             via_graph = all_starts < N  # the direct segment to the goal is not free, or there would be a path
             result = self._search_frontier(x0, all_starts[via_graph], all_start_costs[via_graph],
-                                           {n: c for n, c in start_edge_ctrl.items() if n < N}, goal_state, extra)
+                                           {n: c for n, c in start_edge_ctrl.items() if n < N}, goal_state, extra,
+                                           approach)
         return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
 
-    def frontier_costs(self, position: np.ndarray) -> np.ndarray:
+    def frontier_costs(self, position: np.ndarray, approach: bool = False) -> np.ndarray:
         """Per graph node, the cost of ending a path there toward a goal beyond the known free
-        cells: ``frontier_weight`` times its distance to the goal for nodes at rest within the
-        margin plus ``frontier_reach`` of a frontier cell (:meth:`SeenSpace.frontier`: connected to
-        ``position`` through free cells, beside unknown ground as wide as the robot) at least
-        ``frontier_min`` from ``position``; inf elsewhere, and everywhere without a seen space."""
+        cells: ``frontier_weight`` times its distance to the goal for nodes at rest near a
+        frontier cell (:meth:`SeenSpace.frontier`: connected to ``position`` through free cells,
+        beside unknown ground as wide as the robot) at least ``frontier_min`` from ``position``:
+        within the margin plus ``frontier_reach`` over free ground (4-connected cells: up to
+        sqrt(2) times the straight line, so the reach is allowed as much; a node beside a wall
+        with the frontier behind it is not near it). With ``approach``, every node at rest
+        connected to such a cell, plus ``frontier_approach_weight`` per metre it falls short of
+        that reach. Inf elsewhere, and everywhere without a seen space."""
         assert self.graph is not None and self.goal is not None
         prm = self.params
         nodes = self.graph.nodes
@@ -478,35 +486,43 @@ class GraphPlanner:
         if len(pts) == 0:
             return costs
         rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))
-        d, _ = cKDTree(pts).query(nodes[rest, :2])
-        short = np.maximum(d - (self.margin + prm.frontier_reach), 0.0)  # how far a node falls short of the frontier
-        ok = (short == 0.0) | (prm.frontier_approach_weight > 0)
+        d = self.seen.distance_through_free(pts, nodes[rest, :2])
+        short = np.maximum(d - math.sqrt(2.0) * (self.margin + prm.frontier_reach), 0.0)
+        ok = np.isfinite(short) if approach else short == 0.0
         costs[rest[ok]] = (prm.frontier_weight * np.hypot(*(nodes[rest[ok], :2] - self.goal).T)
                            + prm.frontier_approach_weight * short[ok])
         return costs
 
     def _search_frontier(self, x0: np.ndarray, start_nodes: np.ndarray, start_costs: np.ndarray,
-                         start_edge_ctrl: dict[int, np.ndarray], goal_state: np.ndarray, extra: float) -> SearchResult | None:
+                         start_edge_ctrl: dict[int, np.ndarray], goal_state: np.ndarray, extra: float,
+                         approach: bool = False) -> SearchResult | None:
         """Free mode, no path to the goal in the known cells: the path to the frontier node of
         least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
-        heuristic admissible, every frontier cost being at least it)."""
+        heuristic admissible, every frontier cost being at least it). With ``approach`` (the cells
+        reach no frontier, even densified: a wall's gap whose cells overlap too thinly for the
+        margin), failing that, the path as near one as they let the robot go, where the cells
+        fitted around it may join up."""
         assert self.graph is not None and self.free is not None and self.goal is not None
         prm = self.params
-        costs = self.frontier_costs(x0[:2])
-        if not np.isfinite(costs).any() or len(start_nodes) == 0:
+        if len(start_nodes) == 0:
             return None
-        if self._frontier_target is not None:  # hysteresis: the frontier already headed for keeps an advantage
-            nodes = self.graph.nodes[:, :2]
-            kept = np.isfinite(costs) & (np.hypot(*(nodes - self._frontier_target).T) <= max(prm.rest_grid, 1e-9))
-            # never below the straight line to the goal: the search's heuristic stays admissible
-            costs[kept] = np.maximum(costs[kept] - prm.frontier_hysteresis, np.hypot(*(nodes[kept] - self.goal).T))
-        result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
-                        start_edge_ctrl, {}, extra)
-        if result is not None:
-            self.frontier_goal = result.states[-1, :2].copy()
-            self._frontier_target = self.frontier_goal
-            self.stats.frontier_plans += 1
-        return result
+        for near in (False, True) if approach else (False,):
+            costs = self.frontier_costs(x0[:2], near)
+            if not np.isfinite(costs).any():
+                continue
+            if self._frontier_target is not None:  # hysteresis: the frontier already headed for keeps an advantage
+                nodes = self.graph.nodes[:, :2]
+                kept = np.isfinite(costs) & (np.hypot(*(nodes - self._frontier_target).T) <= max(prm.rest_grid, 1e-9))
+                # never below the straight line to the goal: the search's heuristic stays admissible
+                costs[kept] = np.maximum(costs[kept] - prm.frontier_hysteresis, np.hypot(*(nodes[kept] - self.goal).T))
+            result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
+                            start_edge_ctrl, {}, extra)
+            if result is not None:
+                self.frontier_goal = result.states[-1, :2].copy()
+                self._frontier_target = self.frontier_goal
+                self.stats.frontier_plans += 1
+                return result
+        return None
 
     def _settled(self) -> bool:
         """The same world, goal and graph were densified to the finest level in vain: that answer
