@@ -204,3 +204,36 @@ def test_archer_train_zdp_writes_weights_the_controller_flies(tmp_path):
     assert build_controller("indoor", params)._mlp.n_in == 4
     res = LockstepRunner(RunConfig(scenario="hop-in-place", seed=0, duration_s=2.0, control_params=params)).run()
     assert res.metrics["falls"] == 0 and res.metrics["hops"] >= 4
+
+
+def test_the_batch_solved_on_the_campaigns_pool_is_the_batch_solved_in_process(hopper_problem):
+    from services.cli.campaign_pool import LocalPool
+    from services.cli.train_zdp_alg2 import PoolSolver
+
+    problem, scales, w = hopper_problem
+    short = dataclasses.replace(problem, horizon=2)
+    z = zt.sample_domain(problem, 4, np.random.default_rng(11))
+    eta0 = zt.policy(w, scales, z)
+    here = zt.solve_batch(short, eta0, z)
+    with LocalPool(2) as pool:
+        there = PoolSolver(pool, 2)(short, eta0, z)
+    for f in ("v0", "z1", "dv0_deta0", "dz1_deta0", "free0", "ok", "cost"):
+        assert np.array_equal(getattr(here, f), getattr(there, f)), f
+
+
+def test_compare_metrics_time_to_goal_and_overshoot():
+    from services.cli.zdp_compare import ARRIVE_M, scenario_metrics
+    from sim_twin import scenarios as sc
+
+    t = np.arange(0.0, 10.0, 0.01)
+    x = np.interp(t, [0.0, 5.0, 7.0, 10.0], [0.0, 2.3, 2.0, 2.0])  # past the 2 m goal by 0.3 m, back at t = 7 s
+    com = np.column_stack((x, np.zeros_like(t), np.zeros_like(t)))
+    got = scenario_metrics("setpoint", None, t, com, (2.0, 0.0), 10.0)
+    assert got["overshoot_m"] == pytest.approx(0.3, abs=0.01)
+    back = t[np.flatnonzero(np.abs(x - 2.0) > ARRIVE_M)[-1] + 1]
+    assert got["time_to_goal_s"] == pytest.approx(back)
+    push = sc.make("push", seed=0)
+    bump = np.where((t > push.FIRST) & (t < push.FIRST + 0.5), 0.25, 0.0)  # out 0.25 m for 0.5 s after the push
+    got = scenario_metrics("push", push, t, np.column_stack((bump, 0 * t, 0 * t)), (0.0, 0.0), 10.0)
+    assert got["overshoot_m"] == pytest.approx(0.25) and got["pushes"] == 1
+    assert got["time_to_goal_s"] == pytest.approx(0.5, abs=0.02)

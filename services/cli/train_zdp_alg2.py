@@ -3,8 +3,8 @@
 The numerics are :mod:`onboard.zdp_training` (iLQR with box input bounds through the reduced
 impact map, the invariance loss (5.46) and its gradient, the 2 x 256 ReLU network pretrained on
 the clipped Raibert policy); this module samples, runs the batches' iLQR solves on the
-campaigns' engine (:mod:`services.cli.campaign_pool`: a local pool of spawned worker processes,
-or Ray with ``--ray``; ``--workers 0`` solves in this process), and writes:
+campaigns' engine (:mod:`services.cli.campaign_pool`: ``--workers N`` a local pool of spawned
+worker processes, ``--ray ADDRESS`` Ray; by default in this process), and writes:
 
 - the weights file the control service loads (``[control] policy = "mlp"``,
   ``mlp_weights = "<file>"``; :func:`robot_description.controller.load_policy_weights`): the
@@ -58,8 +58,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=d.seed)
     parser.add_argument("--variant", default=rd.DEFAULT_VARIANT, choices=rd.VARIANTS, help="robot whose reduced model is trained on")
     parser.add_argument("--config", default=None, help="TOML file overriding [control] (hop height, weights, clips)")
-    parser.add_argument("--workers", type=int, default=2,
-                        help="pool workers the batch is split over (default 2, this machine's cores; 0: solve in this process)")
+    # default in process: at batch 30 a solve's cost is per batched impact-map call (~660 stance steps of
+    # small numpy operations), not per sample, so splitting the batch saves little; on this 2-core shared
+    # machine a pool of 2 took 5.9 s an iteration against 3.2 s in process (docs/zdp_alg2.md)
+    parser.add_argument("--workers", type=int, default=0,
+                        help="pool workers the batch is split over (default 0: solve in this process)")
     parser.add_argument("--ray", default=None, metavar="ADDRESS", help="solve on this Ray cluster ('local': a private instance); needs .[cluster]")
     parser.add_argument("--out", default=None, help=f"weights file (default onboard/data/{DEFAULT_WEIGHTS})")
     parser.add_argument("--plot", default=None, help="loss plot PNG (default: beside --out, <stem>_loss.png)")
