@@ -215,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
         if bad or not policies or not scenarios:
             raise ValueError(f"unknown or missing policies/scenarios {bad}")
         seeds = parse_seeds(args.seeds)
-        if args.policies and "alg2" in policies:
+        if "alg2" in policies:
             from robot_description.controller import load_policy_weights
 
             load_policy_weights(args.weights)  # refuse a missing file before any run
