@@ -388,13 +388,15 @@ class GraphPlanner:
             self._ensure_graph(x0[:2])
         self.cut()
         self.stats.plans += 1
-        result, start_seeds, goal_seeds = self._search(x0)
+        # free mode: with no frontier within reach, going nearer one comes before densifying (each
+        # replan, at the perception rate, has new cells fitted around the robot; densifying every
+        # time was most of a maze run's time)
+        approach = self.mode == "free" and self.params.frontier_approach_weight > 0
+        result, start_seeds, goal_seeds = self._search(x0, approach)
         if result is not None or self.params.densify_budget_s <= 0:
             self.last_densify = None
         elif not self._settled():
             result = self._densify(x0, start_seeds, goal_seeds, clock)
-        if result is None and self.mode == "free" and self.params.frontier_approach_weight > 0:
-            result = self._search(x0, approach=True)[0]  # no frontier within reach even densified: go nearer one
         self.path = result
         self.path_t0_ns = int(stamp_ns)
         self.path_world_version = self._world_version
@@ -406,8 +408,8 @@ class GraphPlanner:
 
     def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
         """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
-        with ``approach`` as near one as the cells allow): the path (None: none) and the graph nodes
-        joined to the start and to the goal."""
+        failing that with ``approach`` as near one as the cells allow): the path (None: none) and
+        the graph nodes joined to the start and to the goal."""
         graph = self.graph
         assert graph is not None and self.goal is not None and self.free is not None
         N = graph.n_nodes
@@ -498,10 +500,9 @@ class GraphPlanner:
                          approach: bool = False) -> SearchResult | None:
         """Free mode, no path to the goal in the known cells: the path to the frontier node of
         least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
-        heuristic admissible, every frontier cost being at least it). With ``approach`` (the cells
-        reach no frontier, even densified: a wall's gap whose cells overlap too thinly for the
-        margin), failing that, the path as near one as they let the robot go, where the cells
-        fitted around it may join up."""
+        heuristic admissible, every frontier cost being at least it). With ``approach``, when the
+        cells reach no frontier (a wall's gap whose cells overlap too thinly for the margin), the
+        path as near one as they let the robot go, where the cells fitted around it may join up."""
         assert self.graph is not None and self.free is not None and self.goal is not None
         prm = self.params
         if len(start_nodes) == 0:
