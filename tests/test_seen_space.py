@@ -54,7 +54,7 @@ def test_a_disc_is_seen_only_when_every_cell_under_it_was_seen_free() -> None:
 
 
 def planner_going_east() -> GraphPlanner:
-    planner = GraphPlanner(PlannerParams(nodes=600, rest_grid=0.0), ROBOT_RADIUS)
+    planner = GraphPlanner(PlannerParams(nodes=600), ROBOT_RADIUS)  # the rest lattice: a path that heads east
     planner.set_obstacles([])
     planner.set_goal((1.5, 0.0))
     return planner
@@ -70,8 +70,12 @@ def test_a_perceived_world_commits_the_robot_only_over_seen_ground_and_points_th
     perceived.set_seen(None)  # before the first view: committed nowhere
     held = perceived.plan(start, rest, 0)
     assert held is not None and held.hold and perceived.stats.unseen_holds == 1
-    # turned toward where the path will be heading_lookahead_s on (eastward, the way to the goal)
-    ahead = sample_reference(perceived.path_reference(0), perceived.params.heading_lookahead_s)
+    # turned toward where the path will be heading_lookahead_s on, or a multiple of it where that is
+    # nearer than heading_min_m (a path from rest starts slowly): eastward, the way to the goal
+    prm, t = perceived.params, perceived.params.heading_lookahead_s
+    while math.hypot(*sample_reference(perceived.path_reference(0), t)[:2]) < prm.heading_min_m:
+        t += prm.heading_lookahead_s
+    ahead = sample_reference(perceived.path_reference(0), t)
     assert held.yaw == pytest.approx(math.atan2(ahead[1], ahead[0])) and math.cos(held.yaw) > 0
 
     perceived.set_seen(SeenSpace.from_grid(grid_with(CELL_FREE)))
