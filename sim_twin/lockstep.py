@@ -130,6 +130,18 @@ class LockstepRunner:
         self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
+    def step_reference(self) -> None:
+        """Replace the planner by a bare step to the scenario's target: hold there from the
+        start (thesis Fig. 5.22), no smooth reference to follow."""
+        goal = self.scenario.target()
+        ref = m.ComReference(t_ref_ns=0, hold=True, segments=[m.BezierSegment(t0=0.0, duration=1.0, control_points=[list(goal)])])
+
+        def update(now_ns: int, _state: m.StateEstimate) -> m.ComReference:
+            ref.stamp_ns = now_ns  # fresh, as a planner republishes it
+            return ref
+
+        self.planner.update = update  # type: ignore[method-assign]
+
     def run(self, progress: Callable[[float, float], None] | None = None) -> RunResult:
         """The run, with BLAS on one thread and the build's objects out of the collector's sight.
 

@@ -139,18 +139,11 @@ class OccupancyMap:
         of it: neither the cell nor one the straight line to it crosses holds any occupied
         evidence (even faded below the threshold). An obstacle seen only on its near face
         keeps its unseen inside: the line to it crosses that face."""
+        found = self._disc(xy, radius)
+        if found is None:
+            return
+        cu, cv, k, (r0, r1, c0, c1), uu, vv, disc = found
         rows, cols = self.shape
-        cu = (xy[0] - self.origin[0]) / self.res
-        cv = (xy[1] - self.origin[1]) / self.res
-        if not (math.isfinite(cu) and math.isfinite(cv)):
-            return
-        k = radius / self.res
-        c0, c1 = max(int(cu - k) - 1, 0), min(int(cu + k) + 2, cols)
-        r0, r1 = max(int(cv - k) - 1, 0), min(int(cv + k) + 2, rows)
-        if c0 >= c1 or r0 >= r1:
-            return
-        uu, vv = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
-        disc = (uu - cu) ** 2 + (vv - cv) ** 2 <= k * k
         tu, tv = uu[disc], vv[disc]
         # samples every half cell along each line: none can step over a cell unseen
         t = np.linspace(0.0, 1.0, int(math.ceil(2 * k)) + 2)
@@ -161,19 +154,27 @@ class OccupancyMap:
 
     def clear_disc(self, xy: tuple[float, float], radius: float) -> None:
         """Set the cells whose centre is within ``radius`` [m] of ``xy`` [m] to free."""
+        found = self._disc(xy, radius)
+        if found is not None:
+            _, _, _, (r0, r1, c0, c1), _, _, disc = found
+            self.evidence[r0:r1, c0:c1][disc] = -self.params.evidence_max
+
+    def _disc(self, xy: tuple[float, float], radius: float) -> tuple | None:
+        """The cells whose centre is within ``radius`` [m] of ``xy`` [m]: ``(cu, cv, k, (r0, r1,
+        c0, c1), uu, vv, disc)`` with ``xy`` and ``radius`` in cell units, the window, its cell
+        centres and the mask over it; None when ``xy`` is not finite or the window is off the grid."""
         rows, cols = self.shape
         cu = (xy[0] - self.origin[0]) / self.res
         cv = (xy[1] - self.origin[1]) / self.res
         if not (math.isfinite(cu) and math.isfinite(cv)):
-            return
+            return None
         k = radius / self.res
         c0, c1 = max(int(cu - k) - 1, 0), min(int(cu + k) + 2, cols)
         r0, r1 = max(int(cv - k) - 1, 0), min(int(cv + k) + 2, rows)
         if c0 >= c1 or r0 >= r1:
-            return
+            return None
         uu, vv = np.meshgrid(np.arange(c0, c1) + 0.5, np.arange(r0, r1) + 0.5)
-        disc = (uu - cu) ** 2 + (vv - cv) ** 2 <= k * k
-        self.evidence[r0:r1, c0:c1][disc] = -self.params.evidence_max
+        return cu, cv, k, (r0, r1, c0, c1), uu, vv, (uu - cu) ** 2 + (vv - cv) ** 2 <= k * k
 
     def occupied(self) -> np.ndarray:
         return self.evidence >= self.params.occupied_threshold

@@ -14,7 +14,6 @@ import argparse
 import dataclasses
 import math
 
-from onboard import messages as m
 from onboard.params import ControlParams
 from sim_twin.lockstep import LockstepRunner, RunConfig
 
@@ -35,14 +34,7 @@ def run_policy(policy: str, args: argparse.Namespace) -> dict:
     runner = LockstepRunner(cfg)
     goal = runner.scenario.target()
     if args.reference == "step":
-        ref = m.ComReference(t_ref_ns=0, hold=True,
-                             segments=[m.BezierSegment(t0=0.0, duration=1.0, control_points=[list(goal)])])
-
-        def update(now_ns: int, _state: m.StateEstimate) -> m.ComReference:
-            ref.stamp_ns = now_ns
-            return ref
-
-        runner.planner.update = update
+        runner.step_reference()
     res = runner.run()
     d = res.metrics
     arrive = None

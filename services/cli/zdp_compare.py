@@ -122,7 +122,6 @@ def run_one(spec: dict) -> dict:
     record: dict[str, Any] = {"key": json.dumps(spec, sort_keys=True), "spec": spec}
     t0 = time.perf_counter()
     try:
-        from onboard import messages as m
         from sim_twin.lockstep import LockstepRunner, RunConfig
 
         cfg = RunConfig(scenario=spec["scenario"], seed=spec["seed"], duration_s=spec["duration"], estimator="kalman",
@@ -130,14 +129,7 @@ def run_one(spec: dict) -> dict:
         runner = LockstepRunner(cfg)
         goal = runner.scenario.target()
         if spec["scenario"] == "setpoint":  # the bare step (thesis Fig. 5.22), as archer bench zdp --reference step
-            ref = m.ComReference(t_ref_ns=0, hold=True,
-                                 segments=[m.BezierSegment(t0=0.0, duration=1.0, control_points=[list(goal)])])
-
-            def update(now_ns: int, _state: m.StateEstimate) -> m.ComReference:
-                ref.stamp_ns = now_ns
-                return ref
-
-            runner.planner.update = update
+            runner.step_reference()
         res = runner.run()
         t = np.array(res.trace.t)
         com = np.array(res.trace.com).reshape(-1, 3)
