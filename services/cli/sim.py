@@ -316,15 +316,15 @@ ROBOT_SECTIONS = ("control", "estimator", "planner")  # the services that read t
 def run_config(args: argparse.Namespace) -> dict[str, Any]:
     """The config the services of a real-time run read: the user's file, with the robot
     ``--variant`` (the twin's, so every service reads the robot it drives) and ``--mid-level``."""
-    load_params(args.config)  # the user's file is valid before anything is written
+    given = load_params(args.config)["safety"]  # the user's whole file is valid before anything is written
     user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
     for section in ROBOT_SECTIONS:
         user[section] = {**user.get(section, {}), "robot": args.variant}
     # the safety limits of the robot the twin runs (sim15nm: its raised wheel torque), as the
     # twin's own; a limit the user's file sets stays
-    given = load_params(args.config, ("safety",))["safety"]
+    before = as_dict(given)
     robots = as_dict(rd.safety_limits_for(given, rd.robot_params(args.variant)))
-    raised = {k: v for k, v in robots.items() if v != as_dict(given)[k]}
+    raised = {k: v for k, v in robots.items() if v != before[k]}
     if raised:
         user["safety"] = {**raised, **user.get("safety", {})}
     mid_level = getattr(args, "mid_level", None)
