@@ -16,6 +16,7 @@ COMPILED_MODULES = [
     "onboard/quaternion.py",
     "onboard/attitude_filter.py",
     "onboard/estimator.py",
+    "onboard/com_filter.py",
     "onboard/phase.py",
     "onboard/foot_control.py",
     "onboard/attitude_control.py",
@@ -26,8 +27,6 @@ COMPILED_MODULES = [
     "sim_twin/actuation.py",
 ]
 COMPILED_GROUP = "onboard.compiled_tick"
-# Not onboard/com_filter.py: its filterpy reference filter forwards **kwargs to the compiled base
-# class's __init__, which mypyc's build refuses at run time ("float object expected; got dict").
 # mypy checks the compiled modules only; what they import is taken as it is typed
 MYPYC_FLAGS = ["--ignore-missing-imports", "--follow-imports=silent"]
 

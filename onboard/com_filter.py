@@ -434,11 +434,12 @@ class FilterpyComFilter(ComFilter):
     """The same filter with filterpy's :class:`~filterpy.kalman.KalmanFilter` doing the
     Kalman arithmetic on the full 6-state matrices (the reference for the lean one)."""
 
-    def __init__(self, **kwargs: float | bool | Sequence[float]) -> None:
+    def attach_filterpy(self) -> None:
+        """Hands the Kalman arithmetic to filterpy, from the lean filter's initial covariance.
+        Not an ``__init__`` forwarding ``**kwargs``: a compiled build (setup.py) refuses that."""
         from filterpy.common import Q_continuous_white_noise
         from filterpy.kalman import KalmanFilter
 
-        super().__init__(**kwargs)  # type: ignore[arg-type]
         self._qcwn = Q_continuous_white_noise
         kf = KalmanFilter(dim_x=6, dim_z=3)
         kf.x = np.zeros((6, 1))
@@ -504,5 +505,7 @@ def make_com_filter(backend: str, **kwargs: float | bool | Sequence[float]) -> C
     if backend == "lean":
         return ComFilter(**kwargs)  # type: ignore[arg-type]
     if backend == "filterpy":
-        return FilterpyComFilter(**kwargs)
+        reference = FilterpyComFilter(**kwargs)  # type: ignore[arg-type]
+        reference.attach_filterpy()
+        return reference
     raise ValueError(f"unknown CoM filter backend {backend!r}; use 'lean' or 'filterpy'")

@@ -124,5 +124,8 @@ class GmpcMidLevel:
             return None
         q_d, w_d, u_ff = sol.setpoint(self.lead_s)
         times, quats, omegas, torques = sol.plan(self.p.setpoint_plan_s)
-        return MidLevelSetpoint(stamp_ns=now_ns, quat_des=q_d, omega_des=w_d, torque_ff=u_ff, qp_iterations=list(sol.qp_iterations),
-                                plan_t=times, plan_quat=quats, plan_omega=omegas, plan_torque=torques)
+        # lists, as the message's schema says and as it arrives decoded in real time: the compiled
+        # low level (setup.py) checks the types it reads
+        return MidLevelSetpoint(stamp_ns=now_ns, quat_des=list(q_d), omega_des=list(w_d), torque_ff=list(u_ff),
+                                qp_iterations=list(sol.qp_iterations), plan_t=list(times), plan_quat=[list(q) for q in quats],
+                                plan_omega=[list(w) for w in omegas], plan_torque=[list(u) for u in torques])

@@ -52,7 +52,7 @@ impact (the foot lands at ``-leg * axis`` from the CoM).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, cast
 
@@ -106,6 +106,15 @@ def design_policy(params: ControlParams, hopper: zdp.HopperModel) -> PolicyDesig
     r = np.eye(2) * params.zdp_r
     lin = zdp.linear_zdp(a_zz, a_ze, q_eta, q_z, r)
     return PolicyDesign(d, 0.5 * hopper.spring_k * d * d, lin)
+
+
+def _quat(q: Sequence[float]) -> qt.Quat:
+    """A setpoint's quaternion (a list decoded, a tuple in lockstep) as the tuple the attitude code takes."""
+    return q[0], q[1], q[2], q[3]
+
+
+def _vec3(v: Sequence[float]) -> ac.Vec3:
+    return v[0], v[1], v[2]
 
 
 def _setpoint_sound(sp: MidLevelSetpoint) -> bool:
@@ -435,11 +444,11 @@ class LowLevelController:
         self.mid_level_ticks += 1
         ts = sp.plan_t
         if not ts:
-            return sp.quat_des, sp.omega_des, sp.torque_ff
+            return _quat(sp.quat_des), _vec3(sp.omega_des), _vec3(sp.torque_ff)
         tau = (now_ns - sp.stamp_ns) / NS
         last = len(ts) - 1
         if tau >= ts[last]:  # the plan ran out: hold its end, no feed-forward planned for now
-            return sp.plan_quat[last], sp.plan_omega[last], self._zero3
+            return _quat(sp.plan_quat[last]), _vec3(sp.plan_omega[last]), self._zero3
         i = 0
         while i < last - 1 and tau >= ts[i + 1]:
             i += 1
@@ -450,7 +459,7 @@ class LowLevelController:
         q = qt.mul(qa, qt.exp((s * rot[0], s * rot[1], s * rot[2])))
         wa, wb = sp.plan_omega[i], sp.plan_omega[i + 1]
         w = (wa[0] + s * (wb[0] - wa[0]), wa[1] + s * (wb[1] - wa[1]), wa[2] + s * (wb[2] - wa[2]))
-        return q, w, sp.plan_torque[i]
+        return q, w, _vec3(sp.plan_torque[i])
 
     def step(
         self,
