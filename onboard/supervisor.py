@@ -33,7 +33,7 @@ import math
 from collections.abc import Sequence
 
 from onboard import quaternion as qt
-from onboard.messages import ComReference, SafetyEvent, StateEstimate
+from onboard.messages import BezierSegment, ComReference, SafetyEvent, StateEstimate
 from onboard.params import ControlParams, SafetyLimits
 
 NS = 1_000_000_000
@@ -78,6 +78,7 @@ class Supervisor:
         # the reference checked last and its verdict: the same message comes back every
         # tick until a new one arrives, and a 50-segment check costs ~35 us
         self._checked_ref: ComReference | None = None
+        self._checked_segments: list[BezierSegment] | None = None
         self._checked_ref_usable = False
         self._fault_since_ns: int | None = None
         self.attitude_only = False  # this tick: only the estimate's attitude and rate may be used
@@ -193,7 +194,11 @@ class Supervisor:
         if ref is None:
             return None
         if ref is not self._checked_ref:
-            self._checked_ref, self._checked_ref_usable = ref, reference_is_usable(ref)
+            # a planner that keeps its refined path republishes it in a new message around the same
+            # segments (a copy with a new stamp): those were checked already
+            if ref.segments is not self._checked_segments:
+                self._checked_ref_usable = reference_is_usable(ref)
+            self._checked_ref, self._checked_segments = ref, ref.segments
         if not self._checked_ref_usable:
             self._edge(now_ns, "reference_invalid", True, 0.0, 0.0)
             return None

@@ -209,10 +209,16 @@ class GraphPlannerPlug:
         self.no_path = 0
 
     def update(self, now_ns: int, state: m.StateEstimate) -> m.ComReference | None:
+        pl = self.planner
+        replan_due = now_ns >= self._next_replan
+        refine_due = self._refine_ns and now_ns >= self._next_refine and pl.path is not None and hasattr(pl, "refine")
+        if not (replan_due or refine_due):  # most ticks: the reference republished
+            if self.reference is not None:
+                self.reference.stamp_ns = now_ns
+            return self.reference
         pos = np.array(state.position[:2])
         vel = np.array(state.velocity[:2])
-        pl = self.planner
-        if now_ns >= self._next_replan:
+        if replan_due:
             self._next_replan = now_ns + self._replan_ns
             if self.reference is None or pl.needs_replan(pos, now_ns, self.REPLAN_DEVIATION_M):
                 # no clock: planning takes no simulated time, and a densification cut short by the
@@ -226,7 +232,7 @@ class GraphPlannerPlug:
                 self.reference = ref
                 self._next_refine = now_ns + self._refine_ns
                 return self.reference
-        if self._refine_ns and now_ns >= self._next_refine and pl.path is not None and hasattr(pl, "refine"):
+        if refine_due:
             self._next_refine = now_ns + self._refine_ns
             ref = pl.refine(pos, vel, now_ns)
             if ref is not None:
@@ -296,6 +302,8 @@ class LowLevelPlug:
         self._pending: m.MidLevelSetpoint | None = None
         self._setpoint: m.MidLevelSetpoint | None = None
         self._setpoint_due_ns = 0
+        if self.mid_level is None:  # nothing to interleave: the loop calls the low level itself (a frame less a tick)
+            self.step = self.ctrl.step  # type: ignore[method-assign]
 
     def step(self, now_ns: int, state: m.StateEstimate, reference: m.ComReference | None,
              joints: m.JointSensors | None = None) -> m.TorqueCommand:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import msgspec
 import pytest
 
 from onboard import quaternion as qt
@@ -180,3 +181,20 @@ def test_stale_or_malformed_reference_falls_back_to_hopping_in_place():
     assert sup.check_reference(late + 3 * MS, nan_ref) is None  # the verdict holds for the same message
     assert sup.counts["reference_invalid"] == 1
     assert sup.check_reference(late + 4 * MS, fresh) is fresh  # and does not stick to the next one
+
+
+def test_a_republished_reference_keeps_its_verdict_and_new_segments_are_checked():
+    """A planner republishing its kept path wraps the same segments in a new message (checked
+    once); a message with other segments is checked again, whatever came before it."""
+    sup = armed_supervisor()
+    good = reference(0)
+    assert sup.check_reference(MS, good) is good
+    copy = msgspec.structs.replace(good, stamp_ns=MS)
+    assert copy.segments is good.segments
+    assert sup.check_reference(2 * MS, copy) is copy
+    nan_ref = reference(2 * MS, points=((0.0, 0.0), (math.nan, 0.0)))
+    assert sup.check_reference(3 * MS, nan_ref) is None
+    assert sup.check_reference(4 * MS, msgspec.structs.replace(nan_ref, stamp_ns=4 * MS)) is None
+    assert sup.counts["reference_invalid"] == 1
+    in_place = reference(5 * MS)
+    assert sup.check_reference(5 * MS, in_place) is in_place
