@@ -33,18 +33,9 @@ def compiled_modules(root: Path = ROOT) -> list[str]:
     return [name for name, _, _ in _builds(root)]
 
 
-def _built_at(root: Path, ext: Path) -> float:
-    """When ``ext``'s code was built: a module's own extension is a shim into the group's shared
-    library (``*__mypyc*``), which holds the code; a rebuild rewrites the library but leaves a shim
-    whose text did not change as old as it was."""
-    group = [lib.stat().st_mtime for package in PACKAGES for suffix in importlib.machinery.EXTENSION_SUFFIXES
-             for lib in (root / package).glob(f"*__mypyc{suffix}")]
-    return max([ext.stat().st_mtime, *group])
-
-
 def check_fresh(root: Path = ROOT) -> None:
     """Raise ImportError naming every compiled module older than its source."""
-    stale = [f"{name} ({ext.name})" for name, ext, source in _builds(root) if _built_at(root, ext) < source.stat().st_mtime]
+    stale = [f"{name} ({ext.name})" for name, ext, source in _builds(root) if ext.stat().st_mtime < source.stat().st_mtime]
     if stale:
         raise ImportError(f"compiled modules older than their sources: {', '.join(stale)}; rebuild them with "
                           "ARCHER_COMPILE=1 python setup.py build_ext --inplace, or delete them")

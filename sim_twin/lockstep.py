@@ -183,9 +183,11 @@ class LockstepRunner:
         now_ns = 0
         t = 0.0
         k = 0
-        planner_feed = getattr(planner, "feed", None)  # a perceiving planner eats the depth images
+        planner_feed = getattr(planner, "feed", None)
+        perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
+        sensor_feed = planner_feed if perceives else None  # a perceiving planner eats the depth images
         # ray casting nobody reads is skipped (only a perceiving planner or a recording reads depth)
-        sensors.capture_depth = record or isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
+        sensors.capture_depth = record or perceives
         # The low level's tube reaches the planner at the topic's rate (the contract check).
         tube_ns = int(NS / TOPICS["tube"].rate_hz) if planner_feed is not None and hasattr(controller, "tube") else 0
         next_tube_ns = tube_ns
@@ -201,8 +203,8 @@ class LockstepRunner:
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
                 estimator.feed(topic, msg, now_ns)
-                if planner_feed is not None:
-                    planner_feed(topic, msg)
+                if sensor_feed is not None:
+                    sensor_feed(topic, msg)
                 if topic == "joints":
                     joints = msg
                 if record:
