@@ -75,6 +75,7 @@ from onboard import reachability as reach
 from onboard.bezier_graph import (
     DIM,
     PRUNE_SLACK,
+    SPEED_NORMALS,
     BezierGraph,
     GraphSpec,
     PlanningError,
@@ -99,6 +100,7 @@ START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its c
 # (thesis: "path length cost was scaled significantly higher than tracking cost").
 MPC_WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
 MPC_MIN_RADIUS = 2e-4  # [m, m/s] initial-state radii below this become equalities (MPC margin)
+_SPEED_ROWS = tuple((float(nx), float(ny)) for nx, ny in SPEED_NORMALS)  # the speed octagon's normals, as floats
 
 
 # --- the planner -----------------------------------------------------------------------
@@ -115,6 +117,7 @@ class PlannerStats:
     refines: int = 0  # MPC solves
     refine_reused: int = 0  # refine calls answered with the last solution (nothing changed)
     refine_failures: int = 0
+    refine_idle: int = 0  # refine calls answered with the graph path: its end reached, the robot at rest there
     refine_skipped: int = 0  # free mode: refine calls answered with the graph path, the refinement having failed at that knot
     refine_numerical_errors: int = 0  # of the failures: a solver or linear-algebra error (last one in last_refine_error)
     last_refine_error: str = ""
@@ -164,6 +167,7 @@ class GraphPlanner:
         self._mpc_tube = -1.0
         self._last_solution = None
         self._last_refined: tuple | None = None  # (knot, world version, path, first knot, reference)
+        self._arrived: tuple | None = None  # (path, its reference) once the robot rests at its end
         self._failed_refine: tuple | None = None  # (knot, world version, path) of the last failed refinement
         self.contract_violations = 0
         self._reports: list[msgs.ContractReport] = []
@@ -325,12 +329,20 @@ class GraphPlanner:
     # --- plan ----------------------------------------------------------------------------
 
     def _state(self, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-        p = np.asarray(position, dtype=float).reshape(-1)[:2]
-        v = np.asarray(velocity, dtype=float).reshape(-1)[:2]
-        if p.shape != (2,) or v.shape != (2,) or not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
+        """``[px, py, vx, vy]`` from the first two entries of each (in plain floats: this runs at the
+        refinement rate, where a dozen small numpy calls cost more than the rest of a kept answer)."""
+        try:
+            px, py, vx, vy = float(position[0]), float(position[1]), float(velocity[0]), float(velocity[1])
+        except (IndexError, KeyError, TypeError, ValueError):
+            raise PlanningError("state must be finite position and velocity with at least x and y") from None
+        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(vx) and math.isfinite(vy)):
             raise PlanningError("state must be finite position and velocity with at least x and y")
-        # The planning model cannot start faster than its bound; the tube absorbs the rest.
-        return np.concatenate([p, limit_speed(v, self.params.v_max)])
+        # The planning model cannot start faster than its bound; the tube absorbs the rest. Near the
+        # bound limit_speed decides, so the state is the same to the bit as when it always did.
+        v_max = self.params.v_max
+        if max(nx * vx + ny * vy for nx, ny in _SPEED_ROWS) > v_max * (1.0 - 1e-9):
+            vx, vy = limit_speed(np.array([vx, vy]), v_max).tolist()
+        return np.array([px, py, vx, vy])
 
     def _connect(self, x: np.ndarray, outgoing: bool, margin: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Nodes joined to the virtual state ``x`` by a free segment: (nodes, costs, control points)."""
@@ -647,7 +659,9 @@ class GraphPlanner:
         Between two knots the QP only changes by the measured state: while the last
         solution's first knot still lies within the tube of the state (it stays feasible)
         and nothing else changed, that solution is returned again without a solve
-        (``stats.refine_reused``).
+        (``stats.refine_reused``). Once every knot lies past the path's end and the state rests
+        within the tube of that end, the MPC's answer is the end itself: the graph path is
+        returned, without a solve, until the robot is pushed out of the tube (``stats.refine_idle``).
         """
         if self.path is None:
             return None
@@ -656,6 +670,13 @@ class GraphPlanner:
         dt, N = prm.mpc_dt, prm.mpc_horizon
         path = self.path
         j0 = max(0, int(round((stamp_ns - self.path_t0_ns) * 1e-9 / dt)))
+        if j0 * dt >= path.duration and self._at_path_end(x):
+            # arrived: every knot would sit on the path's end at rest, a problem whose answer is that
+            # end; the graph path holds the robot there, with no solve until it is pushed out of the tube
+            self.stats.refine_idle += 1
+            if self._arrived is None or self._arrived[0] is not path:
+                self._arrived = (path, self.path_reference(stamp_ns))
+            return msgspec.structs.replace(self._arrived[1], stamp_ns=stamp_ns)
         kept = self._last_refined
         if (kept is not None and kept[0] == j0 and kept[1] == self._world_version and kept[2] is path
                 and np.all(np.abs(kept[3] - x) <= self._init_radius())):
@@ -710,6 +731,16 @@ class GraphPlanner:
         self._last_refined = None
         self._failed_refine = (j0, self._world_version, path)
         return self.path_reference(stamp_ns)
+
+    def _at_path_end(self, x: np.ndarray) -> bool:
+        """Whether the state lies within the tube of the path's end at rest (the MPC's first-knot radius)."""
+        assert self.path is not None
+        px, py = self.path.control_points[-1, -1].tolist()
+        tube, speed_tol = self.tube, self.params.start_speed_tol
+        rp = tube if tube > MPC_MIN_RADIUS else 0.0  # as _init_radius
+        rv = speed_tol if speed_tol > MPC_MIN_RADIUS else 0.0
+        x0, x1, x2, x3 = x.tolist()
+        return abs(x0 - px) <= rp and abs(x1 - py) <= rp and abs(x2) <= rv and abs(x3) <= rv
 
     def _init_radius(self) -> np.ndarray:
         """How far the MPC's first knot may sit from the state (7.2b): the tube, the speed tolerance."""

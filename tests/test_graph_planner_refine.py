@@ -174,3 +174,43 @@ def test_a_linear_algebra_failure_is_a_failed_refinement_not_a_crash(graph, monk
     assert ref is not None and not ref.hold  # the graph path itself: collision free
     assert planner.stats.refine_failures == 1 and planner.stats.refine_numerical_errors == 1
     assert "SVD did not converge" in planner.stats.last_refine_error
+
+
+def test_at_the_path_end_at_rest_the_path_holds_the_robot_without_a_solve(graph):
+    """Past the path's end every knot sits on its end at rest, a problem whose answer is that end:
+    no solve while the state rests within the tube there; a push out of it is refined again."""
+    planner = _planner(graph)
+    end_ns = planner.path_t0_ns + int(round(planner.path.duration * 1e9))
+    goal = planner.path.states[-1]
+    assert np.allclose(goal[2:], 0.0)
+    ref = planner.refine(goal[:2] + 0.01, [0.02, -0.02], end_ns + 50_000_000)
+    again = planner.refine(goal[:2] - 0.01, [0.0, 0.05], end_ns + 150_000_000)
+    assert planner.stats.refines == 0 and planner.stats.refine_idle == 2
+    assert not ref.hold and again.segments is ref.segments and again.stamp_ns == end_ns + 150_000_000
+    assert ref.segments == planner.path_reference().segments
+    planner.refine(goal[:2] + 0.2, [0.0, 0.0], end_ns + 250_000_000)  # pushed out of the tube
+    assert planner.stats.refines == 1
+    planner.refine(goal[:2], [0.3, 0.0], end_ns + 350_000_000)  # moving faster than the start tolerance
+    assert planner.stats.refines == 2 and planner.stats.refine_idle == 2
+    before_end = planner.refine(goal[:2], [0.0, 0.0], end_ns - 2 * int(PARAMS.mpc_dt * 1e9))  # knots not all at the end yet
+    assert before_end is not None and planner.stats.refines == 3
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_state_is_the_numpy_formula_to_the_bit(graph, seed):
+    """The refinement-rate state in plain floats equals concatenating the position with
+    limit_speed of the velocity, near the speed bound included."""
+    planner = _planner(graph)
+    rng = np.random.default_rng(seed)
+    v_max = PARAMS.v_max
+    for _ in range(200):
+        p = rng.uniform(-5.0, 5.0, 2)
+        direction = rng.normal(size=2)
+        v = direction / np.linalg.norm(direction) * v_max * rng.choice([0.5, 1.0, 1.0 - 1e-12, 1.0 + 1e-12, 1.1, 2.0])
+        expected = np.concatenate([p, bg.limit_speed(v, v_max)])
+        got = planner._state(p, v)
+        assert got.tobytes() == expected.tobytes()
+    with pytest.raises(bg.PlanningError):
+        planner._state((0.0,), (0.0, 0.0))
+    with pytest.raises(bg.PlanningError):
+        planner._state((0.0, math.nan), (0.0, 0.0))
