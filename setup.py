@@ -23,6 +23,7 @@ COMPILED_MODULES = [
     "onboard/attitude_control.py",
     "onboard/supervisor.py",
     "onboard/low_level.py",
+    "onboard/zdp_policy.py",
     "sim_twin/sensors.py",
     "sim_twin/metrics.py",
     "sim_twin/actuation.py",

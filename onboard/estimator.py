@@ -265,6 +265,17 @@ class StateEstimator:
     def _count(self, name: str) -> None:
         self._counters[name] = self._counters.get(name, 0) + 1
 
+    def feed(self, topic: str, msg: object, arrival_ns: int | None = None) -> bool:
+        """A sensor message by its topic (``imu``, ``joints``, ``pose``): the update it takes.
+        Another topic is not a sensor of the estimator's: False, nothing counted."""
+        if topic == "imu":
+            return self.update_imu(cast(ImuSample, msg), arrival_ns)
+        if topic == "joints":
+            return self.update_joints(cast(JointSensors, msg), arrival_ns)
+        if topic == "pose":
+            return self.update_pose(cast(PoseMeasurement, msg), arrival_ns)
+        return False
+
     # --- IMU --------------------------------------------------------------------------
 
     def update_imu(self, msg: ImuSample, arrival_ns: int | None = None) -> bool:

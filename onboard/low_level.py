@@ -60,7 +60,7 @@ import numpy as np
 
 from onboard import attitude_control as ac
 from onboard import quaternion as qt
-from onboard import zdp
+from onboard import zdp, zdp_policy
 from onboard.foot_control import FootPhysics, HopRegulator
 from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
                               TorqueCommand, TrackingTube)
@@ -273,15 +273,15 @@ class LowLevelController:
         self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
         lin = self.design.linear
         if params.policy == "zdp":
-            self._linear = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+            self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
         elif params.policy == "lqr":  # the plain gain, nothing clipped (thesis Fig. 5.22)
-            self._linear = zdp.LinearPolicy.from_matrix(-lin.k_lqr, 0.0, 0.0, 0.0)
+            self._linear = zdp_policy.LinearPolicy.from_matrix(-lin.k_lqr, 0.0, 0.0, 0.0)
         elif params.policy == "raibert":
             kp, kd = params.raibert_kp, params.raibert_kd
             s = -np.array([[kp, 0.0, kd, 0.0], [0.0, kp, 0.0, kd]])
-            self._linear = zdp.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+            self._linear = zdp_policy.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
         else:  # the network's inputs and output are clipped as the linear policies' are
-            self._linear = zdp.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+            self._linear = zdp_policy.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
 
     def retune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """Take new gains and limits between two ticks, keeping every state (armed,
@@ -326,10 +326,10 @@ class LowLevelController:
         """The impact attitude ``(a_x, a_y)`` for an impact-state error [m, m/s]."""
         if self.p.policy == "mlp":
             lp = self._linear
-            ex, ey = zdp.clip_norm(ex, ey, lp.pos_err_max)
-            evx, evy = zdp.clip_norm(evx, evy, lp.vel_err_max)
+            ex, ey = zdp_policy.clip_norm(ex, ey, lp.pos_err_max)
+            evx, evy = zdp_policy.clip_norm(evx, evy, lp.vel_err_max)
             ax, ay = self._mlp((ex, ey, evx, evy))
-            return zdp.clip_norm(ax, ay, math.sin(lp.tilt_max))
+            return zdp_policy.clip_norm(ax, ay, math.sin(lp.tilt_max))
         return self._linear(ex, ey, evx, evy)
 
     # --- the tick ----------------------------------------------------------------------

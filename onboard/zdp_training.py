@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard import ilqr, zdp
+from onboard import ilqr, zdp, zdp_policy
 from onboard import mlp_training as mt
 from onboard.low_level import design_policy
 from onboard.params import ControlParams
@@ -76,7 +76,7 @@ class ZdpProblem:
     r: np.ndarray  # (2, 2) input weight
     p: np.ndarray  # (6, 6) terminal weight: the LQR cost-to-go of eq. 5.43
     bound: float  # |v_i| <= bound (the box)
-    initial: zdp.LinearPolicy  # the initial guess's policy: the clipped linear ZDP
+    initial: zdp_policy.LinearPolicy  # the initial guess's policy: the clipped linear ZDP
     z_half: np.ndarray  # (4,) the sampling box is [-z_half, z_half]
     fd_step: float
     horizon: int
@@ -97,7 +97,7 @@ def make_problem(params: ControlParams, hopper: zdp.HopperModel, settings: Alg2S
     q = np.zeros((N_ETA + N_Z, N_ETA + N_Z))
     q[ETA, ETA], q[Z, Z] = q_eta, q_z
     _, p = zdp.dlqr(a, b, q, r)
-    initial = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+    initial = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
     z_half = np.array([params.pos_err_max] * 2 + [params.vel_err_max] * 2)
     return ZdpProblem(hopper, -math.sqrt(2.0 * hopper.gravity * params.hop_height), design.preload_nominal, q, r, p,
                       math.sin(params.tilt_cmd_max), initial, z_half, settings.fd_step, settings.horizon,
@@ -249,7 +249,7 @@ def sample_domain(problem: ZdpProblem, n: int, rng: np.random.Generator) -> np.n
     return rng.uniform(-problem.z_half, problem.z_half, size=(n, N_Z))
 
 
-def pretrain(problem: ZdpProblem, raibert: zdp.LinearPolicy, scales: Scales, settings: Alg2Settings,
+def pretrain(problem: ZdpProblem, raibert: zdp_policy.LinearPolicy, scales: Scales, settings: Alg2Settings,
              rng: np.random.Generator) -> tuple[mt.Weights, list[float]]:
     """Initialise the network on the clipped Raibert policy (Algorithm 2, line 3). Returns the
     weights and the regression's mini-batch loss per step (scaled units)."""

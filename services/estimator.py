@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Callable
 from typing import Any, ClassVar
 
 from onboard.estimator import StateEstimator
@@ -71,9 +70,6 @@ class EstimatorService(Service):
         self.est = StateEstimator(p, robot_params(p.robot))
         self._rejected_seen = 0  # the estimator's rejections already added to the status counters
         self._rejections_seen: dict[str, int] = {}
-        self._dispatch: dict[str, Callable[[Any, int], bool]] = {
-            "imu": self.est.update_imu, "joints": self.est.update_joints, "pose": self.est.update_pose,
-        }
 
     def _tick(self, _deadline_s: float) -> None:
         batch: list[Any] = []
@@ -89,9 +85,9 @@ class EstimatorService(Service):
         # they were sampled); a stamp from the future or the past is refused by the estimator
         order = sorted(range(len(batch)), key=lambda i: batch[i].stamp_ns)
         with self._lock:
-            dispatch = self._dispatch
+            feed = self.est.feed
             for i in order:
-                dispatch[topic_of[i]](batch[i], arrival_ns)
+                feed(topic_of[i], batch[i], arrival_ns)
             if self.est.rejected_total != self._rejected_seen:
                 self._count_rejections()
             if not self.est.has_imu:  # nothing to stamp an estimate with yet

@@ -192,8 +192,13 @@ class LockstepRunner:
         tube_ns = int(NS / TOPICS["tube"].rate_hz) if planner_feed is not None and hasattr(controller, "tube") else 0
         next_tube_ns = tube_ns
         wall0 = time.perf_counter()
+        # a scenario without disturbances keeps the base class's empty before_step: not called
+        disturb = scenario.before_step
+        if getattr(disturb, "__func__", None) is sc.Scenario.before_step:
+            disturb = None
         for k in range(1, n_ticks + 1):
-            scenario.before_step(t, model, data)
+            if disturb is not None:
+                disturb(t, model, data)
             actuation.apply(cmd, now_ns, data)
             for _ in range(substeps):
                 mj_step(model, data)

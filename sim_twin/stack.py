@@ -136,12 +136,7 @@ class KalmanEstimator:
         from onboard.params import EstimatorParams
 
         self.est = StateEstimator(params or EstimatorParams(), robot)
-        self._dispatch = {"imu": self.est.update_imu, "joints": self.est.update_joints, "pose": self.est.update_pose}
-
-    def feed(self, topic: str, msg: object, now_ns: int) -> None:
-        update = self._dispatch.get(topic)
-        if update is not None:
-            update(msg, now_ns)
+        self.feed = self.est.feed  # the loop calls the estimator's own entry point: a frame less a message
 
     def estimate(self, now_ns: int, data: mujoco.MjData) -> m.StateEstimate:
         return self.est.estimate(now_ns)

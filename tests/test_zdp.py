@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from onboard import zdp
+from onboard import zdp, zdp_policy
 from robot_description import params as rd
 from robot_description.params import hopper_model
 from sim_twin import model as tm
@@ -100,13 +100,13 @@ def test_repeated_modes_of_a_symmetric_system_are_handled():
 
 
 def test_linear_policy_clips_errors_and_tilt_by_norm():
-    pol = zdp.LinearPolicy.from_matrix(-np.array([[0.2, 0, 0.3, 0], [0, 0.2, 0, 0.3]]), 0.3, 0.6, 0.1)
+    pol = zdp_policy.LinearPolicy.from_matrix(-np.array([[0.2, 0, 0.3, 0], [0, 0.2, 0, 0.3]]), 0.3, 0.6, 0.1)
     ax, ay = pol(3.0, 4.0, 0.0, 0.0)  # position error 5 m clipped to 0.3 m (direction kept)
     assert math.hypot(ax, ay) == pytest.approx(0.2 * 0.3)
     assert ay / ax == pytest.approx(4.0 / 3.0)
     ax, ay = pol(0.3, 0.0, 0.6, 0.0)
     assert math.hypot(ax, ay) == pytest.approx(math.sin(0.1))
-    unclipped = zdp.LinearPolicy.from_matrix(-np.array([[0.2, 0, 0.3, 0], [0, 0.2, 0, 0.3]]), 0.0, 0.0, 0.0)
+    unclipped = zdp_policy.LinearPolicy.from_matrix(-np.array([[0.2, 0, 0.3, 0], [0, 0.2, 0, 0.3]]), 0.0, 0.0, 0.0)
     assert unclipped(2.0, 0.0, 0.0, 0.0) == pytest.approx((-0.4, 0.0))
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard import zdp
+from onboard import zdp, zdp_policy
 from onboard.low_level import design_policy
 from onboard.params import ControlParams
 from robot_description.controller import DATA_DIR
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     val_out, _ = forward(w, xs[n_train:])
     val_rms = float(np.sqrt(np.mean((val_out - ys[n_train:]) ** 2))) * y_scale[0]
     lin = design_policy(params, hopper).linear
-    pol = zdp.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+    pol = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
     lin_out = np.array([pol(*row) for row in z[n_train:]])
     gap = float(np.sqrt(np.mean((lin_out - eta[n_train:]) ** 2)))
     print(f"trained: loss {loss:.2e}, validation RMS {val_rms:.4f} (policy units), clipped linear ZDP vs target RMS {gap:.4f}")

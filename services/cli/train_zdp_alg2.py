@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from onboard import mlp_training as mt
-from onboard import zdp
+from onboard import zdp, zdp_policy
 from onboard import zdp_training as zt
 from onboard.params import ControlParams
 from robot_description import params as rd
@@ -75,11 +75,11 @@ def settings_from(args: argparse.Namespace) -> zt.Alg2Settings:
                                validation=args.validation, seed=args.seed)
 
 
-def raibert_policy(params: ControlParams) -> zdp.LinearPolicy:
+def raibert_policy(params: ControlParams) -> zdp_policy.LinearPolicy:
     """The clipped Raibert policy (eq. 5.48) the low level runs with ``policy = "raibert"``."""
     kp, kd = params.raibert_kp, params.raibert_kd
     s = -np.array([[kp, 0.0, kd, 0.0], [0.0, kp, 0.0, kd]])
-    return zdp.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+    return zdp_policy.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
 
 
 # --- the batch's solves on the campaigns' engine ------------------------------------------------
