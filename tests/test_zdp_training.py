@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import importlib.util
 import itertools
 import json
 import math
@@ -206,8 +207,12 @@ def test_archer_train_zdp_writes_weights_the_controller_flies(tmp_path):
     assert res.metrics["falls"] == 0 and res.metrics["hops"] >= 4
 
 
-def test_the_batch_solved_on_the_campaigns_pool_is_the_batch_solved_in_process(hopper_problem):
-    from services.cli.campaign_pool import LocalPool
+@pytest.mark.parametrize("engine", ["local", pytest.param("ray", marks=pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None, reason="Ray is the optional extra .[cluster]"))])
+def test_the_batch_solved_on_the_campaigns_pool_is_the_batch_solved_in_process(hopper_problem, engine):
+    """On a local pool and on a private Ray instance (``archer train zdp --ray local``); Ray is not
+    imported here first: imported before the pool, it would fix its node address off loopback."""
+    from services.cli.campaign_pool import LocalPool, RayPool
     from services.cli.train_zdp_alg2 import PoolSolver
 
     problem, scales, w = hopper_problem
@@ -215,7 +220,7 @@ def test_the_batch_solved_on_the_campaigns_pool_is_the_batch_solved_in_process(h
     z = zt.sample_domain(problem, 4, np.random.default_rng(11))
     eta0 = zt.policy(w, scales, z)
     here = zt.solve_batch(short, eta0, z)
-    with LocalPool(2) as pool:
+    with (LocalPool(2) if engine == "local" else RayPool("local", 2)) as pool:
         there = PoolSolver(pool, 2)(short, eta0, z)
     for f in ("v0", "z1", "dv0_deta0", "dz1_deta0", "free0", "ok", "cost"):
         assert np.array_equal(getattr(here, f), getattr(there, f)), f
