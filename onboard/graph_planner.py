@@ -736,17 +736,19 @@ class GraphPlanner:
         """Whether the state lies within the tube of the path's end at rest (the MPC's first-knot radius)."""
         assert self.path is not None
         px, py = self.path.control_points[-1, -1].tolist()
-        tube, speed_tol = self.tube, self.params.start_speed_tol
-        rp = tube if tube > MPC_MIN_RADIUS else 0.0  # as _init_radius
-        rv = speed_tol if speed_tol > MPC_MIN_RADIUS else 0.0
+        rp, rv = self._init_radii()
         x0, x1, x2, x3 = x.tolist()
         return abs(x0 - px) <= rp and abs(x1 - py) <= rp and abs(x2) <= rv and abs(x3) <= rv
 
+    def _init_radii(self) -> tuple[float, float]:
+        """How far the MPC's first knot may sit from the state (7.2b) in position and in speed: the
+        tube and the speed tolerance, each 0 (an equality) below MPC_MIN_RADIUS."""
+        return tuple(r if r > MPC_MIN_RADIUS else 0.0 for r in (self.tube, self.params.start_speed_tol))  # type: ignore[return-value]
+
     def _init_radius(self) -> np.ndarray:
-        """How far the MPC's first knot may sit from the state (7.2b): the tube, the speed tolerance."""
-        prm = self.params
-        r = np.array([self.tube, self.tube, prm.start_speed_tol, prm.start_speed_tol])
-        return np.where(r > MPC_MIN_RADIUS, r, 0.0)
+        """:meth:`_init_radii` per state coordinate ``[px, py, vx, vy]``."""
+        rp, rv = self._init_radii()
+        return np.array([rp, rp, rv, rv])
 
     # --- contract with the low level ------------------------------------------------------
 
