@@ -251,6 +251,8 @@ class SceneMaker:
         [ns since 1970]); only for channels ``wanted`` (nothing is built for the rest)."""
         params = self.params
         if topic == "state":
+            if not msg.valid:  # before the first pose, or lost: its position means nothing, so the last valid one stays shown
+                return
             if wanted("tf"):
                 yield "tf", self.drawing.transform(msg, epoch)
             if wanted("robot"):
