@@ -24,6 +24,7 @@ COMPILED_MODULES = [
     "onboard/supervisor.py",
     "onboard/low_level.py",
     "onboard/zdp_policy.py",
+    "onboard/flip.py",
     "sim_twin/sensors.py",
     "sim_twin/metrics.py",
     "sim_twin/actuation.py",

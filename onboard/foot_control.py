@@ -59,10 +59,11 @@ class HopRegulator:
     def retune(self, params: ControlParams) -> None:
         """New gains; the learnt loss and the current hop carry on."""
         self.p = params
+        self.hop_height = params.hop_height  # [m] the apex rise aimed at (raised for a flip's flight)
         self._dmax = min(params.preload_max, self.phys.travel)
 
     def _preload_for(self, h: float) -> float:
-        energy = self.loss + self.p.hop_gain * self._mg * (self.p.hop_height - h)
+        energy = self.loss + self.p.hop_gain * self._mg * (self.hop_height - h)
         d = math.sqrt(max(0.0, 2.0 * energy / self.phys.spring_k))
         return min(d, self._dmax)
 

@@ -61,6 +61,7 @@ import numpy as np
 from onboard import attitude_control as ac
 from onboard import quaternion as qt
 from onboard import zdp, zdp_policy
+from onboard.flip import FlipLimits, FlipManoeuvre
 from onboard.foot_control import FootPhysics, HopRegulator
 from onboard.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
                               TorqueCommand, TrackingTube)
@@ -86,6 +87,8 @@ class RobotLike(Protocol):
     foot_travel: float
     wheel_torque_peak: float
     foot_torque_peak: float
+    inertia_com: tuple[tuple[float, float, float], ...]
+    wheel_spin_inertia: float
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,11 @@ def _quat(q: Sequence[float]) -> qt.Quat:
 
 def _vec3(v: Sequence[float]) -> ac.Vec3:
     return v[0], v[1], v[2]
+
+
+def _flip_settings(p: ControlParams) -> tuple[float, float, float, int, float]:
+    """The flip's settings, in :meth:`onboard.flip.FlipManoeuvre.configure`'s order."""
+    return p.flip_axis_deg, p.flip_settle_s, p.flip_torque_share, p.flip_pump_hops, p.flip_hop_height
 
 
 def _setpoint_sound(sp: MidLevelSetpoint) -> bool:
@@ -228,7 +236,9 @@ class LowLevelController:
             self._mlp = Mlp(mlp_weights)
             if (self._mlp.n_in, self._mlp.n_out) != (4, 2):
                 raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
-        self._tune(params, safety or SafetyLimits())
+        safety = safety or SafetyLimits()
+        self.flip = FlipManoeuvre(self._flip_limits(safety), *_flip_settings(params))
+        self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)
         touchdown_h = hopper.touchdown_height(self.design.preload_nominal)
@@ -260,6 +270,7 @@ class LowLevelController:
         self.mid_level_fallback_ticks = 0  # mid_level = "geometric_mpc", but no fresh, finite setpoint: the ZDP's
         self._mid_checked: MidLevelSetpoint | None = None  # the last setpoint checked, and its verdict
         self._mid_ok = False
+        self._lifted_off = False  # a lift-off this tick: the flip decides once the flight is predicted
 
     def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """What the gains and limits set directly: cheap enough for between two ticks."""
@@ -271,6 +282,7 @@ class LowLevelController:
         # clamps are the safety net behind them, and trip only on a real violation
         self._wheel_max = min(safety.wheel_torque_max, self.robot.wheel_torque_peak)
         self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
+        self.flip.configure(self._flip_limits(safety), *_flip_settings(params))
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
@@ -282,6 +294,12 @@ class LowLevelController:
             self._linear = zdp_policy.LinearPolicy.from_matrix(s, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
         else:  # the network's inputs and output are clipped as the linear policies' are
             self._linear = zdp_policy.LinearPolicy.from_matrix(np.zeros((2, 4)), params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
+
+    def _flip_limits(self, safety: SafetyLimits) -> FlipLimits:
+        robot = self.robot
+        i0, i1, i2 = robot.inertia_com
+        return FlipLimits((_vec3(i0), _vec3(i1), _vec3(i2)), self.alloc.axes, robot.wheel_spin_inertia,
+                          min(safety.wheel_torque_max, robot.wheel_torque_peak), safety.wheel_speed_max, robot.gravity)
 
     def retune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """Take new gains and limits between two ticks, keeping every state (armed,
@@ -321,6 +339,15 @@ class LowLevelController:
 
     def disarm(self, now_ns: int, reason: str = "disarm_request") -> None:
         self.supervisor.disarm(now_ns, reason)
+        self.flip.cancel()
+
+    def request_flip(self) -> bool:
+        """One flip (:mod:`onboard.flip`); False if refused (``flip.last_refusal`` says why)."""
+        if self.p.output == "attitude":  # the board runs its own PD on a fixed setpoint per message
+            self.flip.refused += 1
+            self.flip.last_refusal = "attitude output: the hardware's PD tracks no planned turn"
+            return False
+        return self.flip.request()
 
     def policy(self, ex: float, ey: float, evx: float, evy: float) -> tuple[float, float]:
         """The impact attitude ``(a_x, a_y)`` for an impact-state error [m, m/s]."""
@@ -344,10 +371,16 @@ class LowLevelController:
     def _check_and_arm(self, now_ns: int, state: StateEstimate) -> bool:
         """The supervisor's verdict on the estimate; on arming hold heading and place, upright."""
         sup = self.supervisor
+        flip = self.flip
+        if flip.state != "idle":
+            sup.tilt_exempt = flip.tilt_exempt(now_ns)
         if not sup.check_estimate(now_ns, state):
             self._was_armed = sup.armed
+            if not sup.armed:
+                flip.cancel()
             return False
         if not self._was_armed:  # just armed: hold heading and place
+            flip.cancel()
             self._was_armed = True
             self._yaw_ref = qt.yaw_of(state.quat)
             self._hold = (state.position[0], state.position[1])
@@ -486,10 +519,20 @@ class LowLevelController:
         self._phase_update(now_ns, state, ref)
 
         stance = self.phase.phase != "flight"
+        flip = self.flip
         if not stance:  # the ZDP's impact attitude (the fallback), and the hop regulator's apex
+            if flip.state != "idle":
+                self.foot.hop_height = self.p.flip_hop_height if flip.raising_hop else self.p.hop_height
             self._flight_attitude(now_ns, state, ref)
-        target = self._mid_level_target(now_ns, mid_level)
-        if target is not None:  # thesis 5.3: the PD on the MPC's plan, both phases
+            if self._lifted_off:
+                self._lifted_off = False
+                flip.on_liftoff(now_ns, self.predicted_impact[0], self._yaw_ref)
+        target = flip.target(now_ns) if flip.state == "turning" else None
+        if target is not None:  # the flip's turn: its plan's attitude, rate and body torque
+            self.q_des, omega_des, body_ff = target
+            u = ac.pd_torque(state.quat, state.omega, self.q_des, omega_des, body_ff, self._kp, self._kd, self.p.attitude_log)
+            wheel = self.alloc.wheel_torques(u)
+        elif (target := self._mid_level_target(now_ns, mid_level)) is not None:  # thesis 5.3: the PD on the MPC's plan, both phases
             self.q_des, omega_des, wheel_ff = target
             ff = self.alloc.body_torque(wheel_ff)
             u = ac.pd_torque(state.quat, state.omega, self.q_des, omega_des, ff, self._kp, self._kd, self.p.attitude_log)
@@ -522,5 +565,10 @@ class LowLevelController:
                 self.last_impact_error = err
                 self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
             self.foot.on_touchdown(s.foot_pos)
+            self.flip.on_touchdown()
+            if self.flip.state == "idle":
+                self.foot.hop_height = self.p.hop_height
+        elif ev.event == "liftoff":
+            self._lifted_off = True
         elif ev.event == "apex" and com_valid:
             self.foot.on_apex(s.position[2] - self.phase.touchdown_height)

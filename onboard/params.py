@@ -44,7 +44,7 @@ def above(lo: float, hi: float) -> Meta:
 # variant). The controller further caps torques at the loaded variant's own peak.
 WHEEL_TORQUE_PEAK = 15.0  # [N m] largest wheel drive peak of any variant (sim15nm; the real KV115 drive: 1.6)
 FOOT_TORQUE_PEAK = 10.0  # [N m] the foot cable drive's peak at the gearbox output
-WHEEL_NO_LOAD_SPEED = 611.8  # [rad/s] KV115 on the 50.8 V bus: no torque left beyond it
+WHEEL_NO_LOAD_SPEED = 3200.0  # [rad/s] fastest no-load wheel of any variant (sim15nm; the real KV115 on 50.8 V: 611.8)
 CAN_NODES = 127  # CANopen node ids 1..127: per-node tuples are never longer (an emulated bus may carry more drives than joints)
 LOOP_HZ_MAX = 2000.0  # [Hz] what a Python hard-rate loop keeps on the onboard computer
 
@@ -365,6 +365,13 @@ class ControlParams(_Section):
     # and falls back to the ZDP while no fresh, checked MPC answer is at hand)
     mid_level: Literal["zdp", "geometric_mpc"] = "zdp"
     mid_level_stale_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] an MPC setpoint older than this is not tracked
+    # the flip (thesis Fig. 5.13, onboard.flip): one full turn about a horizontal body axis in one flight
+    flip_request: Request = 0  # operator command: set a new value to flip once (refused where the wheels cannot)
+    flip_hop_height: Annotated[float, above(0.0, 0.5)] = 0.40  # [m] apex rise the hops are raised to for the turn's flight
+    flip_axis_deg: Annotated[float, within(-180.0, 180.0)] = 45.0  # turn axis in the body's xy plane from body x [deg] (45: wheels x and y share it)
+    flip_settle_s: Annotated[float, within(0.0, 0.5)] = 0.06  # [s] the turn ends this long before the predicted touchdown
+    flip_torque_share: Annotated[float, above(0.0, 1.0)] = 0.7  # share of a wheel's torque limit the turn's feed-forward may take
+    flip_pump_hops: Annotated[int, within(1, 50)] = 10  # hops to raise the flight before the request is dropped
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ Checks, in the order a tick meets them:
   place without position feedback (trip ``estimate_attitude_only``), for at most
   ``ControlParams.attitude_only_max_s``, then disarms (latched, ``estimate_lost``);
   arming needs the whole estimate valid;
-- tilt beyond ``SafetyLimits.tilt_max`` -> a fall: disarm (latched);
+- tilt beyond ``SafetyLimits.tilt_max`` -> a fall: disarm (latched); not while
+  :attr:`Supervisor.tilt_exempt` (set by the low level over a planned flip's turn only);
 - the reference: older than ``reference_stale_s``, empty or non-finite -> refused,
   the low level hops in place (this is the fallback when the planner dies);
 - the command: wheel torques clamped to ``wheel_torque_max``, a wheel at or over
@@ -82,6 +83,7 @@ class Supervisor:
         self._checked_ref_usable = False
         self._fault_since_ns: int | None = None
         self.attitude_only = False  # this tick: only the estimate's attitude and rate may be used
+        self.tilt_exempt = False  # the low level turns the body over on purpose (a flip's planned turn)
         self._attitude_only_since_ns: int | None = None
         self.retune(limits, params)
 
@@ -178,7 +180,7 @@ class Supervisor:
 
         tilt = qt.tilt(s.quat)
         if self.armed:
-            if tilt > self.limits.tilt_max:
+            if tilt > self.limits.tilt_max and not self.tilt_exempt:
                 self.disarm(now_ns, "tilt", tilt, self.limits.tilt_max)
                 return False
             return True

@@ -182,6 +182,8 @@ def load_xml(variant: str = DEFAULT_VARIANT) -> ET.Element:
         numerics = _numerics(root)
         peak = numerics["sim15nm_wheel_torque_peak"].get("data")
         numerics["wheel_torque_peak"].set("data", peak)
+        for curve in ("wheel_speed_knee", "wheel_no_load_speed"):
+            numerics[curve].set("data", numerics[f"sim15nm_{curve}"].get("data"))
         for motor in root.iter("motor"):
             if motor.get("name") in WHEEL_ACTUATORS:
                 motor.set("ctrlrange", f"-{peak} {peak}")
@@ -447,9 +449,10 @@ def robot_params(variant: str = DEFAULT_VARIANT) -> RobotParams:
 
 def safety_limits_for(safety: SafetyLimits, robot: RobotParams) -> SafetyLimits:
     """The safety limits ``robot`` runs under: ``sim15nm`` with the thesis's raised wheel torque
-    limit (its drive's peak), every other variant as given."""
+    limit (its drive's peak) and its wheels' speed up to the knee of their curve, every other
+    variant as given."""
     if robot.variant == "sim15nm":
-        return with_overrides(safety, {"wheel_torque_max": robot.wheel_torque_peak})
+        return with_overrides(safety, {"wheel_torque_max": robot.wheel_torque_peak, "wheel_speed_max": robot.wheel_speed_knee})
     return safety
 
 

@@ -196,9 +196,15 @@ class LockstepRunner:
         disturb = scenario.before_step
         if getattr(disturb, "__func__", None) is sc.Scenario.before_step:
             disturb = None
+        flip_requests = list(scenario.flip_requests_s)  # the operator's flip requests, as the param would carry them
+        request_flip = getattr(controller, "request_flip", None)
         for k in range(1, n_ticks + 1):
             if disturb is not None:
                 disturb(t, model, data)
+            if flip_requests and t >= flip_requests[0]:
+                flip_requests.pop(0)
+                if request_flip is not None:
+                    request_flip()
             actuation.apply(cmd, now_ns, data)
             for _ in range(substeps):
                 mj_step(model, data)
@@ -267,6 +273,8 @@ class LockstepRunner:
             "phase_events": phase_events,
             "estimator_counters": estimator.counters(),
         })
+        if scenario.flip_requests_s and request_flip is not None:
+            out["flip"] = controller.ctrl.flip.counters()
         mid = getattr(controller, "mid_level", None)
         if mid is not None:
             out["mid_level"] = "geometric_mpc"

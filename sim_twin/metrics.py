@@ -36,6 +36,7 @@ from sim_twin.stack import TruthEstimator
 
 NS = 1_000_000_000
 MIN_FLIGHT_S = 0.08  # [s] an airborne spell shorter than this (apex < 8 mm) is a chatter, not a hop
+FULL_TURN = 0.9 * 2.0 * math.pi  # [rad] a flight turning the body this far counts as a flip
 RECOVERY_S = 0.5  # [s] up this long ends a fall: a fallen robot rocking on its housing is one fall
 TRACE_EVERY = 10  # ticks between trace samples (plots, continuous tracking error)
 
@@ -118,6 +119,7 @@ class PhysicsMetrics:
         self.contacts = ContactClassifier(model)
         self.wheel_dof = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
         self.qp_root = int(model.joint(rd.ROOT_JOINT).qposadr[0])
+        self.qv_root = int(model.joint(rd.ROOT_JOINT).dofadr[0])
         self.cos_tilt_max = math.cos(safety.tilt_max)
         self.target = scenario.target()
         self.trace = Trace()
@@ -132,6 +134,11 @@ class PhysicsMetrics:
         self.wheel_over_limit = 0
         self._on_ground = False
         self._airborne_since = 0.0
+        self._aerial_turns = scenario.aerial_turns
+        self._turned = 0.0  # [rad] the body turned about horizontal axes in this flight (flip scenarios)
+        self.turn_max = 0.0  # [rad] the most of any flight
+        self.full_turns = 0  # flights that turned the body at least FULL_TURN
+        self._t_prev = 0.0
         self._in_collision = False
         self._impact_err: list[float] = []
         self._cont_err: list[float] = []
@@ -152,6 +159,10 @@ class PhysicsMetrics:
         if foot_ground and not self._on_ground:
             if self._airborne_since and t - self._airborne_since >= MIN_FLIGHT_S:
                 self.hops += 1
+            if self._aerial_turns:
+                self.turn_max = max(self.turn_max, self._turned)
+                self.full_turns += self._turned >= FULL_TURN
+                self._turned = 0.0
             if reference is not None:
                 (px, py, _), _ = self.truth.com(data)
                 rx, ry = reference_at(reference, now_ns)
@@ -169,7 +180,13 @@ class PhysicsMetrics:
         qpos = data.qpos.tolist()
         qvel = data.qvel.tolist()
         qx, qy = qpos[self.qp_root + 4], qpos[self.qp_root + 5]
-        fallen_now = body_ground or 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max
+        tilted = 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max
+        if self._aerial_turns:
+            if not foot_ground:
+                tilted = tilted and body_ground  # turning over in flight is the manoeuvre; landing so is a fall
+                self._turned += self._horizontal_rate(qpos, qvel) * (t - self._t_prev)
+            self._t_prev = t
+        fallen_now = body_ground or tilted
         if fallen_now:
             self._up_since = math.nan
             if not self.down:
@@ -211,6 +228,15 @@ class PhysicsMetrics:
             tr.torque.append(applied)
             tr.tracking_error.append(err)
 
+    def _horizontal_rate(self, qpos: list[float], qvel: list[float]) -> float:
+        """The true body rate about world-horizontal axes [rad/s] (the free joint's rate is in the body frame)."""
+        w, x, y, z = qpos[self.qp_root + 3:self.qp_root + 7]
+        wx, wy, wz = qvel[self.qv_root + 3:self.qv_root + 6]
+        gx, gy = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x)  # world z in the body frame: the rate about it is yaw
+        gz = 1.0 - 2.0 * (x * x + y * y)
+        about_up = wx * gx + wy * gy + wz * gz
+        return math.sqrt(max(0.0, wx * wx + wy * wy + wz * wz - about_up * about_up))
+
     def summary(self, data: mujoco.MjData, actuation: Actuation) -> dict:
         (px, py, _), _ = self.truth.com(data)
         final_err = math.hypot(px - self.target[0], py - self.target[1])
@@ -236,4 +262,6 @@ class PhysicsMetrics:
             "torque_saturation_fraction": round(actuation.saturation_fraction, 5),
             "commands_refused": {k: v for k, v in actuation.counters.items() if k != "applied" and v},
             "world": self.scenario.world_summary(),
+            **({"full_turns": self.full_turns, "flight_turn_max_deg": round(math.degrees(self.turn_max), 1)}
+               if self._aerial_turns else {}),
         }

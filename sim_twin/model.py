@@ -54,6 +54,8 @@ def load_spec(variant: str = DEFAULT_VARIANT) -> mujoco.MjSpec:
     elif variant == "sim15nm":
         peak = float(_numeric(spec, "sim15nm_wheel_torque_peak").data[0])
         _numeric(spec, "wheel_torque_peak").data = [peak]
+        for curve in ("wheel_speed_knee", "wheel_no_load_speed"):
+            _numeric(spec, curve).data = list(_numeric(spec, f"sim15nm_{curve}").data)
         for name in WHEEL_ACTUATORS:
             spec.actuator(name).ctrlrange = [-peak, peak]
     return spec

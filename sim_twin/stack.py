@@ -287,6 +287,7 @@ class LowLevelPlug:
         self.ctrl.request_arm()
         self.drain_phase_events = self.ctrl.drain_phase_events
         self.drain_safety_events = self.ctrl.drain_safety_events
+        self.request_flip = self.ctrl.request_flip
         # mid_level = "geometric_mpc": the MPC solves every 1 / gmpc.rate_hz of simulated time on the
         # tick's estimate; its answer reaches the loop one solve period later, as from its own process
         self.mid_level = None
