@@ -43,15 +43,14 @@ from array import array
 from pathlib import Path
 from typing import Any
 
-import msgspec
 import zenoh
 
 from deploy import soak_faults as sf
 from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losses
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard import messages as m
-from onboard.topics import TOPICS, liveliness_key, params_key, topic_for_key
-from services.runtime.peers import query_status
+from onboard.topics import TOPICS, liveliness_key, topic_for_key
+from services.runtime.peers import query_params, query_status
 from services.runtime.realtime import die_with_parent
 from services.recorder import envelope, file_metadata, read_recording, recording_files
 from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
@@ -231,14 +230,6 @@ def _sil_config(base: Path, rec_dir: Path) -> str:
     )
 
 
-def _params(session: zenoh.Session, ns: str, service: str, changes: dict[str, Any] | None = None) -> m.ParamReply | None:
-    body = msgspec.json.encode(m.ParamRequest(set=changes)) if changes else None
-    for reply in session.get(params_key(ns, service), payload=body, timeout=2.0):
-        if reply.ok is not None:
-            return msgspec.json.decode(reply.ok.payload.to_bytes(), type=m.ParamReply)
-    return None
-
-
 class Soak:
     """One run: the sim, the observers, the faults, and the cleanup of every process."""
 
@@ -404,10 +395,10 @@ class Soak:
     def _put_back(self, session: zenoh.Session) -> None:
         """The twin reports a fall: put the robot back, rebuild the estimate, arm."""
         t = time.monotonic_ns()
-        twin = _params(session, self.ns, TWIN)
+        twin = query_params(session, self.ns, TWIN)
         if twin is None or "twin.seed" not in twin.params:
             return
-        reply = _params(session, self.ns, TWIN, {"twin.seed": twin.params["twin.seed"]})
+        reply = query_params(session, self.ns, TWIN, {"twin.seed": twin.params["twin.seed"]})
         if reply is None or reply.error:
             return
         self.put_backs.append(t)
@@ -415,13 +406,13 @@ class Soak:
             if inj.start_ns <= t < inj.window_end_ns and inj.put_back_ns is None:
                 inj.put_back_ns = t
         time.sleep(PUT_BACK_SETTLE_S)
-        est = _params(session, self.ns, "estimator")
+        est = query_params(session, self.ns, "estimator")
         if est is not None and "estimator.rate_hz" in est.params:  # re-converge from the next pose
-            _params(session, self.ns, "estimator", {"estimator.rate_hz": est.params["estimator.rate_hz"]})
+            query_params(session, self.ns, "estimator", {"estimator.rate_hz": est.params["estimator.rate_hz"]})
             time.sleep(PUT_BACK_SETTLE_S)
-        ctl = _params(session, self.ns, "control")
+        ctl = query_params(session, self.ns, "control")
         if ctl is not None and "control.arm_request" in ctl.params:
-            _params(session, self.ns, "control", {"control.arm_request": int(ctl.params["control.arm_request"]) + 1})
+            query_params(session, self.ns, "control", {"control.arm_request": int(ctl.params["control.arm_request"]) + 1})
 
     def _print_progress(self, inj: Injection, t0: int) -> None:
         where = f"{inj.fault.kind}@{inj.fault.at_s:g}"

@@ -28,7 +28,10 @@ pipe and the controller takes it between two ticks (:meth:`LowLevelController.re
 the loop process, its Zenoh session and the torque stream carry on. A change of a field
 in :data:`onboard.params.NEEDS_RESTART` needs a new loop process: refused while the
 controller is armed or about to arm, applied by a restart when disarmed (the new loop
-starts disarmed; the service's watchdog is fed through the restart).
+starts disarmed; the service's watchdog is fed through the restart). A new value of
+``control.flip_request`` asks the loop for one flip (:mod:`onboard.flip`), taken between two
+ticks; a refusal is logged with its reason, and the status counts ``flips``, ``flips_dropped``
+and ``flips_refused``.
 
 :func:`robot_description.controller.build_controller` builds the controller from the
 MJCF (the robot's parameters and the reduced hopper model) and the policy weights file.
@@ -109,6 +112,8 @@ class ControlLoop:
         self.params_seq = 0  # the parent's number of the parameters in effect
         self.params_error = ""
         self.arm_requests = 0  # arm requests taken from the parent
+        self.flip_requests = 0  # flip requests from the parent (the pipe thread counts, the tick takes them)
+        self._flips_taken = 0
         if cfg.hold_disarmed:
             self.ctrl.disarm(self.clock.now_ns(), "parameter_restart")
         self.loop = DeadlineLoop(1.0 / cfg.control.rate_hz, self.tick, name="control-loop")
@@ -149,6 +154,9 @@ class ControlLoop:
             self._retune(request)  # type: ignore[arg-type]
         now = self.clock.now_ns()
         ctrl = self.ctrl
+        if self.flip_requests != self._flips_taken:  # taken between two ticks, as a retune is
+            self._flips_taken += 1
+            ctrl.request_flip()
         st = self.slots["state"].get()
         cmd: msgs.TorqueCommand | msgs.AttitudeSetpoint
         if st is None:
@@ -203,6 +211,8 @@ class ControlLoop:
             "control": self.ctrl.p,  # what the controller runs with, read back from it
             "safety": self.ctrl.safety,
             "hops": self.ctrl.phase.hop,
+            "flip": {**self.ctrl.flip.counters(), "flip_state": self.ctrl.flip.state},
+            "flip_refusal": self.ctrl.flip.last_refusal,
             "mid_level_ticks": self.ctrl.mid_level_ticks,
             "mid_level_fallback_ticks": self.ctrl.mid_level_fallback_ticks,
             "safe_ticks": self.safe_ticks,
@@ -264,6 +274,8 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
                 loop.ctrl.request_arm()
             elif req == "disarm":
                 loop.ctrl.disarm(loop.clock.now_ns())
+            elif req == "flip":
+                loop.flip_requests += 1
         loop.loop.stop(timeout_s=0)  # parent gone or asked: end the loop
 
     server = threading.Thread(target=serve, name="control-pipe", daemon=True)
@@ -289,7 +301,7 @@ class LoopProcess(ChildProcess):
         super().start(timeout_s)
 
     def send(self, request: str | tuple[Any, ...]) -> None:
-        """``"stop"``, ``"arm"``, ``"disarm"`` or ``("params", seq, control, safety)``."""
+        """``"stop"``, ``"arm"``, ``"disarm"``, ``"flip"`` or ``("params", seq, control, safety)``."""
         if request == "arm":
             self.arm_requests += 1
         super().send(request)
@@ -316,6 +328,7 @@ class ControlService(Service):
         self._progress_ticks = 0
         self._params_seq = 0  # numbers the gains and limits sent to the loop
         self._mid_refused_logged = 0
+        self._flips_refused_logged = 0
         await self._start_loop()
 
     def _loop_config(self, hold_disarmed: bool) -> LoopConfig:
@@ -419,6 +432,10 @@ class ControlService(Service):
             self.count(f"trip.{ev.trip}")
             self.log.warning("safety trip", extra={"fields": {"trip": ev.trip, "value": ev.value, "limit": ev.limit,
                                                               "armed": ev.armed, "count": ev.count}})
+        refused = rep.get("flip", {}).get("flips_refused", 0)
+        if refused > self._flips_refused_logged:
+            self._flips_refused_logged = refused
+            self.log.warning("flip refused", extra={"fields": {"reason": rep.get("flip_refusal", "")}})
         self.state = "running" if rep.get("armed") else "degraded"
 
     async def teardown(self) -> None:
@@ -486,7 +503,10 @@ class ControlService(Service):
             self.request_arm()
         if control.disarm_request != sent_control.disarm_request:
             self.request_disarm()
-        gains = dataclasses.replace(control, arm_request=sent_control.arm_request, disarm_request=sent_control.disarm_request)
+        if control.flip_request != sent_control.flip_request:
+            self._loop_proc.send("flip")
+        gains = dataclasses.replace(control, arm_request=sent_control.arm_request, disarm_request=sent_control.disarm_request,
+                                    flip_request=sent_control.flip_request)
         if gains != sent_control or safety != sent_safety:
             self._params_seq += 1
             self._loop_proc.send(("params", self._params_seq, control, safety))
@@ -527,6 +547,9 @@ class ControlService(Service):
         for name, n in rep.get("rejected", {}).items():
             out[f"rejected_{name}"] = float(n)
         out["safety_trips_logged"] = float(self._trips_logged)
+        for name, n in rep.get("flip", {}).items():
+            if name != "flip_state":
+                out[name] = float(n)
         out["mid_level_ticks"] = float(rep.get("mid_level_ticks", 0))
         out["mid_level_fallback_ticks"] = float(rep.get("mid_level_fallback_ticks", 0))
         mid = self._mid_proc.last if self._mid_proc is not None else {}

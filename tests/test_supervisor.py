@@ -131,6 +131,16 @@ def test_tilt_beyond_the_limit_is_a_fall_and_disarms():
     assert ev[-1].trip == "tilt" and ev[-1].value == pytest.approx(LIMITS.tilt_max + 0.01) and not ev[-1].armed
 
 
+def test_a_planned_turn_lifts_the_tilt_bound_and_only_while_it_lasts():
+    sup = armed_supervisor()
+    upside_down = list(qt.from_euler(math.pi, 0.0, 0.0))
+    sup.tilt_exempt = True  # the low level's flip, within its planned turn
+    assert sup.check_estimate(MS, estimate(MS, quat=upside_down)) and sup.armed
+    sup.tilt_exempt = False  # the turn is over: still over is a fall
+    assert not sup.check_estimate(2 * MS, estimate(2 * MS, quat=upside_down))
+    assert not sup.armed and sup.drain_events()[-1].trip == "tilt"
+
+
 def test_torque_clamp_and_overspeed_cutoff_trip_once_per_episode():
     sup = armed_supervisor()
     m = LIMITS.wheel_torque_max

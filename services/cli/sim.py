@@ -349,7 +349,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
 def _run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
-    from services.runtime.peers import query_status
+    from services.runtime.peers import query_status, request_once
     from services.runtime.supervisor import Supervisor, sim_specs
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.topics import namespace
@@ -432,6 +432,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         cpu0: tuple[dict[str, float], float] | None = None
         cpu_used: dict[str, float] = {}
         planner_counts: dict[str, int] = {}
+        flip_errors: list[str] = []  # one per flip request sent ("" when the control service took it)
+        flip_counts: dict[str, int] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -452,13 +454,21 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             wall0 = time.perf_counter()
             twin_started = time.monotonic()
             cpu0 = sup.cpu_seconds(), time.process_time()
+            flips_due = list(scenario.flip_requests_s)  # sent as an operator would: control.flip_request
             while time.perf_counter() - wall0 < duration and not stop_requested.is_set():
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
+                if flips_due and twin.sim_ns / 1e9 >= flips_due[0]:
+                    flips_due.pop(0)
+                    flip_errors.append(await asyncio.to_thread(request_once, twin.session, ns, "control", "control.flip_request"))
                 if tasks[0].done():
                     tasks[0].result()
                 if twin.metrics.fell and not args.keep_going:
                     break
+            if scenario.flip_requests_s and "control" in units:  # what became of the requests, as in lockstep
+                status = await asyncio.to_thread(query_status, twin.session, ns, "control")
+                if status is not None:
+                    flip_counts = {k: int(status.extra[k]) for k in ("flips", "flips_dropped", "flips_refused") if k in status.extra}
             if "planner" in units:  # how it planned, as the lockstep runner reports it
                 status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
                 if status is not None:
@@ -487,6 +497,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
         out.update(planner_counts)
+        if scenario.flip_requests_s:
+            out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
         # cores each process group used while the twin ran ("sim": this process, the twin's);
         # a unit restarted meanwhile counts only its last process

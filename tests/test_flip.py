@@ -1,0 +1,123 @@
+"""The flip (thesis Fig. 5.13): the planned turn, when it is refused, and the twin flipping and hopping on."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from onboard import quaternion as qt
+from onboard.flip import NS, TURN
+from onboard.params import ControlParams, SafetyLimits
+from robot_description import params as rd
+from robot_description.controller import build_controller
+from services.runtime.zenoh_session import free_endpoint
+from sim_twin import lockstep as ls
+
+
+def controller(variant: str):
+    robot = rd.robot_params(variant)
+    return build_controller(variant, ControlParams(robot=variant), rd.safety_limits_for(SafetyLimits(), robot))
+
+
+def started_turn(flight_s: float = 0.5):
+    flip = controller("sim15nm").flip
+    assert flip.request() and flip.state == "pumping" and flip.raising_hop
+    flip.on_liftoff(NS, flight_s, 0.3)
+    assert flip.state == "turning"
+    return flip
+
+
+def test_the_turn_is_one_full_turn_from_rest_to_rest_about_a_horizontal_axis():
+    flip = started_turn()
+    plan = flip.plan
+    assert plan.duration_s == pytest.approx(0.5 - flip.settle_s)
+    end_ns = plan.t0_ns + int(plan.duration_s * NS)
+    q0, w0, ff0 = plan.at(plan.t0_ns)
+    q_end, w_end, ff_end = plan.at(end_ns)
+    q_half, w_half, _ = plan.at(plan.t0_ns + int(plan.duration_s * NS / 2))
+    assert qt.angle_between(q0, plan.q0) < 1e-9 and qt.angle_between(q_end, plan.q0) < 1e-6  # upright at both ends
+    assert qt.tilt(q_half) == pytest.approx(math.pi, abs=1e-3)  # upside down halfway
+    assert max(map(abs, w0)) < 1e-12 and max(map(abs, w_end)) < 1e-3
+    assert math.hypot(*w_half) == pytest.approx(plan.alpha * plan.duration_s / 2, rel=1e-3)  # the rate peaks halfway
+    assert plan.alpha * plan.duration_s ** 2 == pytest.approx(4 * TURN)
+    # the feed-forward accelerates, then brakes, about the same body axis, which stays horizontal
+    assert sum(a * b for a, b in zip(ff0, plan.axis)) > 0 and sum(a * b for a, b in zip(plan.at(end_ns - 1000)[2], plan.axis)) < 0
+    assert plan.axis[2] == 0.0
+    # the rate is the attitude's derivative (body frame): q(t + h) = q(t) exp(omega h)
+    for frac in (0.1, 0.4, 0.6, 0.9):
+        t_ns = plan.t0_ns + int(frac * plan.duration_s * NS)
+        q, w, _ = plan.at(t_ns)
+        h_ns = 10_000
+        q_next = plan.at(t_ns + h_ns)[0]
+        step = qt.log(qt.mul(qt.conj(q), q_next))
+        assert step == pytest.approx(tuple(c * h_ns / NS for c in w), abs=2e-5)
+
+
+def test_the_turn_ends_before_touchdown_and_lifts_the_tilt_bound_only_over_it():
+    flip = started_turn()
+    t0, dur_ns = flip.plan.t0_ns, int(flip.plan.duration_s * NS)
+    assert flip.tilt_exempt(t0 + dur_ns // 2) and flip.target(t0 + dur_ns // 2) is not None
+    assert flip.target(t0 + dur_ns + 1_000_000) is None and flip.state == "landing"
+    assert not flip.tilt_exempt(t0 + dur_ns + 1_000_000) and not flip.raising_hop
+    flip.on_touchdown()
+    assert flip.state == "idle" and flip.counters() == {"flips": 1, "flips_dropped": 0, "flips_refused": 0}
+
+
+def test_a_flight_too_short_for_the_turn_pumps_and_the_request_is_dropped_after_its_hops():
+    flip = controller("sim15nm").flip
+    short = flip.turn_time_min() + flip.settle_s - 0.02
+    assert flip.request()
+    for _ in range(flip.pump_hops - 1):
+        flip.on_liftoff(NS, short, 0.0)
+        assert flip.state == "pumping"
+    flip.on_liftoff(NS, short, 0.0)
+    assert flip.state == "idle" and flip.dropped == 1 and flip.plan is None
+
+
+def test_the_indoor_robot_refuses_the_flip_with_its_reason():
+    """1.5 N m: a full turn within 70 % of the wheels' torque needs more than a second of flight."""
+    ctrl = controller("indoor")
+    assert not ctrl.request_flip()
+    assert ctrl.flip.state == "idle" and ctrl.flip.refused == 1
+    assert "s of flight" in ctrl.flip.last_refusal and ctrl.flip.turn_time_min() > 1.0
+
+
+def test_a_disarm_cancels_a_flip_under_way():
+    ctrl = controller("sim15nm")
+    assert ctrl.request_flip() and ctrl.flip.state == "pumping"
+    ctrl.disarm(0)
+    assert ctrl.flip.state == "idle"
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_twin_flips_twice_lands_upright_and_hops_on(seed):
+    result = ls.run(ls.RunConfig("flip", seed=seed, variant="sim15nm", estimator="kalman"))
+    out = result.metrics
+    assert out["falls"] == 0 and out["goal_reached"], out
+    assert out["flip"] == {"flips": 2, "flips_dropped": 0, "flips_refused": 0}
+    assert out["full_turns"] == 2 and out["flight_turn_max_deg"] > 340.0  # measured on the true body rate
+    assert out["hops"] >= 25  # hopping before, between and after
+    assert 1000.0 < out["max_wheel_speed_rad_s"] < rd.robot_params("sim15nm").wheel_speed_knee
+
+
+def test_on_the_indoor_robot_the_flip_scenario_hops_on_unflipped():
+    out = ls.run(ls.RunConfig("flip", seed=1, variant="indoor", estimator="kalman")).metrics
+    assert out["falls"] == 0 and out["full_turns"] == 0
+    assert out["flip"] == {"flips": 0, "flips_dropped": 0, "flips_refused": 2}
+
+
+def test_in_real_time_the_flip_request_reaches_the_control_loop_as_a_parameter():
+    """``archer sim --mode realtime --scenario flip``: the request goes as ``control.flip_request``."""
+    proc = subprocess.run([sys.executable, "-m", "services.cli.main", "sim", "--mode", "realtime", "--scenario", "flip",
+                           "--variant", "sim15nm", "--duration", "6.5", "--endpoint", free_endpoint(), "--namespace",
+                           "test/flip", "--json", "--quiet"], capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["falls"] == 0, out
+    assert out["flip"]["requests_sent"] == 1 and out["flip"]["request_errors"] == []
+    assert out["flip"]["flips"] == 1 and out["full_turns"] == 1
+
