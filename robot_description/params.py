@@ -16,7 +16,9 @@ Variants:
 - ``outdoor``: ``archer_outdoor.xml``, the indoor robot plus computer, batteries, shell and tennis
   ball, 8.25 kg; its welded payload parts are re-parented rigidly (see that file's header).
 - ``sim15nm``: the indoor robot with the wheel torque limit of the thesis's MuJoCo simulations
-  (15 N m instead of 1.5), read from the MJCF numeric ``sim15nm_wheel_torque_peak``.
+  (15 N m instead of 1.5), read from the MJCF numeric ``sim15nm_wheel_torque_peak``, and the
+  wheels' speed curve moved out to ``sim15nm_wheel_speed_knee`` / ``..._no_load_speed`` (the
+  thesis names torque limits only; its flip spins the wheels past what the KV115 reaches).
 """
 
 from __future__ import annotations
