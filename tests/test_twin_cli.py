@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 
 from onboard import messages as msgs
 from onboard.topics import TOPICS, namespace
+from robot_description import params as rd
 from services.cli.main import main
 
 REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_factor", "hops", "falls", "recoveries", "collisions",
@@ -120,6 +121,26 @@ def test_a_realtime_run_tells_every_service_the_robot_the_twin_runs(tmp_path) ->
     user.write_text('[safety]\nwheel_torque_max = 5.0\n')
     mine = load_params_of(run_config(argparse.Namespace(config=str(user), variant="sim15nm", mid_level=None)), tmp_path)
     assert mine["safety"].wheel_torque_max == 5.0  # the user's limit stays
+
+
+def test_a_lockstep_run_with_a_config_file_runs_under_the_robots_limits(tmp_path) -> None:
+    """With ``--config``, lockstep takes the file's safety section over the robot's limits, as real time does
+    (it once took the file's defaults: 1.5 N m on sim15nm)."""
+    import argparse
+
+    from services.cli.sim import build_config
+
+    def config(text: str):
+        user = tmp_path / "user.toml"
+        user.write_text(text)
+        return build_config(argparse.Namespace(config=str(user), variant="sim15nm", mid_level=None, no_noise=False,
+                                               scenario="flip", seed=0, duration=None, estimator="kalman", planner="auto",
+                                               controller="lowlevel", obstacles=None, perception="truth", keep_going=False,
+                                               record=None))
+
+    raised = config('[control]\nmid_level = "geometric_mpc"\n').safety
+    assert raised.wheel_torque_max == 15.0 and raised.wheel_speed_max == rd.robot_params("sim15nm").wheel_speed_knee
+    assert config('[safety]\nwheel_torque_max = 5.0\n').safety.wheel_torque_max == 5.0  # the user's limit stays
 
 
 def load_params_of(config: dict, tmp_path) -> dict:

@@ -149,7 +149,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         controller=args.controller,
         obstacles=args.obstacles,
         twin=twin,
-        safety=params["safety"] if args.config else None,
+        safety=with_overrides(params["safety"], robot_safety(args)) if args.config else None,
         estimator_params=params.get("estimator"),
         planner_params=params.get("planner"),
         control_params=params.get("control"),
@@ -313,20 +313,26 @@ class FirmwareRig:
 ROBOT_SECTIONS = ("control", "estimator", "planner")  # the services that read the robot's parameters
 
 
+def robot_safety(args: argparse.Namespace) -> dict[str, Any]:
+    """The safety limits of the robot ``--variant`` where they differ from the defaults (sim15nm: its
+    raised wheel torque and speed), under those the user's ``--config`` file sets itself."""
+    given = load_params(args.config)["safety"]
+    user = tomllib.loads(Path(args.config).read_text()).get("safety", {}) if args.config else {}
+    before = as_dict(given)
+    robots = as_dict(rd.safety_limits_for(given, rd.robot_params(args.variant)))
+    return {**{k: v for k, v in robots.items() if v != before[k]}, **user}
+
+
 def run_config(args: argparse.Namespace) -> dict[str, Any]:
     """The config the services of a real-time run read: the user's file, with the robot
     ``--variant`` (the twin's, so every service reads the robot it drives) and ``--mid-level``."""
-    given = load_params(args.config)["safety"]  # the user's whole file is valid before anything is written
+    load_params(args.config)  # the user's whole file is valid before anything is written
     user = tomllib.loads(Path(args.config).read_text()) if args.config else {}
     for section in ROBOT_SECTIONS:
         user[section] = {**user.get(section, {}), "robot": args.variant}
-    # the safety limits of the robot the twin runs (sim15nm: its raised wheel torque), as the
-    # twin's own; a limit the user's file sets stays
-    before = as_dict(given)
-    robots = as_dict(rd.safety_limits_for(given, rd.robot_params(args.variant)))
-    raised = {k: v for k, v in robots.items() if v != before[k]}
-    if raised:
-        user["safety"] = {**raised, **user.get("safety", {})}
+    safety = robot_safety(args)
+    if safety:
+        user["safety"] = safety
     mid_level = getattr(args, "mid_level", None)
     if mid_level:
         user["control"] = {**user["control"], "mid_level": mid_level}
