@@ -189,12 +189,12 @@ class FlipManoeuvre:
         return self.state == "turning" and plan is not None and 0 <= now_ns - plan.t0_ns <= plan.duration_s * NS
 
     def on_touchdown(self) -> None:
-        if self.state == "landing":
-            self.flips += 1
+        """A touchdown ends a flip in flight: done after its turn; cut short mid-turn (the supervisor
+        then judges the tilt); a flip still pumping carries on."""
+        if self.state in ("landing", "turning"):
+            self.flips += self.state == "landing"
             self.state = "idle"
-        elif self.state == "turning":  # touched down mid-turn: over (the supervisor judges the tilt)
-            self.state = "idle"
-        self.plan = None if self.state == "idle" else self.plan
+            self.plan = None
 
     def cancel(self) -> None:
         """Disarmed or re-armed: nothing carries over."""

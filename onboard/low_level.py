@@ -372,7 +372,7 @@ class LowLevelController:
         """The supervisor's verdict on the estimate; on arming hold heading and place, upright."""
         sup = self.supervisor
         flip = self.flip
-        if flip.state != "idle":
+        if flip.state != "idle" or sup.tilt_exempt:  # ends with the turn, however it ended (a touchdown, a disarm)
             sup.tilt_exempt = flip.tilt_exempt(now_ns)
         if not sup.check_estimate(now_ns, state):
             self._was_armed = sup.armed

@@ -93,6 +93,28 @@ def test_a_disarm_cancels_a_flip_under_way():
     assert ctrl.flip.state == "idle"
 
 
+def test_the_tilt_bound_returns_with_the_turns_end_however_it_ends():
+    """A touchdown mid-turn (a flight shorter than predicted) ends the exemption: upside down is then a fall."""
+    from onboard.messages import StateEstimate
+
+    def estimate(t_ns: int, quat) -> StateEstimate:
+        return StateEstimate(stamp_ns=t_ns, position=[0.0, 0.0, 0.6], velocity=[0.0, 0.0, 0.0], quat=list(quat),
+                             omega=[0.0, 0.0, 0.0], wheel_vel=[0.0, 0.0, 0.0], foot_pos=0.0, foot_vel=0.0, contact=False,
+                             phase="flight", pos_vel_cov=[0.0] * 36, att_cov=[0.0] * 3)
+
+    ctrl = controller("sim15nm")
+    assert ctrl.step(0, estimate(0, qt.IDENTITY), None).armed
+    assert ctrl.request_flip()
+    ctrl.flip.on_liftoff(NS // 1000, 0.5, 0.0)
+    upside_down = qt.from_euler(math.pi, 0.0, 0.0)
+    t = NS // 1000 + 200_000_000  # within the turn
+    assert ctrl.step(t, estimate(t, upside_down), None).armed
+    ctrl.flip.on_touchdown()  # as the phase detector's touchdown calls it
+    t += 1_000_000
+    assert not ctrl.step(t, estimate(t, upside_down), None).armed
+    assert ctrl.supervisor.disarm_reason == "tilt"
+
+
 @pytest.mark.parametrize("seed", [0, 3])
 def test_the_twin_flips_twice_lands_upright_and_hops_on(seed):
     result = ls.run(ls.RunConfig("flip", seed=seed, variant="sim15nm", estimator="kalman"))
