@@ -192,7 +192,8 @@ class FlipManoeuvre:
         """A touchdown ends a flip in flight: done after its turn; cut short mid-turn (the supervisor
         then judges the tilt); a flip still pumping carries on."""
         if self.state in ("landing", "turning"):
-            self.flips += self.state == "landing"
+            if self.state == "landing":
+                self.flips += 1
             self.state = "idle"
             self.plan = None
 
