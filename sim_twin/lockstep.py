@@ -274,7 +274,10 @@ class LockstepRunner:
             "estimator_counters": estimator.counters(),
         })
         if scenario.flip_requests_s and request_flip is not None:
-            out["flip"] = controller.ctrl.flip.counters()
+            flip = controller.ctrl.flip
+            out["flip"] = flip.counters()
+            if flip.last_refusal:
+                out["flip_refusal"] = flip.last_refusal
         mid = getattr(controller, "mid_level", None)
         if mid is not None:
             out["mid_level"] = "geometric_mpc"

@@ -130,6 +130,7 @@ def test_on_the_indoor_robot_the_flip_scenario_hops_on_unflipped():
     out = ls.run(ls.RunConfig("flip", seed=1, variant="indoor", estimator="kalman")).metrics
     assert out["falls"] == 0 and out["full_turns"] == 0
     assert out["flip"] == {"flips": 0, "flips_dropped": 0, "flips_refused": 2}
+    assert "s of flight" in out["flip_refusal"]
 
 
 def test_in_real_time_the_flip_request_reaches_the_control_loop_as_a_parameter():
