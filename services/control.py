@@ -211,7 +211,7 @@ class ControlLoop:
             "control": self.ctrl.p,  # what the controller runs with, read back from it
             "safety": self.ctrl.safety,
             "hops": self.ctrl.phase.hop,
-            "flip": {**self.ctrl.flip.counters(), "flip_state": self.ctrl.flip.state},
+            "flip": self.ctrl.flip.counters(),
             "flip_refusal": self.ctrl.flip.last_refusal,
             "mid_level_ticks": self.ctrl.mid_level_ticks,
             "mid_level_fallback_ticks": self.ctrl.mid_level_fallback_ticks,
@@ -548,8 +548,7 @@ class ControlService(Service):
             out[f"rejected_{name}"] = float(n)
         out["safety_trips_logged"] = float(self._trips_logged)
         for name, n in rep.get("flip", {}).items():
-            if name != "flip_state":
-                out[name] = float(n)
+            out[name] = float(n)
         out["mid_level_ticks"] = float(rep.get("mid_level_ticks", 0))
         out["mid_level_fallback_ticks"] = float(rep.get("mid_level_fallback_ticks", 0))
         mid = self._mid_proc.last if self._mid_proc is not None else {}

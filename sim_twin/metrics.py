@@ -7,7 +7,10 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   robot geom other than the foot touches the ground (floor or terrain); an episode begins when it
   goes down and ends when it has been up again for ``RECOVERY_S``. A run stops at the first fall
   unless it keeps going (``archer sim --keep-going``), so only then can this exceed 1;
-  ``fall_time_s`` and ``fall_reason`` are the first fall's;
+  ``fall_time_s`` and ``fall_reason`` are the first fall's. In a scenario that flips
+  (``Scenario.aerial_turns``) a tilt in flight is the manoeuvre: it is a fall only on the ground;
+- ``full_turns`` and ``flight_turn_max_deg`` (flip scenarios only): flights in which the body turned
+  at least ``FULL_TURN`` about horizontal axes, and the most any flight turned, from the true body rate;
 - ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
 - ``collisions``: contact episodes between the robot and an obstacle;
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
