@@ -41,7 +41,6 @@ if os.environ.get("ARCHER_COMPILE") == "1":
     ext_modules = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3", group_name=COMPILED_GROUP)
 
 
-
 class BuildExtStamped(build_ext):
     """Stamps every extension it leaves with the time of the build: mypyc regenerates the C from
     the sources as they are now, but an output whose text did not change is left with its old

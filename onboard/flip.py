@@ -146,12 +146,16 @@ class FlipManoeuvre:
             return True  # one at a time: the flip under way answers it
         reason = self.infeasible_reason()
         if reason:
-            self.refused += 1
-            self.last_refusal = reason
+            self.refuse(reason)
             return False
         self.state = "pumping"
         self._pumped = 0
         return True
+
+    def refuse(self, reason: str) -> None:
+        """A request not taken: counted, and why kept for the status and the log."""
+        self.refused += 1
+        self.last_refusal = reason
 
     @property
     def raising_hop(self) -> bool:

@@ -743,7 +743,8 @@ class GraphPlanner:
     def _init_radii(self) -> tuple[float, float]:
         """How far the MPC's first knot may sit from the state (7.2b) in position and in speed: the
         tube and the speed tolerance, each 0 (an equality) below MPC_MIN_RADIUS."""
-        return tuple(r if r > MPC_MIN_RADIUS else 0.0 for r in (self.tube, self.params.start_speed_tol))  # type: ignore[return-value]
+        rp, rv = self.tube, self.params.start_speed_tol
+        return (rp if rp > MPC_MIN_RADIUS else 0.0), (rv if rv > MPC_MIN_RADIUS else 0.0)
 
     def _init_radius(self) -> np.ndarray:
         """:meth:`_init_radii` per state coordinate ``[px, py, vx, vy]``."""

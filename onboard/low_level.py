@@ -344,8 +344,7 @@ class LowLevelController:
     def request_flip(self) -> bool:
         """One flip (:mod:`onboard.flip`); False if refused (``flip.last_refusal`` says why)."""
         if self.p.output == "attitude":  # the board runs its own PD on a fixed setpoint per message
-            self.flip.refused += 1
-            self.flip.last_refusal = "attitude output: the hardware's PD tracks no planned turn"
+            self.flip.refuse("attitude output: the hardware's PD tracks no planned turn")
             return False
         return self.flip.request()
 

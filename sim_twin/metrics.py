@@ -8,7 +8,7 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   goes down and ends when it has been up again for ``RECOVERY_S``. A run stops at the first fall
   unless it keeps going (``archer sim --keep-going``), so only then can this exceed 1;
   ``fall_time_s`` and ``fall_reason`` are the first fall's. In a scenario that flips
-  (``Scenario.aerial_turns``) a tilt in flight is the manoeuvre: it is a fall only on the ground;
+  (``Scenario.flip_requests_s``) a tilt in flight is the manoeuvre: it is a fall only on the ground;
 - ``full_turns`` and ``flight_turn_max_deg`` (flip scenarios only): flights in which the body turned
   at least ``FULL_TURN`` about horizontal axes, and the most any flight turned, from the true body rate;
 - ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
@@ -137,7 +137,7 @@ class PhysicsMetrics:
         self.wheel_over_limit = 0
         self._on_ground = False
         self._airborne_since = 0.0
-        self._aerial_turns = scenario.aerial_turns
+        self._aerial_turns = bool(scenario.flip_requests_s)  # the body turns over in flight on purpose
         self._turned = 0.0  # [rad] the body turned about horizontal axes in this flight (flip scenarios)
         self.turn_max = 0.0  # [rad] the most of any flight
         self.full_turns = 0  # flights that turned the body at least FULL_TURN

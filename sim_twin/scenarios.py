@@ -127,8 +127,6 @@ class Scenario:
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     default_duration_s: ClassVar[float] = 20.0
-    # the body may turn over in flight (a flip): a tilt counts as a fall only on the ground
-    aerial_turns: ClassVar[bool] = False
 
     def __init__(self, seed: int = 0, obstacles: int | None = None, cruise_speed: float = REF_SPEED) -> None:
         if not 0.0 < cruise_speed <= REF_SPEED:
@@ -144,7 +142,9 @@ class Scenario:
         self.obstacles: list[Obstacle] = []
         self.terrain: list[tuple[str, dict]] = []  # (name, MjsGeom keyword arguments)
         self.segments: list[m.BezierSegment] = []
-        self.flip_requests_s: list[float] = []  # [s] when the operator asks the low level for a flip
+        # [s] when the operator asks the low level for a flip; in a scenario that asks, the body turns
+        # over in flight on purpose, so a tilt counts as a fall only on the ground (sim_twin.metrics)
+        self.flip_requests_s: list[float] = []
         self.setup(obstacles)
 
     # --- to override ------------------------------------------------------------
@@ -323,7 +323,6 @@ class Flip(Scenario):
     name = "flip"
     description = "hop in place and flip twice: a full turn about a horizontal axis in one flight (thesis Fig. 5.13)"
     default_duration_s = 14.0
-    aerial_turns = True
     FIRST = 3.0  # [s] the first request, then a random share of a hop later (the hop's phase varies)
     EVERY = 5.0  # [s] the second request after the first
     PHASE_SPREAD = 0.6  # [s] about one hop cycle

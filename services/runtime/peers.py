@@ -49,8 +49,9 @@ def request_once(session: zenoh.Session, ns: str, service: str, field: str) -> s
     now = query_params(session, ns, service)
     if now is None:
         return f"{service} does not answer"
+    if field not in now.params:
+        return f"{service} has no parameter {field}"
     reply = query_params(session, ns, service, {field: int(now.params[field]) + 1})
     if reply is None:
         return f"{service} does not answer"
     return reply.error
-
