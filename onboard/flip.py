@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 from onboard import attitude_control as ac
 from onboard import quaternion as qt
+from onboard.params import ControlParams
 
 NS = 1_000_000_000
 TURN = 2.0 * math.pi
@@ -85,9 +86,8 @@ class TurnPlan:
 class FlipManoeuvre:
     """The flip's sequence; see the module docstring."""
 
-    def __init__(self, limits: FlipLimits, axis_deg: float, settle_s: float, torque_share: float, pump_hops: int,
-                 hop_height: float) -> None:
-        self.configure(limits, axis_deg, settle_s, torque_share, pump_hops, hop_height)
+    def __init__(self, limits: FlipLimits, params: ControlParams) -> None:
+        self.configure(limits, params)
         self.state = "idle"  # idle | pumping | turning | landing
         self.plan: TurnPlan | None = None
         self._pumped = 0
@@ -96,11 +96,10 @@ class FlipManoeuvre:
         self.refused = 0  # infeasible on this robot even at the highest hop
         self.last_refusal = ""
 
-    def configure(self, limits: FlipLimits, axis_deg: float, settle_s: float, torque_share: float, pump_hops: int,
-                  hop_height: float) -> None:
-        """New limits and settings; a flip under way keeps its plan."""
+    def configure(self, limits: FlipLimits, params: ControlParams) -> None:
+        """New limits and ``flip_*`` settings; a flip under way keeps its plan."""
         self.limits = limits
-        phi = math.radians(axis_deg)
+        phi = math.radians(params.flip_axis_deg)
         self.axis: Vec3 = (math.cos(phi), math.sin(phi), 0.0)
         (i0, i1, i2) = self.limits.inertia
         ax, ay, az = self.axis
@@ -110,10 +109,10 @@ class FlipManoeuvre:
         # each wheel's momentum per unit body rate (the wheels take what the body gains)
         per_alpha = ac.WheelAllocation.from_axes(self.limits.wheel_axes).wheel_torques(self._i_axis)
         self._wheel_per_alpha = max(abs(w) for w in per_alpha)
-        self.settle_s = settle_s
-        self.torque_share = torque_share
-        self.pump_hops = pump_hops
-        self.hop_height = hop_height
+        self.settle_s = params.flip_settle_s
+        self.torque_share = params.flip_torque_share
+        self.pump_hops = params.flip_pump_hops
+        self.hop_height = params.flip_hop_height
 
     # --- feasibility -----------------------------------------------------------------
 

@@ -120,11 +120,6 @@ def _vec3(v: Sequence[float]) -> ac.Vec3:
     return v[0], v[1], v[2]
 
 
-def _flip_settings(p: ControlParams) -> tuple[float, float, float, int, float]:
-    """The flip's settings, in :meth:`onboard.flip.FlipManoeuvre.configure`'s order."""
-    return p.flip_axis_deg, p.flip_settle_s, p.flip_torque_share, p.flip_pump_hops, p.flip_hop_height
-
-
 def _setpoint_sound(sp: MidLevelSetpoint) -> bool:
     """Every number finite and the plan's lists of matching lengths, times non-decreasing."""
     n = len(sp.plan_t)
@@ -237,7 +232,7 @@ class LowLevelController:
             if (self._mlp.n_in, self._mlp.n_out) != (4, 2):
                 raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
         safety = safety or SafetyLimits()
-        self.flip = FlipManoeuvre(self._flip_limits(safety), *_flip_settings(params))
+        self.flip = FlipManoeuvre(self._flip_limits(safety), params)
         self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)
@@ -282,7 +277,7 @@ class LowLevelController:
         # clamps are the safety net behind them, and trip only on a real violation
         self._wheel_max = min(safety.wheel_torque_max, self.robot.wheel_torque_peak)
         self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
-        self.flip.configure(self._flip_limits(safety), *_flip_settings(params))
+        self.flip.configure(self._flip_limits(safety), params)
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
