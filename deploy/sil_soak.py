@@ -48,8 +48,8 @@ import zenoh
 from deploy import soak_faults as sf
 from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losses
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
-from onboard import messages as m
-from onboard.topics import TOPICS, liveliness_key, topic_for_key
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS, liveliness_key, topic_for_key
 from services.runtime.peers import query_params, query_status
 from services.runtime.realtime import die_with_parent
 from services.recorder import envelope, file_metadata, read_recording, recording_files

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from deploy.soak_schedule import Fault
-from onboard.topics import TOPICS
+from onboard.contracts.topics import TOPICS
 from services.recorder import SeqStats
 
 NS = 1_000_000_000

@@ -9,7 +9,7 @@ their own, started with ``python -m deploy.soak_faults hog|flood``; each dies wi
 - ``hog``: a busy loop pinned to one core (``os.sched_setaffinity``).
 - ``flood --mode malformed``: payloads no decoder of the stack may accept (not JSON, the
   wrong type, unknown or missing fields, wrong array lengths, non-finite numbers, an unknown
-  schema version, a torn binary header), each checked against :func:`onboard.messages.decode`
+  schema version, a torn binary header), each checked against :func:`onboard.contracts.messages.decode`
   before it is sent.
 - ``flood --mode stamps``: well-formed messages (a copy of the latest live one on the topic;
   a schema example where nothing is live) stamped ``offset`` seconds from now, ``seq`` 0 so
@@ -182,9 +182,9 @@ def malformed_payloads(topic_name: str) -> list[bytes]:
     """Payloads of ``topic_name`` that its decoder must refuse (each is checked here)."""
     import msgspec
 
-    from onboard import binary_messages as bm
-    from onboard import messages as m
-    from onboard.topics import TOPICS
+    from onboard.contracts import binary_messages as bm
+    from onboard.contracts import messages as m
+    from onboard.contracts.topics import TOPICS
 
     topic = TOPICS[topic_name]
     garbage = [b"", b"\xff\xfe\x00garbage", b"{", b"null", b"[1, 2, 3]", b'"a string"']
@@ -228,8 +228,8 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
               duration_s: float) -> dict[str, Any]:
     import msgspec
 
-    from onboard import messages as m
-    from onboard.topics import TOPICS
+    from onboard.contracts import messages as m
+    from onboard.contracts.topics import TOPICS
     from services.runtime.zenoh_session import open_session
 
     session = open_session(endpoint, "client")

@@ -14,7 +14,7 @@ kind                parameters
                     then SIGCONT
 ``router_restart``  none: kill -9 of the router unit (the supervisor restarts it)
 ``cpu_hog``         ``duration``; ``cpu`` (default 0): a busy process pinned to that core
-``malformed_flood`` ``topics`` (names in :data:`onboard.topics.TOPICS`), ``duration``, ``rate_hz``
+``malformed_flood`` ``topics`` (names in :data:`onboard.contracts.topics.TOPICS`), ``duration``, ``rate_hz``
                     (per topic, default FLOOD_RATE_HZ): payloads no decoder may accept
 ``bad_stamps``      ``topics`` (JSON topics), ``duration``, ``offset`` (seconds added to the stamp:
                     positive in the future, negative in the past), ``rate_hz`` (default: the
@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from onboard.topics import TOPICS
+from onboard.contracts.topics import TOPICS
 
 KINDS = ("kill", "stall", "router_restart", "cpu_hog", "malformed_flood", "bad_stamps")
 TARGETED = ("kill", "stall")

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard import bezier as bz
-from onboard import reachability as rc
-from onboard.bezier_mpc import BezierMpc, MpcWeights
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import reachability as rc
+from onboard.high_level.tracking.bezier_mpc import BezierMpc, MpcWeights
 
 X1_MAX = 2.5  # state limits of the closed loop
 X2_MAX = 1.0

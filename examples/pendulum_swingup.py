@@ -26,8 +26,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from onboard import bezier as bz
-from onboard import reachability as rc
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import reachability as rc
 
 GRAVITY = 9.81  # [m/s^2]
 MASS = 0.5  # [kg]

@@ -1,5 +1,5 @@
 """The onboard low level configured for this robot: the one place where the MJCF's numbers
-meet :mod:`onboard.low_level`, so that the control service, the lockstep runner, the bench
+meet :mod:`onboard.low_level.controller`, so that the control service, the lockstep runner, the bench
 and the trainer build the very same controller."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.geometric_mpc import GeometricMpc
-from onboard.gmpc_mid_level import GmpcMidLevel
-from onboard.low_level import LowLevelController, design_policy
-from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
+from onboard.low_level.planning.geometric_mpc import GeometricMpc
+from onboard.low_level.planning.gmpc_mid_level import GmpcMidLevel
+from onboard.low_level.controller import LowLevelController, design_policy
+from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits
 from robot_description.hopper_dynamics import HopperDynamics
 from robot_description.params import DEFAULT_VARIANT, hopper_model, robot_params
 

@@ -12,7 +12,7 @@ velocity ``(p_dot [m/s, world], omega [rad/s, body], theta_dot [rad/s], l_dot [m
 Perturbations are ``(dp, eta, dtheta, dl, dv)`` with ``q exp(eta)`` the perturbed attitude:
 the Lie-algebra linearization of eqs. 5.18-5.22.
 
-Modes (:data:`onboard.geometric_mpc.FLIGHT`, ``STANCE``):
+Modes (:data:`onboard.low_level.planning.geometric_mpc.FLIGHT`, ``STANCE``):
 
 - flight: the cable holds the spring (``l_ddot = 0``, a joint lock enforced as a constraint);
 - stance: the foot tip is pinned to the ground (3D point contact); the spring pushes the foot.
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from onboard.geometric_mpc import FLIGHT, INPUT_DIM, LIFTOFF, STANCE, STATE_DIM, TOUCHDOWN
+from onboard.low_level.planning.geometric_mpc import FLIGHT, INPUT_DIM, LIFTOFF, STANCE, STATE_DIM, TOUCHDOWN
 from robot_description.params import DEFAULT_VARIANT, FOOT_JOINT, FOOT_MOTOR_JOINT, ROOT_JOINT, TORSO, WHEEL_JOINTS, load_xml, robot_params
 
 NV = STATE_DIM // 2  # velocity coordinates: 3 linear, 3 angular, 3 wheels, 1 foot
@@ -82,7 +82,7 @@ def _pin_model(variant: str) -> pin.Model:
 
 class HopperDynamics:
     """Flows, jumps and their Lie-algebra Jacobians (the ``HybridDynamics`` of
-    :mod:`onboard.geometric_mpc`). Not thread-safe: one instance per MPC."""
+    :mod:`onboard.low_level.planning.geometric_mpc`). Not thread-safe: one instance per MPC."""
 
     def __init__(self, variant: str = DEFAULT_VARIANT) -> None:
         robot = robot_params(variant)

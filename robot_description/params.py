@@ -2,7 +2,7 @@
 
 The MJCF files in ``robot_description/models/`` are the one source of the robot's physical
 parameters. Controllers and estimators get them from :func:`robot_params` (and the reduced
-hopper of :mod:`onboard.zdp` from :func:`hopper_model`), never from constants of their own.
+hopper of :mod:`onboard.low_level.planning.zdp` from :func:`hopper_model`), never from constants of their own.
 The robot's services run this module; the simulator compiles the same files with MuJoCo
 (:mod:`sim_twin.model`), and ``tests/test_robot_description.py`` holds both readings equal.
 
@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from onboard import zdp
-from onboard.params import PlannerParams, SafetyLimits, with_overrides
+from onboard.low_level.planning import zdp
+from onboard.contracts.params import PlannerParams, SafetyLimits, with_overrides
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 VARIANT_FILES: dict[str, str] = {
@@ -468,7 +468,7 @@ def planner_params_for(params: PlannerParams, robot: RobotParams) -> PlannerPara
 
 @functools.lru_cache(maxsize=None)
 def hopper_model(variant: str = DEFAULT_VARIANT) -> zdp.HopperModel:
-    """The reduced hopper of :mod:`onboard.zdp`: the sprung body and the foot apart.
+    """The reduced hopper of :mod:`onboard.low_level.planning.zdp`: the sprung body and the foot apart.
 
     :class:`RobotParams` gives what it holds; the reduced stance model also needs the sprung
     body's own inertia and the foot's, which ``RobotParams`` lumps.

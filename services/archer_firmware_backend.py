@@ -2,10 +2,10 @@
 
 It follows the ``Backend`` protocol of :mod:`services.hardware`
 (``hardware.backend = "archer-firmware"``). The board runs the attitude PD itself, so it
-takes an :class:`~onboard.messages.AttitudeSetpoint` only; per tick:
+takes an :class:`~onboard.contracts.messages.AttitudeSetpoint` only; per tick:
 
 - armed with a setpoint: one setpoint packet. The message's ``torque_ff`` is a wheel
-  motor torque (our convention, :class:`~onboard.messages.AttitudeSetpoint`); the
+  motor torque (our convention, :class:`~onboard.contracts.messages.AttitudeSetpoint`); the
   firmware wants a body torque, so it goes through the wheel axes. ``foot_torque`` is
   not sent: the foot board runs its hop cycle by itself;
 - anything else (disarmed, torque mode, stale): the reset command
@@ -19,7 +19,7 @@ rate) stamped with the reply's arrival. The firmware reports no wheel angles, wh
 torques, spool angle or accelerometer: those ``JointSensors`` fields are 0 (not
 measurements). :meth:`imu` is the board's attitude and rates with ``accel_sensed``
 False: the estimator models the specific force from the foot instead
-(:mod:`onboard.estimator`) and says so in its covariance.
+(:mod:`onboard.estimation.estimator`) and says so in its covariance.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from collections.abc import Callable, Sequence
 from drivers.archer_firmware import codec
 from drivers.archer_firmware.device import ArcherBoard
 from drivers.archer_firmware.transport import UdpLink
-from onboard import messages as msgs
-from onboard.attitude_control import WheelAllocation
-from onboard.params import ArcherFirmwareParams
+from onboard.contracts import messages as msgs
+from onboard.low_level.tracking.attitude_control import WheelAllocation
+from onboard.contracts.params import ArcherFirmwareParams
 
 NS = 1_000_000_000
 

@@ -2,7 +2,7 @@
 
 Subscribes (latest value): ``state`` (StateEstimate), ``reference`` (ComReference),
 ``joints`` (JointSensors: the foot's cable spool angle), ``mid_level`` (MidLevelSetpoint).
-Computes: :class:`onboard.low_level.LowLevelController` every 1 ms; with
+Computes: :class:`onboard.low_level.controller.LowLevelController` every 1 ms; with
 ``control.mid_level = "geometric_mpc"`` the geometric MPC runs beside it in a process of its own
 (:mod:`services.mid_level`, ``gmpc.rate_hz``) and the loop tracks its setpoints (torque output
 only: with ``output = "attitude"`` the board's PD tracks the ZDP's attitude as before).
@@ -26,10 +26,10 @@ over a pipe, so the tick never logs.
 Parameters: a change of a control gain or a safety limit goes to the loop over the
 pipe and the controller takes it between two ticks (:meth:`LowLevelController.retune`);
 the loop process, its Zenoh session and the torque stream carry on. A change of a field
-in :data:`onboard.params.NEEDS_RESTART` needs a new loop process: refused while the
+in :data:`onboard.contracts.params.NEEDS_RESTART` needs a new loop process: refused while the
 controller is armed or about to arm, applied by a restart when disarmed (the new loop
 starts disarmed; the service's watchdog is fed through the restart). A new value of
-``control.flip_request`` asks the loop for one flip (:mod:`onboard.flip`), taken between two
+``control.flip_request`` asks the loop for one flip (:mod:`onboard.low_level.tracking.flip`), taken between two
 ticks; a refusal is logged with its reason, and the status counts ``flips``, ``flips_dropped``
 and ``flips_refused``.
 
@@ -49,9 +49,9 @@ import time
 from multiprocessing.connection import Connection
 from typing import Any, ClassVar
 
-from onboard import messages as msgs
-from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits, restart_changes
-from onboard.topics import TOPICS
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits, restart_changes
+from onboard.contracts.topics import TOPICS
 from robot_description.controller import build_controller
 from services.runtime.child_process import STOP_TIMEOUT_S, ChildProcess
 from services.runtime.clock import WallClock
@@ -82,7 +82,7 @@ class LoopConfig:
     safety: SafetyLimits
     duration_s: float = 0.0  # > 0: stop by itself after this long (the bench)
     parent_pid: int = 0  # the loop process dies with this process (0: no check)
-    commander: str = ""  # the service's instance id, carried by every command (onboard/commander.py)
+    commander: str = ""  # the service's instance id, carried by every command (onboard/contracts/commander.py)
     hold_disarmed: bool = False  # start disarmed whatever auto_arm says (a restart for new parameters)
 
 

@@ -11,7 +11,7 @@ No Python callback thread competes with the loop for the GIL (a 5 kHz flood of
 malformed input delayed the loop by tens of milliseconds when one did). Latest-value
 slots would not do here: the filter integrates every IMU interval.
 
-Computes: :class:`onboard.estimator.StateEstimator` (robot parameters from the MJCF
+Computes: :class:`onboard.estimation.estimator.StateEstimator` (robot parameters from the MJCF
 variant ``EstimatorParams.robot``). Every ``1 / rate_hz`` a
 :class:`services.runtime.realtime.DeadlineLoop` thread drains the queue into the estimator and
 publishes ``state`` (StateEstimate with its covariance) for the stack clock's now.
@@ -34,8 +34,8 @@ import asyncio
 import threading
 from typing import Any, ClassVar
 
-from onboard.estimator import StateEstimator
-from onboard.params import EstimatorParams, restart_changes
+from onboard.estimation.estimator import StateEstimator
+from onboard.contracts.params import EstimatorParams, restart_changes
 from robot_description.params import robot_params
 from services.runtime.realtime import DeadlineLoop, make_realtime_from
 from services.runtime.service import Service

@@ -37,8 +37,8 @@ from drivers.socketcand import SocketcandBus
 from drivers.teensy import protocol as tp
 from drivers.teensy.device import Teensy
 from drivers.teensy.transport import SerialLink
-from onboard import messages as msgs
-from onboard.params import HardwareParams, SafetyLimits
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import HardwareParams, SafetyLimits
 from services.runtime.realtime import DeadlineLoop, make_realtime_from
 from services.runtime.service import LatestSlot, Service
 

@@ -2,7 +2,7 @@
 "geometric_mpc"``, thesis 5.3).
 
 Subscribes (latest value): ``state``, ``reference``.
-Computes: :class:`onboard.gmpc_mid_level.GmpcMidLevel` every ``1 / gmpc.rate_hz`` on a
+Computes: :class:`onboard.low_level.planning.gmpc_mid_level.GmpcMidLevel` every ``1 / gmpc.rate_hz`` on a
 :class:`services.runtime.realtime.DeadlineLoop` (absolute deadlines; a solve that runs past
 the next deadline is an overrun, counted, and the missed deadlines are skipped).
 Publishes: ``mid_level`` (MidLevelSetpoint) for each answer that passed its checks; a
@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from onboard import messages as msgs
-from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
-from onboard.topics import TOPICS
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits
+from onboard.contracts.topics import TOPICS
 from robot_description.controller import build_gmpc_mid_level
 from services.runtime.child_process import ChildProcess
 from services.runtime.clock import WallClock

@@ -26,8 +26,8 @@ import threading
 from typing import Any, ClassVar
 
 from drivers import natnet
-from onboard import messages as m
-from onboard.params import MocapParams
+from onboard.contracts import messages as m
+from onboard.contracts.params import MocapParams
 from services.runtime.service import Service
 
 SYSTEMS = ("optitrack", "vicon", "qualisys", "vrpn")

@@ -17,8 +17,8 @@ import asyncio
 import math
 import time
 
-from onboard import messages as m
-from onboard.binary_messages import DepthImage, encode_grid
+from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import DepthImage, encode_grid
 from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.pipeline import MODES, Perception, polytopes_of_grid
 from services.runtime.service import Service

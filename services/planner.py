@@ -2,9 +2,9 @@
 
 Subscribes (latest value): ``state`` (StateEstimate), ``goal`` (Goal), ``polytopes``
 (PolytopeSet: convex obstacles or free cells), ``grid`` (the occupancy grid: with perceived
-obstacles the robot is committed only over ground it saw free, ``onboard.seen_space``),
+obstacles the robot is committed only over ground it saw free, ``onboard.high_level.planning.seen_space``),
 ``tube`` (TrackingTube, the low level's measured guarantee).
-Computes: :class:`onboard.graph_planner.GraphPlanner`. Every tick (``refine_hz``,
+Computes: :class:`onboard.high_level.planning.graph_planner.GraphPlanner`. Every tick (``refine_hz``,
 100 Hz by default) one SQP iteration of the MPC refines the current path; when the
 world, the goal or the tube changed, or the CoM strayed ``replan_deviation`` from the
 path, it recuts and replans, at most ``replan_hz`` times a second. The graph is built
@@ -37,14 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from onboard import collision as col
+from onboard.high_level.tracking import collision as col
 
-from onboard import polygons as pg
-from onboard import bezier_graph as bg
-from onboard import graph_planner as gp
-from onboard import messages as msgs
-from onboard.params import PlannerParams
-from onboard.seen_space import SeenSpace
+from onboard.geometry import polygons as pg
+from onboard.high_level.planning import bezier_graph as bg
+from onboard.high_level.planning import graph_planner as gp
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import PlannerParams
+from onboard.high_level.planning.seen_space import SeenSpace
 from robot_description import params as rd
 from services.runtime.service import Service
 

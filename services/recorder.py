@@ -3,7 +3,7 @@
 Subscribes: every key under the namespace (``ns/**``); messages of topics in the
 topic table with ``log=True`` are written, raw (the bytes as they crossed the wire),
 on a channel named by the Zenoh key, with the message's JSON schema (generated
-from :mod:`onboard.messages`) so Foxglove shows fields by name. Binary topics keep
+from :mod:`onboard.contracts.messages`) so Foxglove shows fields by name. Binary topics keep
 their layout under the ``archer-binary-v1`` encoding (as ``sim_twin.record``).
 Every ``status_period_s`` it also records each live service's status
 (``ns/svc/<name>/status``), which carries the control loop's timing statistics.
@@ -42,15 +42,15 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from onboard import binary_messages as bm
-from onboard import messages as m
-from onboard.params import RecorderParams
-from onboard.topics import TOPICS, Topic, all_keys, status_key, topic_for_key
+from onboard.contracts import binary_messages as bm
+from onboard.contracts import messages as m
+from onboard.contracts.params import RecorderParams
+from onboard.contracts.topics import TOPICS, Topic, all_keys, status_key, topic_for_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.service import EVERY_TOPIC, Service
 from services.scene import SceneRecording
 
-BINARY_ENCODING = "archer-binary-v1"  # MCAP message encoding of onboard.binary_messages layouts
+BINARY_ENCODING = "archer-binary-v1"  # MCAP message encoding of onboard.contracts.binary_messages layouts
 METADATA_NAME = "archer.recorder"
 PART_SUFFIX = ".part"
 MCAP_CHUNK_BYTES = 256 * 1024  # small MCAP chunks: a crash loses little of the .part file

@@ -19,11 +19,11 @@ from typing import Any
 import foxglove.messages as fm
 import numpy as np
 
-from onboard import messages as m
-from onboard.binary_messages import DepthImage, OccupancyGrid
-from onboard.low_level import sample_reference
-from onboard.params import ViewParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import DepthImage, OccupancyGrid
+from onboard.contracts.reference import sample_reference
+from onboard.contracts.params import ViewParams
+from onboard.contracts.topics import TOPICS
 from robot_description.params import BodyGeometry, BodyShape, body_shapes, robot_params
 
 WORLD_FRAME = "world"

@@ -3,7 +3,7 @@
 A row names the process (what ``archer run NAME`` starts), its class, and its systemd unit
 (``deploy/systemd``; None for the stand-ins only ``archer sim`` runs). What a service
 reads is its class's ``subscribes`` (the runtime refuses any other subscription); what
-it writes is its column in the topic table (:data:`onboard.topics.TOPICS`
+it writes is its column in the topic table (:data:`onboard.contracts.topics.TOPICS`
 ``publishers``: the runtime refuses any other publisher, and the Zenoh access control
 is generated from it); its parameters are its class's ``params_sections``. ``archer
 services`` prints the table; ``archer run``, ``archer sim``'s supervisor and the unit
@@ -15,7 +15,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-from onboard.topics import TOPICS
+from onboard.contracts.topics import TOPICS
 from services.runtime.service import EVERY_TOPIC, Service
 
 

@@ -38,9 +38,9 @@ from typing import Any
 
 import mujoco
 
-from onboard import messages as msgs
-from onboard.binary_messages import DepthImage, encode_depth
-from onboard.params import TwinParams, as_dict
+from onboard.contracts import messages as msgs
+from onboard.contracts.binary_messages import DepthImage, encode_depth
+from onboard.contracts.params import TwinParams, as_dict
 from robot_description import params as rd
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import Service
@@ -231,7 +231,7 @@ class TwinService(Service):
             out.update({f"loop_{k}": v for k, v in self.loop.recorder.stats().as_dict().items()})
         out.update(self.metrics.summary(self.data, self.actuation))
         out["contract_violations"] = self.contract_violations
-        # commands that never reached the motors because of who sent them (onboard/commander.py)
+        # commands that never reached the motors because of who sent them (onboard/contracts/commander.py)
         out["commands_refused_commander"] = dict(self.commander_latch.refused) if self.commander_latch is not None else {}
         return out
 

@@ -38,9 +38,9 @@ import foxglove
 import foxglove.channels as fc
 import zenoh
 
-from onboard import messages as m
-from onboard.params import ViewParams
-from onboard.topics import TOPICS, Topic
+from onboard.contracts import messages as m
+from onboard.contracts.params import ViewParams
+from onboard.contracts.topics import TOPICS, Topic
 from services.recorder import schema_for
 from services.runtime.service import EVERY_TOPIC, PolledInput, Service
 from services.scene import SceneMaker, channel_name

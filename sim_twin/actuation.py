@@ -17,8 +17,8 @@ import math
 
 import mujoco
 
-from onboard.messages import TorqueCommand
-from onboard.params import SafetyLimits
+from onboard.contracts.messages import TorqueCommand
+from onboard.contracts.params import SafetyLimits
 from robot_description import params as rd
 
 NS = 1_000_000_000

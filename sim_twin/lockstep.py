@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 import mujoco
 from threadpoolctl import threadpool_limits
 
-from onboard import messages as m
-from onboard.params import SafetyLimits, TwinParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.params import SafetyLimits, TwinParams
+from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
 from sim_twin import model as tm

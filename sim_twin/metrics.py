@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from onboard import messages as m
-from onboard.params import SafetyLimits
+from onboard.contracts import messages as m
+from onboard.contracts.params import SafetyLimits
 from robot_description import params as rd
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation

@@ -5,15 +5,15 @@ Depth images are fused as the sensors deliver them (with the robot's estimated
 position); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
 ``perception.mode = "free"``) replace the planner's world, which makes it replan. Before
 the first view the planner knows no obstacle at all; in obstacle mode it then commits the
-robot nowhere (``onboard.seen_space``).
+robot nowhere (``onboard.high_level.planning.seen_space``).
 """
 
 from __future__ import annotations
 
-from onboard import messages as m
-from onboard.params import PerceptionParams
+from onboard.contracts import messages as m
+from onboard.contracts.params import PerceptionParams
 from onboard.perception.pipeline import PerceptionLoop
-from onboard.seen_space import SeenSpace
+from onboard.high_level.planning.seen_space import SeenSpace
 from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 from sim_twin.stack import GraphPlannerPlug

@@ -1,8 +1,8 @@
 """Write a run's messages to an MCAP file (JSON schemas, readable in Foxglove).
 
-Channels are the Zenoh keys of :mod:`onboard.topics` (so a recording of a lockstep run looks like
+Channels are the Zenoh keys of :mod:`onboard.contracts.topics` (so a recording of a lockstep run looks like
 one of the live system); JSON messages carry their msgspec-generated JSON schema; depth images keep
-their binary layout (:mod:`onboard.binary_messages`) under the ``archer-binary-v1`` encoding.
+their binary layout (:mod:`onboard.contracts.binary_messages`) under the ``archer-binary-v1`` encoding.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from pathlib import Path
 import msgspec
 from mcap.writer import CompressionType, Writer
 
-from onboard import binary_messages as bm
-from onboard import messages as m
-from onboard.topics import TOPICS, namespace
+from onboard.contracts import binary_messages as bm
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS, namespace
 
 BINARY_ENCODING = "archer-binary-v1"
 

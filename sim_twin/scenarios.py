@@ -3,7 +3,7 @@
 A scenario is a small class (as a dm_control task): it adds its world to the robot's MJCF spec
 (:meth:`Scenario.build`), places the robot (:meth:`Scenario.initialize`), may push it
 (:meth:`Scenario.before_step`), and states the goal, the ground-truth obstacles (2D convex
-polygons as :class:`onboard.messages.Polytope`, and the same shapes as MuJoCo geoms named
+polygons as :class:`onboard.contracts.messages.Polytope`, and the same shapes as MuJoCo geoms named
 ``obstacle_*``) and a CoM reference of its own (:meth:`Scenario.reference`) used when no planner
 runs. Terrain geoms (``floor``, ``terrain_*``) are ground: the foot may touch them, nothing else
 of the robot may. Every random choice comes from the scenario's seed.
@@ -21,7 +21,7 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
-from onboard import messages as m
+from onboard.contracts import messages as m
 from robot_description import params as rd
 
 OBSTACLE_PREFIX = "obstacle_"

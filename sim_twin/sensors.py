@@ -7,7 +7,7 @@ adds seeded noise and a per-run bias, drops samples with the configured probabil
 sample back for its latency, and returns the messages whose delivery time has come. ``stamp_ns``
 is always the capture time, as on the robot.
 
-Sensors (all from :class:`onboard.params.TwinParams`):
+Sensors (all from :class:`onboard.contracts.params.TwinParams`):
 - ``imu``: :class:`ImuSample`. Orientation and body rate from the torso's state (the IMU site
   sits at the torso origin with the torso's axes); specific force from MuJoCo's accelerometer
   at that site (evaluated at the start of the last physics step). Gyro and accelerometer carry
@@ -16,7 +16,7 @@ Sensors (all from :class:`onboard.params.TwinParams`):
   wheel speed, current-derived torque, foot compression and rate with white noise; foot contact
   is the foot's normal load (MuJoCo touch sensor) over ``contact_threshold_n``.
 - ``pose``: :class:`PoseMeasurement` of the torso origin (motion capture / tracking camera).
-- ``depth``: :class:`onboard.binary_messages.DepthImage` by ray casting (``mujoco.mj_multiRay``)
+- ``depth``: :class:`onboard.contracts.binary_messages.DepthImage` by ray casting (``mujoco.mj_multiRay``)
   from the MJCF site ``depth_camera`` against world geoms (group 0) only; z-depth with noise
   growing with depth squared; 0 = no return.
 
@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from onboard import messages as m
-from onboard.binary_messages import DepthImage
-from onboard.params import TwinParams
+from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import DepthImage
+from onboard.contracts.params import TwinParams
 from robot_description import params as rd
 
 NS = 1_000_000_000

@@ -3,14 +3,14 @@
 Each piece is a small adapter around the ``onboard`` class that the matching service runs, so the
 lockstep run exercises the same code as the robot:
 
-- estimator: ``kalman`` = :class:`onboard.estimator.StateEstimator` fed with the twin's sensor
+- estimator: ``kalman`` = :class:`onboard.estimation.estimator.StateEstimator` fed with the twin's sensor
   messages; ``truth`` = :class:`TruthEstimator`, the StateEstimate built from the twin's true state
   (no sensors, no filter; for isolating the controller from estimation, and for runs before an
   estimator exists);
 - planner: ``scenario`` = the scenario's own CoM reference (straight line, square, Lissajous...);
-  ``graph`` = :class:`onboard.graph_planner.GraphPlanner` on the ground-truth obstacles at its
+  ``graph`` = :class:`onboard.high_level.planning.graph_planner.GraphPlanner` on the ground-truth obstacles at its
   replanning / refinement rates; ``auto`` = graph when the scenario has obstacles;
-- controller: ``lowlevel`` = :class:`onboard.low_level.LowLevelController` as
+- controller: ``lowlevel`` = :class:`onboard.low_level.controller.LowLevelController` as
   :func:`robot_description.controller.build_controller` builds it; ``passive`` = no torque at all (the
   physics alone, for checks of the model).
 
@@ -26,8 +26,8 @@ from typing import Protocol
 import mujoco
 import numpy as np
 
-from onboard import messages as m
-from onboard.params import SafetyLimits
+from onboard.contracts import messages as m
+from onboard.contracts.params import SafetyLimits
 from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 
@@ -127,13 +127,13 @@ class TruthEstimator:
 
 
 class KalmanEstimator:
-    """``onboard.estimator.StateEstimator`` fed with the twin's sensor messages (``--estimator kalman``)."""
+    """``onboard.estimation.estimator.StateEstimator`` fed with the twin's sensor messages (``--estimator kalman``)."""
 
     name = "kalman"
 
     def __init__(self, robot: rd.RobotParams, params: object | None = None) -> None:
-        from onboard.estimator import StateEstimator
-        from onboard.params import EstimatorParams
+        from onboard.estimation.estimator import StateEstimator
+        from onboard.contracts.params import EstimatorParams
 
         self.est = StateEstimator(params or EstimatorParams(), robot)
         self.feed = self.est.feed  # the loop calls the estimator's own entry point: a frame less a message
@@ -175,7 +175,7 @@ class ScenarioReference:
 
 
 class GraphPlannerPlug:
-    """``onboard.graph_planner.GraphPlanner`` on the scenario's ground-truth obstacles (``--planner graph``).
+    """``onboard.high_level.planning.graph_planner.GraphPlanner`` on the scenario's ground-truth obstacles (``--planner graph``).
 
     Plans once at start, replans at ``replan_hz`` when the planner says it must (no path, world
     changed, robot off its path), refines at ``refine_hz`` when the planner offers refinement.
@@ -186,8 +186,8 @@ class GraphPlannerPlug:
     REPLAN_DEVIATION_M = 0.3  # [m] off the path by more than this: search again
 
     def __init__(self, scenario: Scenario, robot: rd.RobotParams, params: object | None = None) -> None:
-        from onboard.graph_planner import GraphPlanner
-        from onboard.params import PlannerParams
+        from onboard.high_level.planning.graph_planner import GraphPlanner
+        from onboard.contracts.params import PlannerParams
 
         p = rd.planner_params_for(params or PlannerParams(), robot)
         radius = p.robot_radius if p.robot_radius > 0 else robot.footprint_radius

@@ -13,9 +13,9 @@ import msgspec
 import pytest
 import zenoh
 
-from deploy import zenoh_configs as zc
-from onboard import messages as m
-from onboard.topics import TOPICS, liveliness_key, params_key
+from services.runtime import zenoh_configs as zc
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS, liveliness_key, params_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.service import Service
 from services.runtime.zenoh_session import free_endpoint, link_queue_config, loopback_config
@@ -28,7 +28,7 @@ ZENOH_DIR = Path(__file__).resolve().parent.parent / "deploy" / "zenoh"
 def test_checked_in_configs_are_the_generated_ones_and_parse():
     for name, text in zc.checked_in_files().items():
         path = ZENOH_DIR / name
-        assert path.read_text() == text, f"{name} drifted from onboard/topics.py; run `archer deploy acl --write`"
+        assert path.read_text() == text, f"{name} drifted from onboard/contracts/topics.py; run `archer deploy acl --write`"
         zenoh.Config.from_file(str(path))  # Zenoh itself accepts it
 
 

@@ -9,9 +9,9 @@ import time
 import pytest
 
 from drivers.archer_firmware.emulator import BoardEmulator
-from onboard import messages as msgs
-from onboard.foot_control import FootPhysics
-from onboard.params import ArcherFirmwareParams
+from onboard.contracts import messages as msgs
+from onboard.low_level.tracking.foot_control import FootPhysics
+from onboard.contracts.params import ArcherFirmwareParams
 from services.archer_firmware_backend import ArcherFirmwareBackend
 
 FOOT = FootPhysics(total_mass=3.0, gravity=9.81, spring_k=3000.0, spool_radius=0.01, travel=0.06)
@@ -106,8 +106,8 @@ def test_the_hardware_service_drives_the_board_through_this_backend(zenoh_router
     import asyncio
     import threading
 
-    from onboard.params import HardwareParams, SafetyLimits
-    from onboard.topics import TOPICS
+    from onboard.contracts.params import HardwareParams, SafetyLimits
+    from onboard.contracts.topics import TOPICS
     from services.hardware import HardwareService
     from services.runtime.realtime import DeadlineLoop
     from services.runtime.service import StandInCommander

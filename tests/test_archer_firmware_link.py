@@ -20,9 +20,9 @@ from drivers.archer_firmware.device import ArcherBoard
 from drivers.udp import free_udp_port
 from drivers.archer_firmware.emulator import BoardEmulator, FootBoard, FootPhase
 from drivers.archer_firmware.transport import UdpLink
-from onboard import quaternion as quat
-from onboard.foot_control import FootPhysics
-from onboard.params import ArcherFirmwareParams
+from onboard.geometry import quaternion as quat
+from onboard.low_level.tracking.foot_control import FootPhysics
+from onboard.contracts.params import ArcherFirmwareParams
 
 PARAMS = ArcherFirmwareParams()
 FOOT = FootPhysics(total_mass=3.0, gravity=9.81, spring_k=3000.0, spool_radius=0.01, travel=0.06)

@@ -20,8 +20,8 @@ import pytest
 from drivers.archer_firmware import codec as c
 from drivers.archer_firmware.device import ArcherBoard
 from drivers.archer_firmware.transport import UdpLink
-from onboard import quaternion as quat
-from onboard.params import ArcherFirmwareParams
+from onboard.geometry import quaternion as quat
+from onboard.contracts.params import ArcherFirmwareParams
 
 UPRIGHT = c.Setpoint((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 HOLD_S = 4.0

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard import attitude_control as ac
-from onboard import quaternion as qt
+from onboard.low_level.tracking import attitude_control as ac
+from onboard.geometry import quaternion as qt
 
 INERTIA = np.diag([0.045, 0.045, 0.025])  # about a hopper's torso + wheels [kg m^2]
 KP = (6.0, 6.0, 3.0)

@@ -9,11 +9,11 @@ import time
 
 import pytest
 
-from onboard import messages as msgs
-from onboard import quaternion as qt
-from onboard.messages import BezierSegment, ComReference
-from onboard.params import ControlParams, SafetyLimits, restart_changes
-from onboard.topics import TOPICS
+from onboard.contracts import messages as msgs
+from onboard.geometry import quaternion as qt
+from onboard.contracts.messages import BezierSegment, ComReference
+from onboard.contracts.params import ControlParams, SafetyLimits, restart_changes
+from onboard.contracts.topics import TOPICS
 from robot_description.controller import build_controller
 from services.control import ControlLoop, LoopConfig
 from test_low_level import MS, estimate, joints

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard import bezier as bz
+from onboard.geometry import bezier as bz
 
 FAST = settings(max_examples=40, deadline=None)
 

@@ -7,10 +7,10 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from onboard import bezier as bz
-from onboard import bezier_mpc as bm
-from onboard import reachability as rc
-from onboard.messages import ComReference, decode, encode
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import bezier_mpc as bm
+from onboard.high_level.tracking import reachability as rc
+from onboard.contracts.messages import ComReference, decode, encode
 
 FAST = settings(max_examples=15, deadline=None)
 SAMPLES = 100  # dense samples per segment

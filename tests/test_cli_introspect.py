@@ -9,8 +9,8 @@ import sys
 import threading
 import time
 
-from onboard import messages as m
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS
 from services.cli.main import main
 from services.runtime.router import RouterService
 from services.runtime.zenoh_session import open_session

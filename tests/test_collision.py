@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import linprog
 
-from onboard import collision as col
+from onboard.high_level.tracking import collision as col
 
-from onboard import polygons as pg
+from onboard.geometry import polygons as pg
 
 SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 

@@ -13,9 +13,9 @@ import time
 
 import msgspec
 
-from onboard import messages as m
-from onboard.params import ControlParams, SafetyLimits
-from onboard.topics import TOPICS, params_key
+from onboard.contracts import messages as m
+from onboard.contracts.params import ControlParams, SafetyLimits
+from onboard.contracts.topics import TOPICS, params_key
 from services.bench.control import synthetic_state
 from services.runtime.peers import query_status
 from services.control import ControlService

@@ -11,8 +11,8 @@ import time
 
 import msgspec
 
-from onboard import messages as m
-from onboard.topics import TOPICS, params_key
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS, params_key
 from services.bench.control import synthetic_state
 from services.runtime.peers import query_status
 from services.control import ControlService

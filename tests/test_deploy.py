@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from deploy import zenoh_configs as zc
+from services.runtime import zenoh_configs as zc
 from services.cli.deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
 from services.table import SERVICES
 from services.runtime.config import load_params
-from onboard.params import ControlParams, EstimatorParams, HardwareParams
+from onboard.contracts.params import ControlParams, EstimatorParams, HardwareParams
 from services.runtime.supervisor import parse_unit, spec_from_unit
 
 ROBOT = ("router", "hardware", "estimator", "control", "planner", "perception", "recorder")

@@ -23,7 +23,7 @@ from drivers.elmo.emulator import DriveBusEmulator, EmulatedDrive, VirtualBusRun
 from drivers.elmo.od import DriveConfig, drive_dictionary, to_eds
 from drivers.elmo.sdo import SdoClient
 from drivers.elmo.transport import CanTransport
-from onboard.params import HardwareParams
+from onboard.contracts.params import HardwareParams
 
 NODE = 5
 CFG = DriveConfig()

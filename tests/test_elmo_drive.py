@@ -20,7 +20,7 @@ from drivers.elmo.emulator import DriveBusEmulator, VirtualBusRunner, make_emula
 from drivers.elmo.od import DriveConfig
 from drivers.elmo.sdo import SdoClient, SdoError
 from drivers.elmo.transport import CAN_ERR_PROT, CanTransport
-from onboard.params import HardwareParams, SafetyLimits
+from onboard.contracts.params import HardwareParams, SafetyLimits
 
 PARAMS = HardwareParams()
 GEARS = (1.0, 1.0, 1.0, 3.0)

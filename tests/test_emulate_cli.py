@@ -172,7 +172,7 @@ def test_drives_with_the_twin_behind_them_step_the_physics_on_sync() -> None:
     from drivers.elmo.device import DriveGroup, ElmoDrive, joint_drives
     from drivers.elmo.transport import CanTransport
     from drivers.socketcand import SocketcandBus
-    from onboard.params import HardwareParams
+    from onboard.contracts.params import HardwareParams
     from services.hardware import gear_ratios
 
     proc, info = start_emulator("drives", "--twin", "hop-in-place")

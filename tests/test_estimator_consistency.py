@@ -14,9 +14,9 @@ import dataclasses
 
 import pytest
 
-from onboard.estimator import StateEstimator
-from onboard.messages import ImuSample, JointSensors, PoseMeasurement
-from onboard.params import EstimatorParams
+from onboard.estimation.estimator import StateEstimator
+from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement
+from onboard.contracts.params import EstimatorParams
 from robot_description.params import robot_params
 from services.bench.estimator import stall_run
 

@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from onboard import quaternion as qt
-from onboard.estimator import StateEstimator
-from onboard.messages import ImuSample, JointSensors, PoseMeasurement
-from onboard.params import EstimatorParams
+from onboard.geometry import quaternion as qt
+from onboard.estimation.estimator import StateEstimator
+from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement
+from onboard.contracts.params import EstimatorParams
 from robot_description.params import robot_params
 
 ROBOT = robot_params("indoor")

@@ -16,10 +16,10 @@ import time
 import numpy as np
 import pytest
 
-from onboard import messages as m
-from onboard import quaternion as quat
-from onboard.params import EstimatorParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.geometry import quaternion as quat
+from onboard.contracts.params import EstimatorParams
+from onboard.contracts.topics import TOPICS
 from services.runtime.clock import WallClock
 from services.runtime.peers import query_status
 from services.estimator import EstimatorService

@@ -16,12 +16,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pytest
 
-from onboard import quaternion as quat
-from onboard.attitude_filter import AttitudeFilter
-from onboard.com_filter import make_com_filter
-from onboard.estimator import StateEstimator
-from onboard.messages import ImuSample, JointSensors, PoseMeasurement
-from onboard.params import EstimatorParams
+from onboard.geometry import quaternion as quat
+from onboard.estimation.attitude_filter import AttitudeFilter
+from onboard.estimation.com_filter import make_com_filter
+from onboard.estimation.estimator import StateEstimator
+from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement
+from onboard.contracts.params import EstimatorParams
 from robot_description.params import robot_params
 
 NS = 1_000_000_000

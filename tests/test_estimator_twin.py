@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from onboard.params import EstimatorParams, TwinParams
+from onboard.contracts.params import EstimatorParams, TwinParams
 from services.bench.estimator import Faults, MeasuredEstimator, run_twin
 
 TWIN = dataclasses.replace(TwinParams(), pose_latency_s=0.020, pose_dropout=0.10)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard import bezier as bz
+from onboard.geometry import bezier as bz
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 

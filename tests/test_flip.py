@@ -9,9 +9,9 @@ import sys
 
 import pytest
 
-from onboard import quaternion as qt
-from onboard.flip import NS, TURN
-from onboard.params import ControlParams, SafetyLimits
+from onboard.geometry import quaternion as qt
+from onboard.low_level.tracking.flip import NS, TURN
+from onboard.contracts.params import ControlParams, SafetyLimits
 from robot_description import params as rd
 from robot_description.controller import build_controller
 from services.runtime.zenoh_session import free_endpoint
@@ -95,7 +95,7 @@ def test_a_disarm_cancels_a_flip_under_way():
 
 def test_the_tilt_bound_returns_with_the_turns_end_however_it_ends():
     """A touchdown mid-turn (a flight shorter than predicted) ends the exemption: upside down is then a fall."""
-    from onboard.messages import StateEstimate
+    from onboard.contracts.messages import StateEstimate
 
     def estimate(t_ns: int, quat) -> StateEstimate:
         return StateEstimate(stamp_ns=t_ns, position=[0.0, 0.0, 0.6], velocity=[0.0, 0.0, 0.0], quat=list(quat),

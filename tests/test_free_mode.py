@@ -8,14 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from onboard import collision as col
-from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
-from onboard.graph_planner import GraphPlanner
-from onboard.params import PerceptionParams, PlannerParams
+from onboard.high_level.tracking import collision as col
+from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
+from onboard.high_level.planning.graph_planner import GraphPlanner
+from onboard.contracts.params import PerceptionParams, PlannerParams
 from onboard.perception.decomposition import decompose_free_space
 from onboard.perception.occupancy import OccupancyMap
 from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE
-from onboard.seen_space import SeenSpace
+from onboard.high_level.planning.seen_space import SeenSpace
 from sim_twin.lockstep import LockstepRunner, RunConfig
 
 RES = 0.05

@@ -10,9 +10,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from onboard import geometric_mpc as gm
-from onboard import quaternion as qt
-from onboard.params import GeometricMpcParams
+from onboard.low_level.planning import geometric_mpc as gm
+from onboard.geometry import quaternion as qt
+from onboard.contracts.params import GeometricMpcParams
 from robot_description.hopper_dynamics import HopperDynamics, stance_half_period
 from robot_description.params import FOOT_JOINT, robot_params
 

@@ -9,10 +9,10 @@ import math
 import msgspec
 import pytest
 
-from onboard import attitude_control as ac
-from onboard import messages as m
-from onboard import quaternion as qt
-from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
+from onboard.low_level.tracking import attitude_control as ac
+from onboard.contracts import messages as m
+from onboard.geometry import quaternion as qt
+from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits
 from robot_description.controller import build_controller, build_gmpc_mid_level
 from sim_twin.lockstep import RunConfig, run
 

@@ -10,9 +10,9 @@ import time
 
 import msgspec
 
-from onboard import messages as m
-from onboard.params import ControlParams, GeometricMpcParams, SafetyLimits
-from onboard.topics import TOPICS, params_key
+from onboard.contracts import messages as m
+from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits
+from onboard.contracts.topics import TOPICS, params_key
 from services.control import ControlService
 from services.runtime.peers import query_status
 from services.runtime.zenoh_session import open_session

@@ -10,13 +10,13 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from onboard import bezier as bz
-from onboard import collision as col
-from onboard import polygons as pg
-from onboard import bezier_graph as bg
-from onboard import graph_planner as gp
-from onboard import reachability as reach
-from onboard.params import PlannerParams
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import collision as col
+from onboard.geometry import polygons as pg
+from onboard.high_level.planning import bezier_graph as bg
+from onboard.high_level.planning import graph_planner as gp
+from onboard.high_level.tracking import reachability as reach
+from onboard.contracts.params import PlannerParams
 
 PARAMS = PlannerParams(nodes=1500)
 ROBOT_RADIUS = 0.13

@@ -1,4 +1,4 @@
-"""Densification of the Bezier graph after a failed search (onboard/densify.py), its report in
+"""Densification of the Bezier graph after a failed search (onboard/high_level/planning/densify.py), its report in
 `archer plan`, and completeness against an independent oracle (OMPL's RRTConnect)."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from onboard import bezier as bz
-from onboard import bezier_graph as bg
-from onboard import collision as col
-from onboard import densify as dn
-from onboard import graph_planner as gp
-from onboard.params import PlannerParams
+from onboard.geometry import bezier as bz
+from onboard.high_level.planning import bezier_graph as bg
+from onboard.high_level.tracking import collision as col
+from onboard.high_level.planning import densify as dn
+from onboard.high_level.planning import graph_planner as gp
+from onboard.contracts.params import PlannerParams
 from services.bench.ompl_oracle import RrtConnectOracle
 from services.bench.planner import compare_queries
 from services.cli.plan import parse_scene, plan_scene

@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from onboard import bezier as bz
-from onboard import collision as col
-from onboard import polygons as pg
-from onboard import bezier_graph as bg
-from onboard import graph_planner as gp
-from onboard import reachability as reach
-from onboard.params import PlannerParams
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import collision as col
+from onboard.geometry import polygons as pg
+from onboard.high_level.planning import bezier_graph as bg
+from onboard.high_level.planning import graph_planner as gp
+from onboard.high_level.tracking import reachability as reach
+from onboard.contracts.params import PlannerParams
 
 PARAMS = PlannerParams(nodes=1500, tube=0.05)
 ROBOT_RADIUS = 0.13
@@ -126,7 +126,7 @@ def test_refine_in_free_cells_keeps_each_segment_in_a_cell(graph):
 
 
 def test_contract_check_grows_the_tube_and_reports(graph):
-    from onboard import messages as msgs
+    from onboard.contracts import messages as msgs
 
     planner = _planner(graph)
     few = msgs.TrackingTube(hops=2, impact_err_p50=0.3, impact_err_p95=0.4, impact_err_max=0.5, attitude_err_p95=0.1)

@@ -22,9 +22,9 @@ import zenoh
 from drivers.elmo import codec as c
 from drivers.elmo.emulator import VirtualBusRunner, make_emulator
 from drivers.teensy.emulator import TeensyEmulator
-from onboard import messages as m
-from onboard.params import HardwareParams, SafetyLimits
-from onboard.topics import TOPICS, params_key, status_key
+from onboard.contracts import messages as m
+from onboard.contracts.params import HardwareParams, SafetyLimits
+from onboard.contracts.topics import TOPICS, params_key, status_key
 from services.bench.hardware import budget
 from services.hardware import CanBackend, CommandGate, HardwareService, gear_ratios
 from services.runtime.service import StandInCommander

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from onboard.params import PlannerParams
+from onboard.contracts.params import PlannerParams
 from robot_description import params as rd
 from sim_twin import scenarios as sc
 from sim_twin.lockstep import LockstepRunner, RunConfig

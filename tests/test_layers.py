@@ -20,21 +20,43 @@ import textwrap
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("onboard", "robot_description", "drivers", "sim_twin", "services", "deploy")
+PACKAGES = ("onboard", "offline", "robot_description", "drivers", "sim_twin", "services", "deploy")
 
-_ROBOT = {"onboard", "robot_description", "drivers", "services.runtime"}
+# Inside ``onboard``, the thesis's layers bottom to top (README "Where things live"): the
+# contracts, shared geometry, estimation and perception, then the low level (its tracking
+# layer, its planning layer, the controller composing them) and the high level (tracking,
+# then planning). A layer may import those listed for it; the high level learns of the low
+# level only through the contracts.
+_CONTRACTS = {"onboard.contracts"}
+_BASE = _CONTRACTS | {"onboard.geometry"}
+_HIGH_TRACKING = _BASE | {"onboard.high_level.tracking"}
+ONBOARD_LAYERS: dict[str, set[str]] = {
+    "onboard.contracts": set(),
+    "onboard.geometry": _CONTRACTS,
+    "onboard.estimation": _BASE,
+    "onboard.perception": _BASE,
+    "onboard.low_level.tracking": _BASE | {"onboard.estimation"},
+    "onboard.low_level.planning": _BASE | {"onboard.estimation", "onboard.low_level.tracking"},
+    "onboard.low_level": _BASE | {"onboard.estimation", "onboard.low_level.tracking", "onboard.low_level.planning"},
+    "onboard.high_level.tracking": _BASE,
+    "onboard.high_level.planning": _HIGH_TRACKING | {"onboard.perception"},
+}
+_ONBOARD = set(ONBOARD_LAYERS)
+_ROBOT = _ONBOARD | {"robot_description", "drivers", "services.runtime"}
 LAYERS: dict[str, set[str]] = {
     # layer: the layers it may import (besides itself)
-    "onboard": set(),  # the algorithms: pure, importable everywhere
-    "robot_description": {"onboard"},  # the MJCF and what is read from it, without MuJoCo
-    "drivers": {"onboard", "robot_description"},
-    "sim_twin": {"onboard", "robot_description"},  # physics, sensors, scenarios, lockstep
-    "services.runtime": {"onboard", "robot_description", "drivers"},
+    **ONBOARD_LAYERS,
+    "onboard": set(),  # the package's own docstring; every module lives in a layer above
+    "offline": _ONBOARD | {"robot_description"},  # training: pure, never imported by the robot
+    "robot_description": _ONBOARD,  # the MJCF and what is read from it, without MuJoCo
+    "drivers": _ONBOARD | {"robot_description"},
+    "sim_twin": _ONBOARD | {"robot_description"},  # physics, sensors, scenarios, lockstep
+    "services.runtime": _ONBOARD | {"robot_description", "drivers"},
     "services": _ROBOT,  # one module per robot service process
     "services.twin": _ROBOT | {"services", "sim_twin"},  # the twin's service stands in for the hardware
     "deploy": _ROBOT | {"services"},  # units, Zenoh configs, the SIL soak
     "services.bench": _ROBOT | {"services", "services.twin", "sim_twin"},
-    "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy"},
+    "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy", "offline"},
 }
 ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap", "view")
 

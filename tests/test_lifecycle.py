@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from onboard.topics import liveliness_key
+from onboard.contracts.topics import liveliness_key
 from services.runtime.service import EXIT_CONFLICT, EXIT_SIGINT
 from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
 

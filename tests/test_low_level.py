@@ -10,14 +10,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from onboard import quaternion as qt
-from onboard.foot_control import FootPhysics, HopRegulator
-from onboard.low_level import sample_reference
-from onboard.messages import BezierSegment, ComReference, JointSensors, StateEstimate
-from onboard.mlp import Mlp
-from onboard.params import ControlParams, SafetyLimits
-from onboard.phase import PhaseDetector
-from onboard.tube import TubeMonitor
+from onboard.geometry import quaternion as qt
+from onboard.low_level.tracking.foot_control import FootPhysics, HopRegulator
+from onboard.contracts.reference import sample_reference
+from onboard.contracts.messages import BezierSegment, ComReference, JointSensors, StateEstimate
+from onboard.low_level.planning.mlp import Mlp
+from onboard.contracts.params import ControlParams, SafetyLimits
+from onboard.estimation.phase import PhaseDetector
+from onboard.contracts.tube import TubeMonitor
 from robot_description.controller import build_controller
 
 MS = 1_000_000
@@ -156,7 +156,7 @@ def test_reference_sample_gives_bezier_position_and_velocity():
 
 @pytest.mark.parametrize("degree", range(6))
 def test_scalar_reference_sampling_agrees_with_onboard_bezier(degree):
-    from onboard import bezier
+    from onboard.geometry import bezier
 
     rng = np.random.default_rng(degree)
     pts = rng.standard_normal((degree + 1, 2))
@@ -171,7 +171,7 @@ def test_scalar_reference_sampling_agrees_with_onboard_bezier(degree):
 @pytest.mark.parametrize("degree", [1, 3])
 def test_unrolled_reference_sampling_is_bit_identical_to_the_loop(degree):
     # the lockstep run's determinism across versions rests on the same bits, not approx
-    from onboard.low_level import _bernstein_point
+    from onboard.contracts.reference import _bernstein_point
 
     rng = np.random.default_rng(10 + degree)
     for _ in range(200):

@@ -7,7 +7,7 @@ Long runs (3000 hops, every scenario, the ZDP/LQR comparison) are for reports:
 
 from __future__ import annotations
 
-from onboard.params import SafetyLimits
+from onboard.contracts.params import SafetyLimits
 from sim_twin.lockstep import LockstepRunner, RunConfig, run
 
 LIMITS = SafetyLimits()

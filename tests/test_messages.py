@@ -8,9 +8,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from onboard import binary_messages as bm
-from onboard import messages as m
-from onboard.topics import TOPICS
+from onboard.contracts import binary_messages as bm
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS
 
 V3 = [0.1, -0.2, 0.3]
 Q = [1.0, 0.0, 0.0, 0.0]

@@ -17,9 +17,9 @@ import pytest
 from natnet import NatNetClient, Version
 
 from drivers import natnet as nn
-from onboard import messages as m
-from onboard.params import MocapParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.params import MocapParams
+from onboard.contracts.topics import TOPICS
 from services.mocap import MocapService, pose_of
 from services.runtime.zenoh_session import open_session
 from helpers import start_emulator, stop_emulator

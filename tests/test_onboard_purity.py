@@ -25,7 +25,7 @@ for info in pkgutil.walk_packages(onboard.__path__, "onboard."):
     importlib.import_module(info.name)
 changed = sorted(k for k in set(before) | set(os.environ) if before.get(k) != os.environ.get(k))
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import maps
 from onboard.perception.decomposition import decompose_free_space
 from onboard.perception.obstacles import obstacles_from_mask

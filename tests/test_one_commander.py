@@ -12,10 +12,10 @@ import time
 
 import zenoh
 
-from onboard import messages as m
-from onboard.commander import FOREIGN_COMMANDER, NO_LIVE_COMMANDER, UNKNOWN_COMMANDER, CommanderLatch
-from onboard.params import SafetyLimits, TwinParams
-from onboard.topics import TOPICS, liveliness_key
+from onboard.contracts import messages as m
+from onboard.contracts.commander import FOREIGN_COMMANDER, NO_LIVE_COMMANDER, UNKNOWN_COMMANDER, CommanderLatch
+from onboard.contracts.params import SafetyLimits, TwinParams
+from onboard.contracts.topics import TOPICS, liveliness_key
 from services.runtime.service import EXIT_CONFLICT, StandInCommander
 from services.runtime.zenoh_session import open_session
 from services.twin import TwinService

@@ -8,7 +8,7 @@ import typing
 import msgspec
 import pytest
 
-from onboard import params as P
+from onboard.contracts import params as P
 from robot_description import params as rd
 from services.runtime.config import ConfigError, load_params
 

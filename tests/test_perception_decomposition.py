@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import maps
 from onboard.perception import decomposition
 from onboard.perception.decomposition import clear_of_blocked, decompose_free_space, target_region

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import maps
 from onboard.perception.obstacles import obstacles_from_mask
 

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, DepthImage, decode_grid, encode_grid
-from onboard.params import PerceptionParams
+from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, DepthImage, decode_grid, encode_grid
+from onboard.contracts.params import PerceptionParams
 from onboard.perception.occupancy import OccupancyMap
 from onboard.perception.pipeline import Perception
 from onboard.perception.pointcloud import depth_to_points
@@ -23,7 +23,7 @@ from onboard.perception.segmentation import (
     MaskSegmenter,
     fit_ground_plane,
 )
-from onboard.quaternion import from_matrix
+from onboard.geometry.quaternion import from_matrix
 
 PARAMS = PerceptionParams()
 W, H, HFOV_DEG = 64, 48, 87.0  # the twin's camera

@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from onboard import messages as m
-from onboard.binary_messages import CELL_OCCUPIED, decode_grid, encode_depth
-from onboard.params import PerceptionParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import CELL_OCCUPIED, decode_grid, encode_depth
+from onboard.contracts.params import PerceptionParams
+from onboard.contracts.topics import TOPICS
 from services.runtime.peers import query_status
 from services.perception import PerceptionService
 from services.runtime.zenoh_session import open_session

@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from onboard.params import PerceptionParams, TwinParams
+from onboard.contracts.params import PerceptionParams, TwinParams
 from onboard.perception.geometry import ConvexPolygon, polygon_from_points
 from onboard.perception.pipeline import Perception
 from onboard.perception.pointcloud import depth_to_points

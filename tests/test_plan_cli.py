@@ -12,11 +12,11 @@ import time
 import numpy as np
 import pytest
 
-from onboard import bezier as bz
-from onboard import collision as col
-from onboard import polygons as pg
-from onboard import messages as m
-from onboard.topics import TOPICS
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import collision as col
+from onboard.geometry import polygons as pg
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS
 from services.cli.plan import SceneError, parse_scene
 
 WALL_WITH_GAP = [

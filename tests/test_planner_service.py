@@ -9,11 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from onboard import polygons as pg
-from onboard.binary_messages import CELL_FREE, CELL_UNKNOWN, OccupancyGrid, encode_grid
-from onboard import messages as m
-from onboard.params import PlannerParams
-from onboard.topics import TOPICS
+from onboard.geometry import polygons as pg
+from onboard.contracts.binary_messages import CELL_FREE, CELL_UNKNOWN, OccupancyGrid, encode_grid
+from onboard.contracts import messages as m
+from onboard.contracts.params import PlannerParams
+from onboard.contracts.topics import TOPICS
 from services.runtime.peers import query_status
 from services.planner import PlannerService, load_or_build_graph, robot_footprint_radius
 from services.runtime.zenoh_session import open_session
@@ -187,7 +187,7 @@ def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
 
 
 def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
-    from onboard import bezier_graph as bg
+    from onboard.high_level.planning import bezier_graph as bg
 
     spec = bg.spec_from_params(PARAMS, (0.0, 0.0, 3.0, 3.0), nodes=300)
     g1, cached1 = load_or_build_graph(spec, tmp_path)

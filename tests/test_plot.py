@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from onboard import messages as m
-from onboard.params import RecorderParams
-from onboard.topics import TOPICS, status_key
+from onboard.contracts import messages as m
+from onboard.contracts.params import RecorderParams
+from onboard.contracts.topics import TOPICS, status_key
 from services.cli.plot import topic_name
 from services.recorder import RotatingMcap, _json_schema, schema_for
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard import quaternion as qt
+from onboard.geometry import quaternion as qt
 
 finite = st.floats(min_value=-1.0, max_value=1.0, allow_nan=False)
 

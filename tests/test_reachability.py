@@ -7,8 +7,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from onboard import bezier as bz
-from onboard import reachability as rc
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import reachability as rc
 
 FAST = settings(max_examples=25, deadline=None)
 SAMPLES = 300  # dense samples per curve for the soundness checks

@@ -14,9 +14,9 @@ from pathlib import Path
 import zenoh
 from mcap.reader import make_reader
 
-from onboard import messages as m
-from onboard.params import RecorderParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.params import RecorderParams
+from onboard.contracts.topics import TOPICS
 from services.runtime.peers import live_services
 from services.recorder import PART_SUFFIX, RecorderService, SeqStats, file_metadata, read_recording
 from services.runtime.zenoh_session import open_session

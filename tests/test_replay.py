@@ -22,10 +22,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from onboard import messages as msgs
-from onboard.estimator import StateEstimator
-from onboard.params import ControlParams, EstimatorParams, SafetyLimits
-from onboard.topics import topic_for_key
+from onboard.contracts import messages as msgs
+from onboard.estimation.estimator import StateEstimator
+from onboard.contracts.params import ControlParams, EstimatorParams, SafetyLimits
+from onboard.contracts.topics import topic_for_key
 from robot_description.controller import build_controller
 from robot_description.params import robot_params
 

@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from onboard import zdp
+from onboard.low_level.planning import zdp
 from robot_description import params as rd
 from sim_twin import model as tm
 

@@ -11,8 +11,8 @@ import time
 import msgspec
 import pytest
 
-from onboard import messages as m
-from onboard.topics import TOPICS, liveliness_key, params_key, status_key
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS, liveliness_key, params_key, status_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.service import LazyLatestSlot, Service
 from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session

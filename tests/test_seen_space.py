@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
-from onboard.graph_planner import GraphPlanner
-from onboard.low_level import sample_reference, turn_toward
-from onboard.params import PlannerParams
-from onboard.seen_space import SeenSpace
+from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
+from onboard.high_level.planning.graph_planner import GraphPlanner
+from onboard.contracts.reference import sample_reference
+from onboard.low_level.controller import turn_toward
+from onboard.contracts.params import PlannerParams
+from onboard.high_level.planning.seen_space import SeenSpace
 from sim_twin import scenarios as sc
 from sim_twin.lockstep import LockstepRunner, RunConfig
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from onboard.topics import TOPICS
+from onboard.contracts.topics import TOPICS
 from services.runtime.clock import WallClock
 from services.runtime.service import EVERY_TOPIC, Service
 from services.runtime.supervisor import parse_unit

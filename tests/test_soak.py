@@ -20,8 +20,8 @@ from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, wind
 from deploy.soak_schedule import (
     FLOOD_RATE_HZ, KINDS, Fault, ScheduleError, check_schedule, load_schedule, parse_kill, parse_schedule, parse_shorthand,
 )
-from onboard import messages as m
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.topics import TOPICS
 from services.runtime.zenoh_session import free_endpoint
 
 NS = 1_000_000_000

@@ -8,10 +8,10 @@ import math
 import msgspec
 import pytest
 
-from onboard import quaternion as qt
-from onboard.messages import BezierSegment, ComReference, StateEstimate
-from onboard.params import ControlParams, SafetyLimits
-from onboard.supervisor import Supervisor
+from onboard.geometry import quaternion as qt
+from onboard.contracts.messages import BezierSegment, ComReference, StateEstimate
+from onboard.contracts.params import ControlParams, SafetyLimits
+from onboard.low_level.tracking.supervisor import Supervisor
 
 MS = 1_000_000
 LIMITS = SafetyLimits()

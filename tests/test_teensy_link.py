@@ -17,7 +17,7 @@ from drivers.teensy import protocol as p
 from drivers.teensy.device import Teensy
 from drivers.teensy.emulator import WATCHDOG_S, TeensyEmulator
 from drivers.teensy.transport import SerialLink
-from onboard.params import HardwareParams
+from onboard.contracts.params import HardwareParams
 
 PARAMS = HardwareParams()
 GEARS = (1.0, 1.0, 1.0, 3.0)

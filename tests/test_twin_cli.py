@@ -11,8 +11,8 @@ import sys
 import pytest
 from mcap.reader import make_reader
 
-from onboard import messages as msgs
-from onboard.topics import TOPICS, namespace
+from onboard.contracts import messages as msgs
+from onboard.contracts.topics import TOPICS, namespace
 from robot_description import params as rd
 from services.cli.main import main
 

@@ -7,8 +7,8 @@ import math
 import mujoco
 import pytest
 
-from onboard import messages as msgs
-from onboard.params import SafetyLimits, TwinParams
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import SafetyLimits, TwinParams
 from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc

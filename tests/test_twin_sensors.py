@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from onboard import messages as msgs
-from onboard.binary_messages import decode_depth, encode_depth
-from onboard.params import TwinParams
+from onboard.contracts import messages as msgs
+from onboard.contracts.binary_messages import decode_depth, encode_depth
+from onboard.contracts.params import TwinParams
 from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin.sensors import SensorSuite

@@ -8,10 +8,10 @@ import time
 import msgspec
 import pytest
 
-from onboard import messages as m
-from onboard.binary_messages import decode_depth
-from onboard.params import SafetyLimits, TwinParams
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import decode_depth
+from onboard.contracts.params import SafetyLimits, TwinParams
+from onboard.contracts.topics import TOPICS
 from services.runtime.peers import query_status
 from services.runtime.service import StandInCommander
 from services.runtime.zenoh_session import open_session
@@ -87,7 +87,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
 
 
 def test_setting_the_seed_puts_a_fallen_robot_back_and_other_twin_parameters_are_refused(zenoh_router) -> None:
-    from onboard.topics import params_key
+    from onboard.contracts.topics import params_key
     from robot_description import params as rd
 
     async def scenario() -> None:

@@ -24,9 +24,9 @@ import websockets
 import zenoh
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from onboard import messages as m
-from onboard.params import ViewParams
-from onboard.topics import TOPICS, namespace
+from onboard.contracts import messages as m
+from onboard.contracts.params import ViewParams
+from onboard.contracts.topics import TOPICS, namespace
 from robot_description.params import body_shapes
 from services.runtime.peers import live_services
 from services.runtime.zenoh_session import open_session
@@ -364,7 +364,7 @@ def _check_transforms(tfs, states) -> None:
 
 
 def test_the_recorder_writes_the_scene_with_foxglove_schemas_beside_the_raw_topics(tmp_path, zenoh_router):
-    from onboard.params import RecorderParams
+    from onboard.contracts.params import RecorderParams
     from services.recorder import RecorderService
 
     params = RecorderParams(directory=str(tmp_path), chunk_s=600.0, flush_s=0.1, status_period_s=60.0)
@@ -416,7 +416,7 @@ def test_the_shipped_foxglove_layout_is_the_generated_one():
     """deploy/foxglove/archer-layout.json: made by services.scene.layout for the default robot; it shows every scene channel."""
     from pathlib import Path
 
-    from onboard.topics import DEFAULT_ROBOT
+    from onboard.contracts.topics import DEFAULT_ROBOT
     from services.scene import SCENE_CHANNELS, channel_name, layout
 
     ns = namespace(DEFAULT_ROBOT)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from onboard import zdp, zdp_policy
+from onboard.low_level.planning import zdp, zdp_policy
 from robot_description import params as rd
 from robot_description.params import hopper_model
 from sim_twin import model as tm
@@ -184,7 +184,7 @@ class TwinImpactMap:
         data = mujoco.MjData(m)
         ax, ay = eta
         axis = np.array([ax, ay, math.sqrt(1 - ax * ax - ay * ay)])
-        from onboard import quaternion as qt
+        from onboard.geometry import quaternion as qt
 
         q = qt.from_axis_yaw(axis, 0.0)
         data.qpos[self.root_q + 3:self.root_q + 7] = q

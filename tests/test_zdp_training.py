@@ -1,4 +1,4 @@
-"""The thesis's Algorithm 2 (onboard/ilqr.py, onboard/mlp_training.py, onboard/zdp_training.py,
+"""The thesis's Algorithm 2 (offline/ilqr.py, offline/mlp_training.py, offline/zdp_training.py,
 archer train zdp): iLQR with box bounds, the optimal input's gradient, the invariance loss and
 its gradient, training, and the written weights driving the robot in the twin."""
 
@@ -14,10 +14,10 @@ import math
 import numpy as np
 import pytest
 
-from onboard import ilqr
-from onboard import mlp_training as mt
-from onboard import zdp_training as zt
-from onboard.params import ControlParams
+from offline import ilqr
+from offline import mlp_training as mt
+from offline import zdp_training as zt
+from onboard.contracts.params import ControlParams
 from robot_description.params import hopper_model
 
 # --- iLQR on a pendulum: cheap, nonlinear, and its torque bound binds ---------------------------

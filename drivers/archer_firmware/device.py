@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from drivers.archer_firmware import codec
 from drivers.archer_firmware.transport import UdpLink
 from drivers.faults import LatchedFaults
-from onboard.params import ArcherFirmwareParams
+from onboard.contracts.params import ArcherFirmwareParams
 
 log = logging.getLogger("archer.drivers.archer_firmware")
 

@@ -28,10 +28,10 @@ from drivers.archer_firmware import codec
 from drivers.archer_firmware.transport import UdpLink
 from drivers.elmo.emulator import InertiaLoad, MotorModel
 from drivers.teensy.emulator import BodyState
-from onboard import quaternion as quat
-from onboard.attitude_control import WheelAllocation
-from onboard.foot_control import FootPhysics
-from onboard.params import ArcherFirmwareParams
+from onboard.geometry import quaternion as quat
+from onboard.low_level.tracking.attitude_control import WheelAllocation
+from onboard.low_level.tracking.foot_control import FootPhysics
+from onboard.contracts.params import ArcherFirmwareParams
 
 ZERO4 = [0.0, 0.0, 0.0, 0.0]
 IDENTITY_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))

@@ -28,7 +28,7 @@ from drivers.faults import LatchedFaults
 from drivers.elmo import codec as c
 from drivers.elmo.sdo import SdoClient, SdoError
 from drivers.elmo.transport import CanTransport
-from onboard.params import HardwareParams
+from onboard.contracts.params import HardwareParams
 
 log = logging.getLogger("archer.drivers.elmo")
 

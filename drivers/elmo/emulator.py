@@ -29,7 +29,7 @@ import can
 from drivers.elmo import codec as c
 from drivers.elmo.od import DataType, DriveConfig, Obj, bit_length, decode_value, drive_dictionary, encode_value
 from drivers.elmo.transport import CAN_ERR_BUSOFF, make_error_frame
-from onboard.params import HardwareParams
+from onboard.contracts.params import HardwareParams
 
 log = logging.getLogger("archer.drivers.elmo.emulator")
 

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 from drivers.elmo.emulator import InertiaLoad, MotorModel
 from drivers.teensy import protocol as p
-from onboard import quaternion as quat
-from onboard.params import HardwareParams
+from onboard.geometry import quaternion as quat
+from onboard.contracts.params import HardwareParams
 
 log = logging.getLogger("archer.drivers.teensy.emulator")
 

@@ -232,7 +232,7 @@ class Gains:
 
 @dataclass(frozen=True)
 class Sensors:
-    """One SENSORS frame, in SI units (see the message comments in onboard.messages)."""
+    """One SENSORS frame, in SI units (see the message comments in onboard.contracts.messages)."""
 
     t_us: int  # Teensy clock [us], wraps at 2^32
     flags: int

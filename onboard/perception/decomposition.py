@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import _kernels as K
 from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon

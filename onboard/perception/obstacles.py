@@ -14,7 +14,7 @@ import math
 import cv2
 import numpy as np
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon
 

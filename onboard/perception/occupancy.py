@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
-from onboard.params import PerceptionParams
+from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import _kernels as K
 from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from onboard.binary_messages import CELL_FREE, CELL_OCCUPIED, DepthImage, OccupancyGrid
-from onboard.params import PerceptionParams
+from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, DepthImage, OccupancyGrid
+from onboard.contracts.params import PerceptionParams
 from onboard.perception.decomposition import DecompositionStats, decompose_free_space
 from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.obstacles import obstacles_from_mask

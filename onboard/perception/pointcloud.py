@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from onboard.binary_messages import DepthImage
-from onboard.quaternion import to_matrix
+from onboard.contracts.binary_messages import DepthImage
+from onboard.geometry.quaternion import to_matrix
 
 
 def camera_rotation(quat: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 
 IGNORE = 0  # no return, or above the height band (overhangs the robot passes under)
 TRAVERSABLE = 1

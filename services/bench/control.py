@@ -23,9 +23,9 @@ import multiprocessing as mp
 import os
 import time
 
-from onboard import messages as msgs
-from onboard.params import ControlParams, SafetyLimits
-from onboard.topics import TOPICS, namespace
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import ControlParams, SafetyLimits
+from onboard.contracts.topics import TOPICS, namespace
 from services.runtime.clock import WallClock
 from services.control import LoopConfig, LoopProcess
 from services.runtime.realtime import DeadlineLoop

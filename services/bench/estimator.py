@@ -1,6 +1,6 @@
 """State estimator on the twin: update time and error against the physics.
 
-Runs a lockstep scenario with ``onboard.estimator.StateEstimator`` in the loop (the
+Runs a lockstep scenario with ``onboard.estimation.estimator.StateEstimator`` in the loop (the
 low level flies on its estimate) and compares every tick with the true state.
 ``update_us`` is the estimator's work per 1 kHz tick (every IMU, joint and pose message
 of the tick); ``estimate_us`` builds the StateEstimate. Errors are over the ticks after
@@ -34,9 +34,9 @@ import msgspec
 import numpy as np
 from scipy.stats import chi2
 
-from onboard import messages as m
-from onboard import quaternion as quat
-from onboard.params import EstimatorParams, TwinParams
+from onboard.contracts import messages as m
+from onboard.geometry import quaternion as quat
+from onboard.contracts.params import EstimatorParams, TwinParams
 from sim_twin import lockstep as ls
 from sim_twin import stack as st
 from sim_twin.sensors import SensorOutage

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from onboard.params import ControlParams, GeometricMpcParams, with_overrides
+from onboard.contracts.params import ControlParams, GeometricMpcParams, with_overrides
 from sim_twin.lockstep import LockstepRunner, RunConfig
 
 MS = 1e3

@@ -38,9 +38,9 @@ import msgspec
 
 from drivers.can_budget import TrafficItem, bus_load
 from drivers.elmo import codec as c
-from onboard import messages as msgs
-from onboard.params import HardwareParams
-from onboard.topics import TOPICS, namespace, status_key
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import HardwareParams
+from onboard.contracts.topics import TOPICS, namespace, status_key
 from services.runtime.clock import WallClock
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import StandInCommander, TypedPublisher

@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from onboard import messages as msgs
-from onboard.topics import TOPICS, namespace
+from onboard.contracts import messages as msgs
+from onboard.contracts.topics import TOPICS, namespace
 from services.runtime.clock import WallClock
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import TypedPublisher

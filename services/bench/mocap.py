@@ -20,7 +20,7 @@ import multiprocessing as mp
 from typing import Any
 
 from drivers import natnet
-from onboard.params import EstimatorParams, MocapParams, TwinParams
+from onboard.contracts.params import EstimatorParams, MocapParams, TwinParams
 from services.bench.estimator import MeasuredEstimator
 from services.mocap import pose_of
 from sim_twin import lockstep as ls

@@ -21,12 +21,12 @@ import time
 
 import numpy as np
 
-from onboard import reachability as rc
-from onboard.bezier_graph import speed_limits
-from onboard.bezier_mpc import BezierMpc, MpcWeights
-from onboard.params import PlannerParams
+from onboard.high_level.tracking import reachability as rc
+from onboard.high_level.planning.bezier_graph import speed_limits
+from onboard.high_level.tracking.bezier_mpc import BezierMpc, MpcWeights
+from onboard.contracts.params import PlannerParams
 
-# The planner's refine weights (onboard.graph_planner): path length dominates tracking.
+# The planner's refine weights (onboard.high_level.planning.graph_planner): path length dominates tracking.
 WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
 TICK_S = 0.01  # refine period at 100 Hz
 OBSTACLE_RADIUS = 0.3  # [m]

@@ -1,6 +1,6 @@
 """An independent oracle for the graph planner: OMPL's RRTConnect in the same world.
 
-The graph planner (:mod:`onboard.graph_planner`) plans a double integrator; RRTConnect here
+The graph planner (:mod:`onboard.high_level.planning.graph_planner`) plans a double integrator; RRTConnect here
 plans a point in R^2, the robot as a disc. The comparison is fair when both see the same
 problem:
 
@@ -28,7 +28,7 @@ import math
 import numba as nb
 import numpy as np
 
-from onboard import polygons as pg
+from onboard.geometry import polygons as pg
 
 VERIFY_SLACK = 1e-9  # [m] a returned path must keep the margin to within this (rounding)
 

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception import maps
 from onboard.perception.decomposition import decompose_free_space, target_region
 from onboard.perception.geometry import cell_centres, chain_exists, covered_mask, overlapping_cells

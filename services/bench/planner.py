@@ -40,12 +40,12 @@ import time
 import numba
 import numpy as np
 
-from onboard import bezier as bz
-from onboard import collision as col
-from onboard import polygons as pg
-from onboard import bezier_graph as bg
-from onboard import graph_planner as gp
-from onboard.params import PlannerParams
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import collision as col
+from onboard.geometry import polygons as pg
+from onboard.high_level.planning import bezier_graph as bg
+from onboard.high_level.planning import graph_planner as gp
+from onboard.contracts.params import PlannerParams
 from services.bench.ompl_oracle import RrtConnectOracle
 
 NODES_PER_M2 = 50.0  # default world sizing: thesis density (5000 nodes, about 10 edges each)

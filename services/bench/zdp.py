@@ -14,7 +14,7 @@ import argparse
 import dataclasses
 import math
 
-from onboard.params import ControlParams
+from onboard.contracts.params import ControlParams
 from sim_twin.lockstep import LockstepRunner, RunConfig
 
 POLICIES = ("zdp", "lqr", "raibert", "mlp")

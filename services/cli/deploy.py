@@ -32,7 +32,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from deploy import zenoh_configs as zc
+from services.runtime import zenoh_configs as zc
 
 DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 UNIT_DIR = DEPLOY_DIR / "systemd"

@@ -51,8 +51,8 @@ from drivers.elmo.od import drive_dictionary, to_eds
 from drivers.teensy.emulator import TeensyEmulator
 from drivers.teensy.protocol import VERSION
 from drivers import natnet
-from onboard.foot_control import FootPhysics
-from onboard.params import ArcherFirmwareParams, HardwareParams, MocapParams
+from onboard.low_level.tracking.foot_control import FootPhysics
+from onboard.contracts.params import ArcherFirmwareParams, HardwareParams, MocapParams
 from services.runtime.config import ConfigError, load_params
 from services.runtime.realtime import DeadlineLoop, make_realtime
 
@@ -86,7 +86,7 @@ class TwinPlant:
     def __init__(self, scenario: str, seed: int, motor_gears: tuple[float, ...]) -> None:
         import mujoco
 
-        from onboard.params import SafetyLimits, TwinParams, with_overrides
+        from onboard.contracts.params import SafetyLimits, TwinParams, with_overrides
         from robot_description import params as rd
         from sim_twin import model as tm
         from sim_twin.actuation import Actuation
@@ -116,7 +116,7 @@ class TwinPlant:
         self._lock = threading.Lock()
 
     def step(self, now_s: float, joint_torques: list[float]) -> None:
-        from onboard.messages import TorqueCommand
+        from onboard.contracts.messages import TorqueCommand
 
         with self._lock:
             now_ns = int(now_s * 1e9)

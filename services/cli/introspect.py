@@ -10,9 +10,9 @@ import time
 
 import msgspec
 
-from onboard import messages as msgs
-from onboard.binary_messages import decode_depth, decode_grid
-from onboard.topics import TOPICS, Topic, namespace, topic_for_key
+from onboard.contracts import messages as msgs
+from onboard.contracts.binary_messages import decode_depth, decode_grid
+from onboard.contracts.topics import TOPICS, Topic, namespace, topic_for_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.zenoh_session import open_session
 

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from onboard.params import PerceptionParams
+from onboard.contracts.params import PerceptionParams
 from onboard.perception.decomposition import decompose_free_space
 from onboard.perception.obstacles import obstacles_from_mask
 

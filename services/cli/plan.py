@@ -18,7 +18,7 @@ obstacle), ``limits`` (``v_max``, ``a_max``, ``segment_s``), ``plan_ms`` (cut an
 search, densification included), ``graph_ms`` and ``graph_cached`` (build, or load from the graph cache),
 ``nodes`` (the scene's random nodes plus ``lattice_nodes``, the rest lattice, plus any nodes densification added), ``edges``, ``edges_free``, ``cost`` (path-length bound [m]), ``duration``
 [s]; ``path`` (the same as ``found``) and ``densified``: when the first search found no
-path, the graph was densified where it failed (``onboard.densify``, at most
+path, the graph was densified where it failed (``onboard.high_level.planning.densify``, at most
 ``densify_budget_s`` of the planner parameters, or ``"densify_budget_s"`` in the scene):
 ``{"rounds", "nodes_added", "edges_added", "spent_ms", "finest_grid"}`` (null when the
 first search found a path), and ``no_path_reason``: null with a path, else ``"budget
@@ -41,13 +41,13 @@ from typing import Any
 
 import numpy as np
 
-from onboard import collision as col
+from onboard.high_level.tracking import collision as col
 
-from onboard import polygons as pg
-from onboard import graph_planner as gp
-from onboard import messages as msgs
-from onboard.params import PlannerParams
-from onboard.topics import TOPICS, namespace
+from onboard.geometry import polygons as pg
+from onboard.high_level.planning import graph_planner as gp
+from onboard.contracts import messages as msgs
+from onboard.contracts.params import PlannerParams
+from onboard.contracts.topics import TOPICS, namespace
 
 SCENE_KEYS = {"bounds", "obstacles", "start", "goal", "start_velocity", "limits", "tube", "robot_radius", "nodes", "seed",
               "densify_budget_s"}

@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from onboard import messages as m
-from onboard import quaternion as qt
-from onboard.low_level import sample_reference
-from onboard.topics import TOPICS
+from onboard.contracts import messages as m
+from onboard.geometry import quaternion as qt
+from onboard.contracts.reference import sample_reference
+from onboard.contracts.topics import TOPICS
 from services.recorder import read_recording, recording_files
 
 NS = 1e9

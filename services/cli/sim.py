@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.udp import free_udp_port
-from onboard.params import as_dict, with_overrides
+from onboard.contracts.params import as_dict, with_overrides
 from robot_description import params as rd
 from services.runtime.config import ConfigError, load_params
 from services.runtime.service import EXIT_SIGINT
@@ -84,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the planner sees ground-truth obstacles, or what perception makes of the depth camera "
                              "(in real time: the perception service)")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
-    parser.add_argument("--config", default=None, help="TOML file overriding onboard.params sections")
+    parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
     parser.add_argument("--keep-going", action="store_true", help="do not stop at the first fall")
     parser.add_argument("--json", action="store_true", help="print the metrics as one JSON object (last stdout line)")
@@ -178,7 +178,7 @@ def run_lockstep(args: argparse.Namespace) -> dict:
         if view is not None:
             view.close()
     if args.record:
-        from onboard.topics import TOPICS, namespace
+        from onboard.contracts.topics import TOPICS, namespace
         from services.scene import SceneRecording
         from sim_twin.record import write_mcap
 
@@ -206,7 +206,7 @@ class _LockstepView:
     """
 
     def __init__(self, args: argparse.Namespace) -> None:
-        from onboard.topics import namespace
+        from onboard.contracts.topics import namespace
         from services.view import FoxgloveBridge
 
         changes: dict[str, Any] = {"variant": args.variant}
@@ -226,7 +226,7 @@ class _LockstepView:
             time.sleep(0.05)
 
     def __call__(self, topic_name: str, sim_ns: int, msg: object) -> None:
-        from onboard.topics import TOPICS
+        from onboard.contracts.topics import TOPICS
 
         topic = TOPICS[topic_name]
         if self.wall0 is None:
@@ -271,7 +271,7 @@ class FirmwareRig:
     def __init__(self, config: str | None, variant: str) -> None:
         from drivers.archer_firmware.emulator import BoardEmulator
         from drivers.natnet import NatNetServer
-        from onboard.foot_control import FootPhysics
+        from onboard.low_level.tracking.foot_control import FootPhysics
 
         params = load_params(config, ("archer_firmware", "mocap", "control"))
         user = tomllib.loads(Path(config).read_text()) if config else {}
@@ -358,7 +358,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     from services.runtime.peers import query_status, request_once
     from services.runtime.supervisor import Supervisor, sim_specs
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
-    from onboard.topics import namespace
+    from onboard.contracts.topics import namespace
     from services.twin import FirmwareTwinService, ScenarioReferenceService, TwinService
 
     if args.estimator != "kalman" or args.controller != "lowlevel":

@@ -8,7 +8,7 @@ cheaper relative of it, computable here): for each sampled impact-state error
 
     eta*(z) = argmin_{|eta| <= sin(tilt_cmd_max)}  eta' R eta + V(Omega(eta, z))
 
-with ``Omega`` the *nonlinear* reduced impact map of :mod:`onboard.zdp` (spring-mass
+with ``Omega`` the *nonlinear* reduced impact map of :mod:`onboard.low_level.planning.zdp` (spring-mass
 stance pivoting about the foot, ballistic flight) and ``V(z) = z' P z`` the cost-to-go
 of the LQR on its linearization (the same ``Q``, ``R`` as the linear ZDP). So the
 target respects the tilt limit optimally and sees the stance's nonlinearity, where
@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard import zdp, zdp_policy
-from onboard.low_level import design_policy
-from onboard.params import ControlParams
+from onboard.low_level.planning import zdp, zdp_policy
+from onboard.low_level.controller import design_policy
+from onboard.contracts.params import ControlParams
 from robot_description.controller import DATA_DIR
 from robot_description.params import hopper_model
 

@@ -1,6 +1,6 @@
 """``archer train zdp``: the thesis's Algorithm 2 (Monte Carlo Zero Dynamics Policy training).
 
-The numerics are :mod:`onboard.zdp_training` (iLQR with box input bounds through the reduced
+The numerics are :mod:`offline.zdp_training` (iLQR with box input bounds through the reduced
 impact map, the invariance loss (5.46) and its gradient, the 2 x 256 ReLU network pretrained on
 the clipped Raibert policy); this module samples, runs the batches' iLQR solves on the
 campaigns' engine (:mod:`services.cli.campaign_pool`: ``--workers N`` a local pool of spawned
@@ -8,7 +8,7 @@ worker processes, ``--ray ADDRESS`` Ray; by default in this process), and writes
 
 - the weights file the control service loads (``[control] policy = "mlp"``,
   ``mlp_weights = "<file>"``; :func:`robot_description.controller.load_policy_weights`): the
-  layers ``W0, b0, ...`` and ``x_scale``, ``y_scale`` that :class:`onboard.mlp.Mlp` reads, plus
+  layers ``W0, b0, ...`` and ``x_scale``, ``y_scale`` that :class:`onboard.low_level.planning.mlp.Mlp` reads, plus
   ``meta_settings`` (JSON: every training setting and the control parameters it was trained
   for), ``meta_loss_history`` (the batch loss of every iteration), ``meta_validation_*`` (the
   loss of a fixed held-out batch, every ``--validate-every`` iterations) and
@@ -33,10 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from onboard import mlp_training as mt
-from onboard import zdp, zdp_policy
-from onboard import zdp_training as zt
-from onboard.params import ControlParams
+from offline import mlp_training as mt
+from onboard.low_level.planning import zdp, zdp_policy
+from offline import zdp_training as zt
+from onboard.contracts.params import ControlParams
 from robot_description import params as rd
 
 DEFAULT_WEIGHTS = "zdp_mlp_alg2.npz"  # under onboard/data/

@@ -11,7 +11,7 @@ import os
 import signal
 import sys
 
-from onboard.params import ParamError, with_overrides
+from onboard.contracts.params import ParamError, with_overrides
 from services.runtime.config import ConfigError, load_params
 from services.runtime.realtime import die_with_parent
 from services.runtime.service import add_service_arguments, run_service, setup_logging

@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def control_params(policy: str, weights: str):
-    from onboard.params import ControlParams
+    from onboard.contracts.params import ControlParams
 
     base = ControlParams()
     if policy == "alg2":

@@ -1,4 +1,4 @@
-"""The one config loader: a TOML file whose tables name ``onboard.params`` sections.
+"""The one config loader: a TOML file whose tables name ``onboard.contracts.params`` sections.
 
 Example (``deploy/config/archer.toml``)::
 
@@ -15,7 +15,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from onboard.params import SECTIONS, with_overrides
+from onboard.contracts.params import SECTIONS, with_overrides
 
 
 class ConfigError(ValueError):

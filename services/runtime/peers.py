@@ -11,8 +11,8 @@ from typing import Any
 import msgspec
 import zenoh
 
-from onboard import messages as msgs
-from onboard.topics import liveliness_key, params_key, status_key
+from onboard.contracts import messages as msgs
+from onboard.contracts.topics import liveliness_key, params_key, status_key
 
 QUERY_TIMEOUT_S = 2.0
 

@@ -32,11 +32,11 @@ from typing import Any, ClassVar, Generic, TypeVar
 import msgspec
 import zenoh
 
-from onboard import messages as msgs
-from onboard.binary_messages import ENCODING as BINARY_ENCODING
-from onboard.commander import UNKNOWN_COMMANDER, CommanderLatch
-from onboard.params import SECTIONS, as_dict, with_overrides
-from onboard.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
+from onboard.contracts import messages as msgs
+from onboard.contracts.binary_messages import ENCODING as BINARY_ENCODING
+from onboard.contracts.commander import UNKNOWN_COMMANDER, CommanderLatch
+from onboard.contracts.params import SECTIONS, as_dict, with_overrides
+from onboard.contracts.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
 from services.runtime import sd_notify
 from services.runtime.clock import Clock, WallClock
 from services.runtime.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_client_session, open_session
@@ -367,7 +367,7 @@ class Service:
 
     def _decoder(self, topic: Topic) -> Callable[[bytes], Any]:
         if topic.binary:
-            from onboard import binary_messages as bm
+            from onboard.contracts import binary_messages as bm
 
             return {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary]
         msg_type = topic.msg_type
@@ -477,7 +477,7 @@ class Service:
     def commands(self, topic_name: str) -> LatestSlot:
         """A latest-value slot of motor commands that only the live commander fills.
 
-        The one-commander rule of :mod:`onboard.commander`: the commander's liveliness
+        The one-commander rule of :mod:`onboard.contracts.commander`: the commander's liveliness
         token and its status (its instance id) are watched here; a command from any
         other instance, or while no commander is alive, never reaches the slot (so a
         flood of forged commands cannot even displace the real ones), and is counted

@@ -17,7 +17,7 @@ from typing import Literal
 
 import zenoh
 
-from onboard.params import MessagingParams
+from onboard.contracts.params import MessagingParams
 
 ENDPOINT_ENV = "ARCHER_ZENOH_ENDPOINT"
 CONFIG_ENV = "ARCHER_ZENOH_CONFIG"
@@ -39,7 +39,7 @@ def free_endpoint() -> str:
         return f"tcp/{LOOPBACK}:{s.getsockname()[1]}"
 
 
-QUEUED_PRIORITIES = ("real_time", "interactive_high")  # the 1 kHz and 100 Hz topics (onboard.topics)
+QUEUED_PRIORITIES = ("real_time", "interactive_high")  # the 1 kHz and 100 Hz topics (onboard.contracts.topics)
 
 
 def link_queue_config(params: MessagingParams = MessagingParams()) -> dict:

@@ -1,0 +1,894 @@
+"""Kinodynamic Bezier graph planner: build, cut, search, refine (thesis ch. 7, lines 3067-3220).
+
+Planning model: the CoM double integrator in the horizontal plane, state
+``x = [px, py, vx, vy]`` (world frame, metres and m/s), input the CoM acceleration,
+bounded (speed: ``PlannerParams.v_max``, an octagon; acceleration: ``a_max`` per axis).
+
+Pipeline (Algorithm 3):
+
+1. **Build** (:func:`onboard.high_level.planning.bezier_graph.build_graph`): ``N`` nodes over position and velocity (uniform
+   random or grid), plus a lattice of nodes at rest (``rest_grid``: between two resting
+   nodes the curve is a straight segment, so narrow gaps are passable stop-and-go);
+   candidate pairs come from a k-d tree over positions and velocities
+   scaled by the largest change one segment can make (an LP over the reachability
+   test, so the pruning drops no edge the test would accept); a pair is an edge iff
+   the Bezier reachability test ``F [x_i; x_j] <= G`` of :mod:`onboard.high_level.tracking.reachability`
+   holds (Theorem 6.2). Each edge carries its position control points and its cost,
+   the path-length bound of Property 2.49. The graph depends only on
+   :class:`~onboard.high_level.planning.bezier_graph.GraphSpec`; :meth:`GraphSpec.key` names it for an on-disk cache, and
+   :meth:`BezierGraph.to_arrays` / :meth:`BezierGraph.from_arrays` convert it for the
+   caller, who does the file I/O.
+2. **Cut** (:mod:`onboard.high_level.tracking.collision`): edges whose control-point hull comes within
+   ``robot_radius + tube`` of a convex obstacle are removed (exact separating-axis
+   test), or, with free cells, edges not inside one cell. Edges leaving the planning
+   region are removed too.
+3. **Search** (:func:`onboard.high_level.planning.bezier_graph.search`): A* (admissible straight-line heuristic) over the
+   path-length bound plus ``time_weight`` times each segment's duration (0 is the
+   thesis's cost; a little of it stops the search from preferring slow, short paths) from the
+   current state to the goal at rest. The start is the state itself, joined to the
+   graph by the same reachability test and cut (when it cannot be, the nodes that
+   contain the state in its tube, Problem 7.1); the goal, at rest, is joined the same
+   way (paths end exactly there; only when it cannot be joined do graph nodes at rest
+   within the goal tolerance end a path).
+4. **Refine** (:meth:`GraphPlanner.refine`): the MPC of eq. 7.2 from
+   :mod:`onboard.high_level.tracking.bezier_mpc`, warm-started with the graph path, each segment kept on
+   the free side of separating halfspaces to its nearest obstacles; one SQP
+   iteration per call.
+
+In-process use (the lockstep runner, the ``planner`` service and ``archer plan`` all
+use it this way)::
+
+    planner = GraphPlanner(PlannerParams(), robot_radius=0.13)
+    planner.set_obstacles([poly, ...])          # convex polygons (k, 2) [m]; or set_free_cells
+    planner.set_goal((x, y), tolerance=0.1)
+    if planner.needs_replan(position, now_ns, params.replan_deviation):  # world/goal/tube changed, or off the path
+        ref = planner.plan(position, velocity, now_ns)  # ComReference, or None: no path
+    ref = planner.refine(position, velocity, now_ns)    # refined ComReference (100-200 Hz)
+    hold = planner.hold_reference(position, now_ns)     # hop in place when there is no path
+    wps = planner.waypoints(now_ns)                     # graph path and its convex sets
+    report = planner.check_tube(tracking_tube, now_ns)  # ContractReport on a broken promise (tube grows)
+    planner.drain_contract_reports()                    # the reports since the last call
+
+Positions and velocities are the CoM's ``[x, y]`` in the world frame [m, m/s]; times
+are nanoseconds on the caller's clock. Without fixed ``bounds`` the planning region
+follows start, goal and obstacles. ``plan`` builds the graph itself when none fits the
+region; a caller with a cache supplies it first with :meth:`GraphPlanner.graph_spec_for`
+and :meth:`GraphPlanner.set_graph`. Everything here is pure: no clock, no I/O, no threads.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+from scipy.spatial import cKDTree
+
+from onboard.geometry import bezier as bz
+from onboard.high_level.tracking import collision as col
+from onboard.high_level.planning import densify as dn
+from onboard.geometry import polygons as pg
+from onboard.contracts import messages as msgs
+from onboard.high_level.tracking import reachability as reach
+from onboard.high_level.planning.bezier_graph import (
+    DIM,
+    PRUNE_SLACK,
+    SPEED_NORMALS,
+    BezierGraph,
+    GraphSpec,
+    PlanningError,
+    SearchResult,
+    build_graph,
+    chain_tail,
+    limit_speed,
+    path_states,
+    reach_scale,
+    search,
+    spec_from_params,
+    speed_limits,
+)
+from onboard.high_level.tracking.bezier_mpc import BezierMpc, MpcWeights
+from onboard.contracts.reference import sample_reference
+from onboard.contracts.params import PlannerParams
+from onboard.high_level.planning.seen_space import SeenSpace
+
+MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
+START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its clearance less this
+# MPC cost (eq. 7.2): stay near the graph path, but prefer a shorter, smoother curve
+# (thesis: "path length cost was scaled significantly higher than tracking cost").
+MPC_WEIGHTS = MpcWeights(state=(1.0, 1.0, 0.1, 0.1), terminal=(10.0, 10.0, 1.0, 1.0), effort=0.01, path=50.0)
+MPC_MIN_RADIUS = 2e-4  # [m, m/s] initial-state radii below this become equalities (MPC margin)
+_SPEED_ROWS = tuple((float(nx), float(ny)) for nx, ny in SPEED_NORMALS)  # the speed octagon's normals, as floats
+
+
+# --- the planner -----------------------------------------------------------------------
+
+
+@dataclass
+class PlannerStats:
+    """Counters and last timings a service reports (timings are filled by the caller)."""
+
+    plans: int = 0
+    no_path: int = 0
+    cuts: int = 0
+    graph_builds: int = 0
+    refines: int = 0  # MPC solves
+    refine_reused: int = 0  # refine calls answered with the last solution (nothing changed)
+    refine_failures: int = 0
+    refine_idle: int = 0  # refine calls answered with the graph path: its end reached, the robot at rest there
+    refine_skipped: int = 0  # free mode: refine calls answered with the graph path, the refinement having failed at that knot
+    refine_numerical_errors: int = 0  # of the failures: a solver or linear-algebra error (last one in last_refine_error)
+    last_refine_error: str = ""
+    edges_free: int = 0
+    unseen_holds: int = 0  # references held back because their committed part crossed ground not seen free
+    densify_plans: int = 0  # plans whose search failed and densified the graph (onboard.high_level.planning.densify)
+    densify_rounds: int = 0  # densification rounds that added nodes
+    densify_nodes: int = 0  # nodes they added
+    frontier_plans: int = 0  # free mode: plans that end at a frontier, the goal being beyond the known free cells
+
+
+class GraphPlanner:
+    """The high-level planner of thesis ch. 7 as a pure object (see the module docstring).
+
+    ``robot_radius`` [m] and the tube (``PlannerParams.tube``, changed by
+    :meth:`set_tube`) inflate every obstacle: ``margin = robot_radius + tube``.
+    """
+
+    def __init__(self, params: PlannerParams, robot_radius: float, bounds: tuple[float, float, float, float] | None = None,
+                 nodes: int | None = None) -> None:
+        if not (math.isfinite(robot_radius) and robot_radius >= 0):
+            raise PlanningError(f"robot radius must be finite and >= 0, got {robot_radius}")
+        self.params = params
+        self.robot_radius = float(robot_radius)
+        self.tube = float(params.tube)
+        self.fixed_bounds = None if bounds is None else tuple(float(b) for b in bounds)
+        self.fixed_nodes = nodes
+        self.stats = PlannerStats()
+        self.graph: BezierGraph | None = None
+        self._tree: cKDTree | None = None
+        self._scale: np.ndarray | None = None
+        self.mode = "obstacles"
+        self.obstacles = pg.pack_polygons([])
+        self.cells = pg.pack_polygons([])
+        self._world_version = 0
+        self._cut_key: tuple | None = None
+        self.free: np.ndarray | None = None  # edge mask after the cut
+        self._densifier: dn.Densifier | None = None  # what densification added to the current graph
+        self.last_densify: dn.DensifyReport | None = None  # the last plan's densification (None: it needed none)
+        self._unreachable: tuple | None = None  # (world version, goal, graph) densified to the finest level in vain
+        self.goal: np.ndarray | None = None
+        self.goal_tolerance = 0.0
+        self.path: SearchResult | None = None
+        self.path_t0_ns = 0  # clock time of the path's start
+        self.path_world_version = -1
+        self._mpc = None
+        self._mpc_tube = -1.0
+        self._last_solution = None
+        self._last_refined: tuple | None = None  # (knot, world version, path, first knot, reference)
+        self._arrived: tuple | None = None  # (path, its reference) once the robot rests at its end
+        self._failed_refine: tuple | None = None  # (knot, world version, path) of the last failed refinement
+        self.contract_violations = 0
+        self._reports: list[msgs.ContractReport] = []
+        self.seen: SeenSpace | None = None  # None: the world is known (ground truth), nothing to gate
+        self.require_seen = False
+        self.frontier_goal: np.ndarray | None = None  # free mode: where the current path ends short of the goal
+        self._frontier_target: np.ndarray | None = None  # the last frontier a path was found to (kept while none reaches the goal)
+
+    # --- inputs ----------------------------------------------------------------------
+
+    @property
+    def margin(self) -> float:
+        """Clearance [m] the plan keeps from every obstacle: robot radius plus tube."""
+        return self.robot_radius + self.tube
+
+    def set_goal(self, position: tuple[float, float] | np.ndarray, tolerance: float = 0.1) -> None:
+        """Goal position [m] (world), reached at rest within ``tolerance`` [m]."""
+        g = np.asarray(position, dtype=float).reshape(-1)
+        if g.shape != (2,) or not np.all(np.isfinite(g)) or not (math.isfinite(tolerance) and tolerance >= 0):
+            raise PlanningError("goal must be a finite [x, y] with a finite tolerance >= 0")
+        changed = self.goal is None or not np.array_equal(g, self.goal) or tolerance != self.goal_tolerance
+        self.goal = g
+        self.goal_tolerance = float(tolerance)
+        if changed:
+            self.path = None
+            self._frontier_target = None  # a new goal: explore toward it afresh
+
+    def set_obstacles(self, polygons: list) -> None:
+        """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
+        try:
+            packed = pg.pack_polygons(list(polygons))
+        except pg.PolygonError as exc:
+            raise PlanningError(f"obstacle: {exc}") from None
+        if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
+            return
+        self.mode = "obstacles"
+        self.obstacles = packed
+        self._world_version += 1
+
+    def set_free_cells(self, polygons: list) -> None:
+        """Convex free cells: a curve is free iff its control points lie in one cell."""
+        try:
+            packed = pg.pack_polygons(list(polygons))
+        except pg.PolygonError as exc:
+            raise PlanningError(f"free cell: {exc}") from None
+        if self.mode == "free" and _same_polygons(packed, self.cells):
+            return
+        self.mode = "free"
+        self.cells = packed
+        self._world_version += 1
+
+    def set_seen(self, seen: SeenSpace | None, required: bool = True) -> None:
+        """What the camera has seen free (``onboard.high_level.planning.seen_space``). With ``required`` every
+        reference is gated on it, and before the first one the robot is committed nowhere;
+        ``required=False`` (a world given whole, as ground truth) gates nothing."""
+        self.seen = seen
+        self.require_seen = bool(required)
+
+    def set_tube(self, tube: float) -> None:
+        """Plan with tube ``tube`` [m] from now on (a larger one after a broken promise)."""
+        if not (math.isfinite(tube) and tube >= 0):
+            raise PlanningError(f"tube must be finite and >= 0, got {tube}")
+        if tube != self.tube:
+            self.tube = float(tube)
+            self._world_version += 1
+
+    @property
+    def world_version(self) -> int:
+        """Increments whenever obstacles, cells or the tube change (a replan is due)."""
+        return self._world_version
+
+    # --- graph -------------------------------------------------------------------------
+
+    def region_for(self, position: np.ndarray) -> tuple[float, float, float, float]:
+        """Planning region: the fixed bounds, or start, goal and obstacles (or cells) padded by
+        ``bounds_padding`` plus twice the margin (room to pass an obstacle at the edge; the
+        margin of a tube of at least ``region_tube``, so that a tube growing up to it needs
+        no new graph), snapped outward to ``bounds_quantum``."""
+        if self.fixed_bounds is not None:
+            return self.fixed_bounds
+        pts = [np.asarray(position, float)[:2]]
+        if self.goal is not None:
+            pts.append(self.goal)
+        polys = self.obstacles if self.mode == "obstacles" else self.cells
+        if len(polys):
+            pts.extend([polys.aabb[:, :2].min(axis=0), polys.aabb[:, 2:].max(axis=0)])
+        pts_arr = np.array(pts)
+        q = self.params.bounds_quantum
+        pad = self.params.bounds_padding + 2 * (self.robot_radius + max(self.tube, self.params.region_tube))
+        lo = np.floor((pts_arr.min(axis=0) - pad) / q) * q
+        hi = np.ceil((pts_arr.max(axis=0) + pad) / q) * q
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    def graph_spec_for(self, position: np.ndarray) -> GraphSpec:
+        """The spec of the graph :meth:`plan` needs for a start at ``position``.
+
+        An automatic region keeps the current graph while it covers the region needed
+        (no rebuild when obstacles move inside it); its node count is ``node_density``
+        times its area, at most ``nodes``.
+        """
+        bounds = self.region_for(position)
+        if self.fixed_bounds is not None:
+            return spec_from_params(self.params, bounds, nodes=self.fixed_nodes)
+        if self.graph is not None and _covers(self.graph.spec.bounds, bounds):
+            return self.graph.spec
+        area = (bounds[2] - bounds[0]) * (bounds[3] - bounds[1])
+        nodes = int(min(self.params.nodes, max(MIN_AUTO_NODES, round(self.params.node_density * area))))
+        return spec_from_params(self.params, bounds, nodes=nodes)
+
+    def set_graph(self, graph: BezierGraph) -> None:
+        self.graph = graph
+        test = graph.reachability
+        self._scale = reach_scale(test, graph.spec.a_max)
+        self._tree = cKDTree(graph.nodes / self._scale)
+        self._cut_key = None
+        self._densifier = None
+        self.path = None
+
+    def _install_densified(self, graph: BezierGraph, free: np.ndarray) -> None:
+        """Plan on ``graph``, a densified copy of the current one, with its cut ``free``."""
+        assert self._scale is not None
+        self.graph = graph
+        self._tree = cKDTree(graph.nodes / self._scale)
+        self.free = free
+        self._cut_key = (id(graph), self._world_version)
+        self.stats.edges_free = int(free.sum())
+
+    def _ensure_graph(self, position: np.ndarray) -> None:
+        spec = self.graph_spec_for(position)
+        if self.graph is None or self.graph.spec != spec:
+            self.set_graph(build_graph(spec))
+            self.stats.graph_builds += 1
+
+    # --- cut ---------------------------------------------------------------------------
+
+    def _blocked(self, hulls: col.HullSet, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Blocked mask and (free mode) containing cell of arbitrary curves (``margin``: default the planner's)."""
+        assert self.graph is not None
+        margin = self.margin if margin is None else margin
+        xmin, ymin, xmax, ymax = self.graph.spec.bounds
+        outside = ((hulls.aabb[:, 0] < xmin) | (hulls.aabb[:, 1] < ymin)
+                   | (hulls.aabb[:, 2] > xmax) | (hulls.aabb[:, 3] > ymax))
+        if self.mode == "free":
+            cell = col.free_cell_of(hulls, self.cells, margin, active=~outside)
+            return outside | (cell < 0), cell
+        return outside | col.cut_obstacles(hulls, self.obstacles, margin, active=~outside), np.full(len(hulls), -1)
+
+    def cut(self) -> np.ndarray:
+        """Recut the graph if the world, the tube or the graph changed; the free-edge mask."""
+        assert self.graph is not None
+        key = (id(self.graph), self._world_version)
+        if self._cut_key != key or self.free is None:
+            self.free = ~self._blocked(self.graph.hulls)[0]
+            self._cut_key = key
+            self.stats.cuts += 1
+            self.stats.edges_free = int(self.free.sum())
+        return self.free
+
+    # --- plan ----------------------------------------------------------------------------
+
+    def _state(self, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        """``[px, py, vx, vy]`` from the first two entries of each (in plain floats: this runs at the
+        refinement rate, where a dozen small numpy calls cost more than the rest of a kept answer)."""
+        try:
+            px, py, vx, vy = float(position[0]), float(position[1]), float(velocity[0]), float(velocity[1])
+        except (IndexError, KeyError, TypeError, ValueError):
+            raise PlanningError("state must be finite position and velocity with at least x and y") from None
+        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(vx) and math.isfinite(vy)):
+            raise PlanningError("state must be finite position and velocity with at least x and y")
+        # The planning model cannot start faster than its bound; the tube absorbs the rest. Near the
+        # bound limit_speed decides, so the state is the same to the bit as when it always did.
+        v_max = self.params.v_max
+        if max(nx * vx + ny * vy for nx, ny in _SPEED_ROWS) > v_max * (1.0 - 1e-9):
+            vx, vy = limit_speed(np.array([vx, vy]), v_max).tolist()
+        return np.array([px, py, vx, vy])
+
+    def _connect(self, x: np.ndarray, outgoing: bool, margin: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nodes joined to the virtual state ``x`` by a free segment: (nodes, costs, control points)."""
+        assert self.graph is not None and self._tree is not None
+        near = np.array(self._tree.query_ball_point(x / self._scale, 1.0 + PRUNE_SLACK, p=np.inf), dtype=np.int64)
+        if len(near) == 0:
+            return near, np.zeros(0), np.zeros((0, self.graph.reachability.p + 1, DIM))
+        test = self.graph.reachability
+        others = self.graph.nodes[near]
+        xs = np.broadcast_to(x, others.shape)
+        ok = test.test(xs, others) if outgoing else test.test(others, xs)
+        near, others = near[ok], others[ok]
+        ctrl = test.curve(xs[: len(near)], others) if outgoing else test.curve(others, xs[: len(near)])
+        if len(near):
+            blocked, _ = self._blocked(col.hull_set(ctrl), margin)
+            near, ctrl = near[~blocked], ctrl[~blocked]
+        return near, bz.path_length_bound(ctrl), ctrl
+
+    def start_margin(self, position: np.ndarray) -> float:
+        """Clearance the segments leaving the start must keep: the margin, or, when the
+        robot already stands closer to an obstacle (its tube was exceeded) or nearer the
+        edge of its free cell (the cells were fitted anew around it), what it has
+        now -- so that it can leave (never below the robot radius: that is a collision)."""
+        p = np.asarray(position, dtype=float)[:2]
+        if self.mode == "free":
+            if len(self.cells) == 0:
+                return self.margin
+            inside = self.cells.face_offsets - self.cells.normals @ p  # per face: distance inside it
+            have = float(np.max(np.minimum.reduceat(inside, self.cells.offsets[:-1])))
+        elif len(self.obstacles) == 0:
+            return self.margin
+        else:
+            have = float(col.samples_clearance(p[None, None, :], self.obstacles, reach=self.margin)[0])
+        if have >= self.margin:
+            return self.margin
+        return max(have - START_SLACK, self.robot_radius)
+
+    def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0,
+             build: bool = True, clock: Callable[[], float] | None = None) -> msgs.ComReference | None:
+        """Cut (if needed) and search from the state at ``stamp_ns``; None when there is no path.
+
+        ``build=False`` plans on the current graph even when another would fit the region
+        better (a caller building that one meanwhile); it needs a graph. The result is also
+        kept in :attr:`path` for :meth:`refine` and :meth:`waypoints`.
+
+        When the search finds no path, the graph is densified where it failed
+        (:mod:`onboard.high_level.planning.densify`) for at most ``densify_budget_s`` on ``clock`` (seconds, the
+        caller's; without one, until a path, the finest resolution or the node limit);
+        :attr:`last_densify` says what that did and why there is still no path.
+        """
+        if self.goal is None:
+            raise PlanningError("no goal set")
+        x0 = self._state(position, velocity)
+        if build or self.graph is None:
+            self._ensure_graph(x0[:2])
+        self.cut()
+        self.stats.plans += 1
+        # free mode: with no frontier within reach, going nearer one comes before densifying (each
+        # replan, at the perception rate, has new cells fitted around the robot; densifying every
+        # time was most of a maze run's time)
+        approach = self.mode == "free" and self.params.frontier_approach_weight > 0
+        result, start_seeds, goal_seeds = self._search(x0, approach)
+        if result is not None or self.params.densify_budget_s <= 0:
+            self.last_densify = None
+        elif not self._settled():
+            result = self._densify(x0, start_seeds, goal_seeds, clock)
+        self.path = result
+        self.path_t0_ns = int(stamp_ns)
+        self.path_world_version = self._world_version
+        self._last_solution = None
+        if result is None:
+            self.stats.no_path += 1
+            return None
+        return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
+
+    def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
+        """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
+        failing that with ``approach`` as near one as the cells allow): the path (None: none) and
+        the graph nodes joined to the start and to the goal."""
+        graph = self.graph
+        assert graph is not None and self.goal is not None and self.free is not None
+        N = graph.n_nodes
+        goal_state = np.array([self.goal[0], self.goal[1], 0.0, 0.0])
+        # Start: the state itself joined by free segments (the reference starts where the
+        # robot is); only when none is free, the nodes containing it in the tube (Problem 7.1).
+        # Search cost: path-length bound (Property 2.49) plus time_weight per segment (its duration).
+        extra = self.params.time_weight * graph.spec.tau
+        start_margin = self.start_margin(x0)
+        s_nodes, s_costs, s_ctrl = self._connect(x0, outgoing=True, margin=start_margin)
+        s_costs = s_costs + extra
+        contains = np.zeros(0, dtype=np.int64)
+        if len(s_nodes) == 0:
+            contains = np.flatnonzero(
+                (np.hypot(*(graph.nodes[:, :2] - x0[:2]).T) <= self.tube)
+                & np.all(np.abs(graph.nodes[:, 2:] - x0[2:]) <= self.params.start_speed_tol, axis=1))
+        start_edge_ctrl = {int(n): c for n, c in zip(s_nodes, s_ctrl)}
+        start_nodes = [s_nodes, contains]
+        start_costs = [s_costs, np.zeros(len(contains))]
+        for n in contains:
+            start_edge_ctrl.pop(int(n), None)  # containing the start beats joining it
+        direct_ok = graph.reachability.test(x0, goal_state)
+        if direct_ok:
+            direct = graph.reachability.curve(x0, goal_state)
+            if not self._blocked(col.hull_set(direct[None]), start_margin)[0][0]:
+                start_edge_ctrl[N] = direct
+                start_nodes.append(np.array([N]))
+                start_costs.append(np.array([bz.path_length_bound(direct) + extra]))
+        # Goal: nodes joined to the goal at rest (the path ends exactly there); only when
+        # none is, nodes at rest within the tolerance end a path.
+        g_nodes, g_costs, g_ctrl = self._connect(goal_state, outgoing=False)
+        goal_costs = np.full(N, np.inf)
+        goal_costs[g_nodes] = g_costs + extra
+        goal_edge_ctrl = {int(n): c for n, c in zip(g_nodes, g_ctrl)}
+        at_goal = np.zeros(0, dtype=np.int64)
+        if len(g_nodes) == 0 and N not in start_edge_ctrl:
+            at_goal = np.flatnonzero(
+                (np.hypot(*(graph.nodes[:, :2] - self.goal).T) <= self.goal_tolerance)
+                & np.all(np.abs(graph.nodes[:, 2:]) <= self.params.goal_speed_tol, axis=1))
+            goal_costs[at_goal] = 0.0
+        all_starts = np.concatenate(start_nodes).astype(np.int64)
+        all_start_costs = np.concatenate(start_costs)
+        result = None
+        if len(g_nodes) or len(at_goal) or N in start_edge_ctrl:  # else nothing to search to
+            result = search(graph, self.free, x0, all_starts, all_start_costs, goal_state, goal_costs,
+                            self.goal_tolerance if len(at_goal) else 0.0, start_edge_ctrl, goal_edge_ctrl, extra)
+        self.frontier_goal = None
+        if result is not None:
+            self._frontier_target = None
+        elif self.mode == "free":
+            via_graph = all_starts < N  # the direct segment to the goal is not free, or there would be a path
+            result = self._search_frontier(x0, all_starts[via_graph], all_start_costs[via_graph],
+                                           {n: c for n, c in start_edge_ctrl.items() if n < N}, goal_state, extra,
+                                           approach)
+        return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
+
+    def frontier_costs(self, position: np.ndarray, approach: bool = False) -> np.ndarray:
+        """Per graph node, the cost of ending a path there toward a goal beyond the known free
+        cells: ``frontier_weight`` times its distance to the goal for nodes at rest near a
+        frontier cell (:meth:`SeenSpace.frontier`: connected to ``position`` through free cells,
+        beside unknown ground as wide as the robot) at least ``frontier_min`` from ``position``:
+        within the margin plus ``frontier_reach`` over free ground (4-connected cells: up to
+        sqrt(2) times the straight line, so the reach is allowed as much; a node beside a wall
+        with the frontier behind it is not near it). With ``approach``, every node at rest
+        connected to such a cell, plus ``frontier_approach_weight`` per metre it falls short of
+        that reach. Inf elsewhere, and everywhere without a seen space."""
+        assert self.graph is not None and self.goal is not None
+        prm = self.params
+        nodes = self.graph.nodes
+        costs = np.full(len(nodes), np.inf)
+        if self.seen is None:
+            return costs
+        here = np.asarray(position, dtype=float)[:2]
+        pts = self.seen.frontier(2 * self.robot_radius, here)
+        pts = pts[np.hypot(*(pts - here).T) >= prm.frontier_min]
+        if len(pts) == 0:
+            return costs
+        rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))
+        d = self.seen.distance_through_free(pts, nodes[rest, :2])
+        short = np.maximum(d - math.sqrt(2.0) * (self.margin + prm.frontier_reach), 0.0)
+        ok = np.isfinite(short) if approach else short == 0.0
+        costs[rest[ok]] = (prm.frontier_weight * np.hypot(*(nodes[rest[ok], :2] - self.goal).T)
+                           + prm.frontier_approach_weight * short[ok])
+        return costs
+
+    def _search_frontier(self, x0: np.ndarray, start_nodes: np.ndarray, start_costs: np.ndarray,
+                         start_edge_ctrl: dict[int, np.ndarray], goal_state: np.ndarray, extra: float,
+                         approach: bool = False) -> SearchResult | None:
+        """Free mode, no path to the goal in the known cells: the path to the frontier node of
+        least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
+        heuristic admissible, every frontier cost being at least it). With ``approach``, when the
+        cells reach no frontier (a wall's gap whose cells overlap too thinly for the margin), the
+        path as near one as they let the robot go, where the cells fitted around it may join up."""
+        assert self.graph is not None and self.free is not None and self.goal is not None
+        prm = self.params
+        if len(start_nodes) == 0:
+            return None
+        for near in (False, True) if approach else (False,):
+            costs = self.frontier_costs(x0[:2], near)
+            if not np.isfinite(costs).any():
+                continue
+            if self._frontier_target is not None:  # hysteresis: the frontier already headed for keeps an advantage
+                nodes = self.graph.nodes[:, :2]
+                kept = np.isfinite(costs) & (np.hypot(*(nodes - self._frontier_target).T) <= max(prm.rest_grid, 1e-9))
+                # never below the straight line to the goal: the search's heuristic stays admissible
+                costs[kept] = np.maximum(costs[kept] - prm.frontier_hysteresis, np.hypot(*(nodes[kept] - self.goal).T))
+            result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
+                            start_edge_ctrl, {}, extra)
+            if result is not None:
+                self.frontier_goal = result.states[-1, :2].copy()
+                self._frontier_target = self.frontier_goal
+                self.stats.frontier_plans += 1
+                return result
+        return None
+
+    def _settled(self) -> bool:
+        """The same world, goal and graph were densified to the finest level in vain: that answer
+        (:attr:`last_densify`) stands, and replans at ``replan_hz`` do not spend the budget on it again."""
+        u = self._unreachable
+        return u is not None and u[0] == self._world_version and u[1] == tuple(self.goal) and u[2] is self.graph
+
+    def _densify(self, x0: np.ndarray, start_seeds: np.ndarray, goal_seeds: np.ndarray,
+                 clock: Callable[[], float] | None) -> SearchResult | None:
+        """Densify the graph where the search failed (:mod:`onboard.high_level.planning.densify`); the path found, or None."""
+        assert self.graph is not None and self.goal is not None
+        prm = self.params
+        if self._densifier is None:
+            first = prm.rest_grid / 2 if self.graph.spec.rest_grid else prm.densify_grid
+            limits = dn.DensifyLimits(prm.densify_budget_s, first, min(prm.densify_min_grid, first),
+                                      prm.densify_max_nodes, prm.densify_round_nodes, prm.densify_max_rounds)
+            self._densifier = dn.Densifier(self.graph, limits)
+        view = _PlanView(self, x0, start_seeds, goal_seeds)
+        report = self._densifier.run(view, x0[:2], self.goal, self.obstacles if self.mode == "obstacles" else None,
+                                     self.margin, self._world_version, clock)
+        self.last_densify = report
+        self._unreachable = (self._world_version, tuple(self.goal), self.graph) if report.reason == dn.UNREACHABLE else None
+        self.stats.densify_plans += 1
+        self.stats.densify_rounds += report.rounds
+        self.stats.densify_nodes += report.nodes_added
+        return view.result
+
+    def path_reference(self, stamp_ns: int = 0) -> msgs.ComReference:
+        """The graph path as the CoM reference (time 0 at the path's start)."""
+        assert self.path is not None
+        segs = [msgs.BezierSegment(t0=float(k * self.path.tau), duration=float(self.path.tau), control_points=c.tolist())
+                for k, c in enumerate(self.path.control_points)]
+        return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=self.path_t0_ns, segments=segs, hold=False)
+
+    def hold_reference(self, position: np.ndarray, stamp_ns: int = 0) -> msgs.ComReference:
+        """Hop in place at ``position``: one constant segment, ``hold=True``."""
+        p = [float(v) for v in np.asarray(position, dtype=float).reshape(-1)[:2]]
+        tau = self.params.segment_s
+        seg = msgs.BezierSegment(t0=0.0, duration=tau, control_points=[p] * 4)
+        return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=True)
+
+    def heading(self, ref: msgs.ComReference, position: np.ndarray, stamp_ns: int) -> float | None:
+        """The yaw [rad] that points the camera along ``ref``: at the first place, every
+        ``heading_lookahead_s`` along it, at least ``heading_min_m`` from ``position`` (a path
+        from rest starts slowly); None (keep the heading) when the whole reference is near."""
+        if ref.hold or not ref.segments:
+            return None
+        prm = self.params
+        t = (stamp_ns - ref.t_ref_ns) * 1e-9
+        end = ref.segments[-1].t0 + ref.segments[-1].duration
+        while True:
+            t = min(t + prm.heading_lookahead_s, end)
+            x, y, _, _ = sample_reference(ref, t)
+            dx, dy = x - float(position[0]), y - float(position[1])
+            if math.hypot(dx, dy) >= prm.heading_min_m:
+                return math.atan2(dy, dx)
+            if t >= end:
+                return None
+
+    def committed(self, ref: msgs.ComReference, position: np.ndarray, stamp_ns: int) -> msgs.ComReference:
+        """With a perceived world (:meth:`set_seen`): ``ref`` with the heading that shows the
+        camera its way, when the robot's footprint stays on seen-free ground along its first
+        ``commit_s`` (the tube's clearance from what was seen occupied is the cut's); else hop in
+        place where the robot is, turned that way, until the camera has seen it
+        (``stats.unseen_holds``). Free cells are seen free by construction: in free mode ``ref``
+        only gains the heading."""
+        if not self.require_seen and self.mode != "free":  # a world given whole: no camera to point, nothing unseen
+            return ref
+        yaw = self.heading(ref, position, stamp_ns)  # free cells are seen free, but the camera must find more
+        if self.require_seen and not ref.hold:
+            prm = self.params
+            t0 = (stamp_ns - ref.t_ref_ns) * 1e-9
+            steps = int(math.ceil(prm.commit_s / prm.commit_step_s))
+            samples = np.array([sample_reference(ref, t0 + k * prm.commit_step_s)[:2] for k in range(steps + 1)])
+            here = np.asarray(position, dtype=float)[:2]
+            if self.seen is None or self.seen.first_unseen(samples, self.robot_radius, here, self.margin) is not None:
+                self.stats.unseen_holds += 1
+                return msgspec.structs.replace(self.hold_reference(here, stamp_ns), yaw=yaw)
+        return msgspec.structs.replace(ref, yaw=yaw)
+
+    def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
+        """True when there is no path, the world changed since it was planned, or the
+        state is more than ``deviation`` [m] from where the path says it should be."""
+        if self.path is None or self.path_world_version != self._world_version:
+            return True
+        t = (stamp_ns - self.path_t0_ns) * 1e-9
+        expected = path_states(self.path.control_points, self.path.tau, np.array([t]))[0, :2]
+        return float(np.hypot(*(np.asarray(position, float)[:2] - expected))) > deviation
+
+    # --- refine ------------------------------------------------------------------------------
+
+    def _ensure_mpc(self, planes: int) -> BezierMpc:
+        if self._mpc is None or self._mpc_tube != self.tube or self._mpc.max_planes < planes:
+            prm = self.params
+            model = reach.double_integrator(DIM)
+            inf = math.inf
+            test = reach.BezierReachability(model, speed_limits(prm.a_max, prm.v_max, tube=self.tube, tube_norm=2), prm.mpc_dt)
+            self._mpc = BezierMpc(test, prm.mpc_horizon, MPC_WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
+                                  init_radius=self._init_radius(),
+                                  max_planes=max(planes, prm.halfspaces), terminal="equal")
+            self._mpc_tube = self.tube
+            self._last_solution = None
+        return self._mpc
+
+    def refine(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
+        """The refined reference (:meth:`refine_path`), gated on seen ground (:meth:`committed`)."""
+        ref = self.refine_path(position, velocity, stamp_ns)
+        return None if ref is None else self.committed(ref, position, stamp_ns)
+
+    def refine_path(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
+        """One SQP iteration of the MPC of eq. 7.2 around the current path; the refined reference.
+
+        Knots sit every ``mpc_dt`` from the path's start (so they meet the graph
+        segments' junctions); the first within the tube of the state, the last on the
+        graph path (7.2e), each within ``mpc_trust`` of it. Each MPC segment keeps to
+        halfspaces separating it (as warm-started: the last solution shifted, else the
+        graph path) from its nearest obstacles, or to its free cell. The solution is
+        certified by the MPC and then checked by the exact cut; when either fails the
+        graph path itself is returned (it is collision free). None without a path.
+
+        Between two knots the QP only changes by the measured state: while the last
+        solution's first knot still lies within the tube of the state (it stays feasible)
+        and nothing else changed, that solution is returned again without a solve
+        (``stats.refine_reused``). Once every knot lies past the path's end and the state rests
+        within the tube of that end, the MPC's answer is the end itself: the graph path is
+        returned, without a solve, until the robot is pushed out of the tube (``stats.refine_idle``).
+        """
+        if self.path is None:
+            return None
+        prm = self.params
+        x = self._state(position, velocity)
+        dt, N = prm.mpc_dt, prm.mpc_horizon
+        path = self.path
+        j0 = max(0, int(round((stamp_ns - self.path_t0_ns) * 1e-9 / dt)))
+        if j0 * dt >= path.duration and self._at_path_end(x):
+            # arrived: every knot would sit on the path's end at rest, a problem whose answer is that
+            # end; the graph path holds the robot there, with no solve until it is pushed out of the tube
+            self.stats.refine_idle += 1
+            if self._arrived is None or self._arrived[0] is not path:
+                self._arrived = (path, self.path_reference(stamp_ns))
+            return msgspec.structs.replace(self._arrived[1], stamp_ns=stamp_ns)
+        kept = self._last_refined
+        if (kept is not None and kept[0] == j0 and kept[1] == self._world_version and kept[2] is path
+                and np.all(np.abs(kept[3] - x) <= self._init_radius())):
+            self.stats.refine_reused += 1
+            return msgspec.structs.replace(kept[4], stamp_ns=stamp_ns)
+        failed = self._failed_refine
+        if self.mode == "free" and failed is not None and failed[:2] == (j0, self._world_version) and failed[2] is path:
+            # Free mode: the cell faces the path runs along are active constraints and a QP that ran out of
+            # iterations at this knot does so again ten milliseconds later (it differs by the measured state
+            # only), at the full iteration budget and polish each time (most of a free-mode run's time when
+            # retried at refine_hz): the graph path until the next knot, path or world
+            self.stats.refine_skipped += 1
+            return self.path_reference(stamp_ns)
+        times = (j0 + np.arange(N + 1)) * dt
+        ref = path_states(path.control_points, path.tau, times)
+        warm = ref.copy()
+        last = self._last_solution
+        if last is not None:
+            shift = j0 - last[0]
+            if 0 <= shift <= N:
+                warm[: N + 1 - shift] = last[1][shift:]
+        mpc = self._ensure_mpc(prm.halfspaces)
+        warm_ctrl = mpc.reach.curve(warm[:-1], warm[1:])
+        hs = self.segment_halfspaces(warm_ctrl, self.robot_radius, mpc.max_planes)  # the MPC adds the tube
+        self.stats.refines += 1
+        try:
+            sol = mpc.solve(x, ref, planes=(np.ascontiguousarray(hs[..., :2]), np.ascontiguousarray(hs[..., 2])),
+                            warm_start=warm)
+        except (np.linalg.LinAlgError, ArithmeticError, ValueError) as exc:
+            # a numerical failure is a failed refinement (the graph path below), never a crash
+            # of the loop that called it: the service and the lockstep runner alike
+            sol = None
+            self.stats.refine_numerical_errors += 1
+            self.stats.last_refine_error = f"{type(exc).__name__}: {exc}"
+        t_ref_ns = self.path_t0_ns + int(round(j0 * dt * 1e9))
+        if sol is not None and sol.ok:
+            hulls = col.hull_set(sol.control_points)
+            blocked, _ = self._blocked(hulls)
+            if not blocked.any():
+                self._last_solution = (j0, sol.waypoints)
+                segs = [msgs.BezierSegment(t0=float(k * dt), duration=float(dt), control_points=c.tolist())
+                        for k, c in enumerate(sol.control_points)]
+                t = N * dt
+                for dur, c in chain_tail(path.control_points, path.tau, float(times[-1])):
+                    segs.append(msgs.BezierSegment(t0=float(t), duration=float(dur), control_points=c.tolist()))
+                    t += dur
+                out = msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=False)
+                self._last_refined = (j0, self._world_version, path, sol.waypoints[0].copy(), out)
+                return out
+        self.stats.refine_failures += 1
+        self._last_solution = None
+        self._last_refined = None
+        self._failed_refine = (j0, self._world_version, path)
+        return self.path_reference(stamp_ns)
+
+    def _at_path_end(self, x: np.ndarray) -> bool:
+        """Whether the state lies within the tube of the path's end at rest (the MPC's first-knot radius)."""
+        assert self.path is not None
+        px, py = self.path.control_points[-1, -1].tolist()
+        rp, rv = self._init_radii()
+        x0, x1, x2, x3 = x.tolist()
+        return abs(x0 - px) <= rp and abs(x1 - py) <= rp and abs(x2) <= rv and abs(x3) <= rv
+
+    def _init_radii(self) -> tuple[float, float]:
+        """How far the MPC's first knot may sit from the state (7.2b) in position and in speed: the
+        tube and the speed tolerance, each 0 (an equality) below MPC_MIN_RADIUS."""
+        rp, rv = self.tube, self.params.start_speed_tol
+        return (rp if rp > MPC_MIN_RADIUS else 0.0), (rv if rv > MPC_MIN_RADIUS else 0.0)
+
+    def _init_radius(self) -> np.ndarray:
+        """:meth:`_init_radii` per state coordinate ``[px, py, vx, vy]``."""
+        rp, rv = self._init_radii()
+        return np.array([rp, rp, rv, rv])
+
+    # --- contract with the low level ------------------------------------------------------
+
+    def check_tube(self, tube: msgs.TrackingTube, stamp_ns: int = 0) -> msgs.ContractReport | None:
+        """Compare the tube the low level achieves (p95 CoM error at impact) with the tube planned with.
+
+        Judged once the window holds ``contract_min_hops`` impacts. A broken promise
+        returns a :class:`~onboard.contracts.messages.ContractReport` (also kept for
+        :meth:`drain_contract_reports`) and makes the planner plan with the achieved tube
+        times ``tube_growth`` (at most ``tube_max``) from now on, which recuts. None when
+        the promise holds.
+        """
+        prm = self.params
+        promised = self.tube
+        achieved = float(tube.impact_err_p95)
+        if tube.hops < prm.contract_min_hops or not math.isfinite(achieved) or achieved <= promised:
+            return None
+        self.contract_violations += 1
+        new_tube = min(achieved * prm.tube_growth, prm.tube_max)
+        report = msgs.ContractReport(
+            stamp_ns=stamp_ns, layer="planner", promised=promised, achieved=achieved, violated=True,
+            violations=self.contract_violations,
+            detail=f"tube p95 {achieved:.3f} m over {tube.hops} impacts > {promised:.3f} m planned; "
+                   f"planning with {max(new_tube, promised):.3f} m")
+        self._reports.append(report)
+        if new_tube > promised:
+            self.set_tube(new_tube)
+        return report
+
+    def drain_contract_reports(self) -> list[msgs.ContractReport]:
+        """Reports of broken promises since the last call."""
+        out, self._reports = self._reports, []
+        return out
+
+    # --- sets ------------------------------------------------------------------------------
+
+    def segment_halfspaces(self, ctrl: np.ndarray, margin: float, count: int) -> np.ndarray:
+        """``(S, count, 3)`` halfspaces ``a . x <= b`` keeping each segment ``margin`` [m] clear.
+
+        Obstacle mode: separating planes to the nearest obstacles. Free mode: the faces
+        of the cell holding the segment, its ``count`` nearest when it has more (as the
+        nearest obstacles: a far face is not what a short segment runs into, and every
+        face costs the MPC ``p + 1`` rows per segment; the exact cut checks the answer
+        against them all); the rest padded.
+        """
+        S = len(ctrl)
+        if self.mode == "obstacles":
+            return col.separating_halfspaces(ctrl, self.obstacles, margin, count, self.params.halfspace_reach)
+        hulls = col.hull_set(ctrl)
+        # a cell holding the segment margin deep (as the cut found the graph path), else any holding it
+        cells = col.free_cell_of(hulls, self.cells, self.margin)
+        shallow = cells < 0
+        if shallow.any():
+            cells[shallow] = col.free_cell_of(hulls, self.cells, 0.0, active=shallow)[shallow]
+        out = np.zeros((S, count, 3))
+        out[:, :, 2] = np.inf
+        for s, c in enumerate(cells):
+            if c < 0:
+                continue
+            a = self.cells.normals[self.cells.offsets[c]:self.cells.offsets[c + 1]]
+            b = self.cells.face_offsets[self.cells.offsets[c]:self.cells.offsets[c + 1]] - margin
+            if len(a) > count:
+                slack = np.min(b[:, None] - a @ ctrl[s].T, axis=1)  # nearest control point's room to each face
+                keep = np.argsort(slack, kind="stable")[:count]
+                a, b = a[keep], b[keep]
+            out[s, :len(a), :2] = a
+            out[s, :len(a), 2] = b
+        return out
+
+    def waypoints(self, stamp_ns: int = 0) -> msgs.Waypoints:
+        """The graph path's node positions and the convex set of the segment leaving each.
+
+        Obstacle mode: the planning region cut by separating halfspaces until every point
+        of the set keeps the margin from every obstacle
+        (:func:`onboard.high_level.tracking.collision.free_polygon`); free mode: the cell. A set that could
+        not be built is sent empty.
+        """
+        assert self.graph is not None and self.path is not None
+        ctrl = self.path.control_points
+        bounds = self.graph.spec.bounds
+        if self.mode == "free":
+            cells = col.free_cell_of(col.hull_set(ctrl), self.cells, self.margin)
+            polys = [self.cells.polygon(c) if c >= 0 else None for c in cells]
+        else:
+            polys = []
+            for c in ctrl:
+                try:
+                    polys.append(col.free_polygon(c, self.obstacles, self.margin, np.array(bounds).reshape(2, 2),
+                                                  self.params.halfspaces, self.params.halfspace_reach))
+                except pg.PolygonError:
+                    polys.append(None)
+        sets = []
+        for poly in polys + polys[-1:]:
+            if poly is None:
+                sets.append(msgs.Polytope(A=[], b=[], vertices=[]))
+                continue
+            A, b = pg.polygon_halfspaces(poly)
+            sets.append(msgs.Polytope(A=A.tolist(), b=b.tolist(), vertices=poly.tolist()))
+        points = [[float(s[0]), float(s[1])] for s in self.path.states]
+        return msgs.Waypoints(stamp_ns=stamp_ns, points=points, sets=sets)
+
+
+class _PlanView(dn.SearchView):
+    """The planner as :class:`onboard.high_level.planning.densify.Densifier` sees it during one plan call from ``x0``."""
+
+    def __init__(self, planner: GraphPlanner, x0: np.ndarray, start_seeds: np.ndarray, goal_seeds: np.ndarray) -> None:
+        self.planner = planner
+        self.x0 = x0
+        self.start_seeds = start_seeds
+        self.goal_seeds = goal_seeds
+        self.result: SearchResult | None = None
+
+    @property
+    def graph(self) -> BezierGraph:  # type: ignore[override]
+        assert self.planner.graph is not None
+        return self.planner.graph
+
+    @property
+    def free(self) -> np.ndarray:  # type: ignore[override]
+        assert self.planner.free is not None
+        return self.planner.free
+
+    def search(self) -> bool:
+        self.result, self.start_seeds, self.goal_seeds = self.planner._search(self.x0)
+        return self.result is not None
+
+    def points_free(self, points: np.ndarray) -> np.ndarray:
+        return ~self.planner._blocked(col.hull_set(np.repeat(points[:, None, :], 2, axis=1)))[0]
+
+    def edges_free(self, control_points: np.ndarray) -> np.ndarray:
+        return ~self.planner._blocked(col.hull_set(control_points))[0]
+
+    def install(self, graph: BezierGraph, free: np.ndarray) -> None:
+        self.planner._install_densified(graph, free)
+
+
+def _same_polygons(a: pg.PolygonSet, b: pg.PolygonSet) -> bool:
+    return a.offsets.shape == b.offsets.shape and np.array_equal(a.offsets, b.offsets) and np.array_equal(a.vertices, b.vertices)
+
+
+def _covers(outer: tuple[float, float, float, float], inner: tuple[float, float, float, float]) -> bool:
+    return outer[0] <= inner[0] and outer[1] <= inner[1] and outer[2] >= inner[2] and outer[3] >= inner[3]

@@ -1,0 +1,717 @@
+"""Bezier MPC over waypoints and control points (thesis eqs. 6.12 and 7.2).
+
+Decision variables: the waypoints ``x_0 .. x_N`` (each in R^n) and, for orders above
+``2 gamma - 1``, each segment's free control points ``Z_k``. Segment ``k`` is the Bezier
+curve ``C_k = M [x_k; x_{k+1}] + N Z_k`` of duration ``tau`` (Property 2.45), so every
+feasible point of the QP is a dynamically feasible trajectory of the planning model,
+continuous in every derivative below ``gamma``.
+
+Constraints (all linear, all on control points, so they hold for all time):
+
+- ``x_0`` within ``init_radius`` of the measured state (7.2b), ``x_N = r_N`` (7.2e) or free;
+- trust region ``|x_k - r_k| <= trust_region`` componentwise (6.12b; a box in place of
+  the thesis's 1-norm ball: same role, no auxiliary variables);
+- the reachability rows ``F [x_k; x_{k+1}; Z_k] <= G`` (6.12d / 7.2d) of
+  :class:`onboard.high_level.tracking.reachability.BezierReachability` (state limits tightened by the tube,
+  input limits), with per-segment references for nonlinear models;
+- per segment, up to ``max_planes`` halfspaces ``a . q <= b`` on every position control
+  point (7.2c separating hyperplanes or the faces of the convex set ``X_k`` of 6.12),
+  tightened here by the tube (dual norm). The robot radius belongs in ``b``.
+
+Cost: ``sum_k (x_k - r_k)' Q (x_k - r_k) + (x_N - r_N)' V (x_N - r_N)`` plus per
+segment ``effort * integral ||q^(gamma)||^2 dt`` and ``path * sum_j ||C_{j+1} - C_j||^2``
+(a quadratic surrogate of the path-length bound 2.49).
+
+The QP is set up once; each :meth:`BezierMpc.solve` updates values only (never the
+sparsity pattern), warm starts (OSQP), solves and then *certifies* the answer: every
+inequality is re-evaluated against the untightened bounds, so ``ok`` means the returned
+trajectory satisfies its constraints whatever the solver's status. Inequalities are
+tightened by ``margin`` so that a solver's small residual never becomes a violation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import osqp
+import piqp
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from onboard.geometry import bezier as bz
+from onboard.contracts.messages import BezierSegment, ComReference
+from onboard.high_level.tracking.reachability import BezierReachability
+
+Backend = Literal["osqp", "piqp"]
+
+_PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
+_POLISH_REGULARIZATION = 1e-9  # keeps the active-set KKT system factorizable
+# iterative refinement steps at most; each shrinks the regularization's error by about
+# reg / (the KKT system's smallest eigenvalue), which nearly dependent active rows make small
+# (3 steps left 2e-6 of constraint residual and a 3 cm error on one Hypothesis example)
+_POLISH_REFINEMENTS = 30
+_POLISH_RESIDUAL_TOL = 1e-12  # relative to the right-hand side: refinement stops below this
+_POLISH_ROUNDS = 5  # active-set solves per polish: violated rows join the set after each
+_POLISH_RESIDUAL = 1e-9  # relative residual of the range-space system past which its rows count as dependent
+_POLISH_MAX_COND = 1e8  # P better conditioned than this: polish with its dense inverse (range space)
+_ATTEMPTS = 2  # a second, tighter ADMM pass when neither the iterate nor its polish certifies
+_RETRY_EPS_FACTOR = 0.01
+# OSQP's Ruiz equilibration passes: none on unit rows (already equilibrated), where the
+# equilibration OSQP recomputes on every matrix update (the plane normals change every
+# tick) cost 0.26 ms of a 0.3 ms update on the 50-knot planner MPC and more iterations;
+# physical rows (coefficients from 1 to (p / tau)^2) need it.
+_OSQP_SCALING_UNIT_ROWS = 0
+_OSQP_SCALING_PHYSICAL_ROWS = 10
+_OSQP_CHECK_TERMINATION = 5  # a warm-started tick converges in 10-20 iterations: check often
+# rho may change at every termination check (it refactors only on a change past OSQP's
+# tolerance): on 7 bench seeds the p99 was 0.99-1.61 ms against 1.13-2.60 ms every 100
+_OSQP_ADAPTIVE_RHO_INTERVAL = 5
+
+
+@dataclass(frozen=True)
+class MpcWeights:
+    """Cost weights. ``state``/``terminal``: diagonal of ``Q``/``V`` over the state."""
+
+    state: tuple[float, ...]
+    terminal: tuple[float, ...]
+    effort: float = 0.0  # per integral of ||q^(gamma)||^2 [1/(unit^2 s^(1-2 gamma))]
+    path: float = 0.0  # per sum of squared control-polygon legs
+
+
+@dataclass(frozen=True)
+class MpcSolution:
+    """One solve: the trajectory and whether it may be used."""
+
+    ok: bool  # certified: finite, inequalities hold, equalities within tolerance
+    status: str  # the solver's own status string
+    waypoints: np.ndarray  # (N + 1, n)
+    control_points: np.ndarray  # (N, p + 1, m): position control points per segment
+    tau: float  # segment duration [s]
+    objective: float
+    iterations: int
+    max_violation: float  # largest inequality excess over the untightened bound (<= 0 is fine)
+    equality_residual: float
+
+    @property
+    def duration(self) -> float:
+        return self.tau * len(self.control_points)
+
+    def evaluate(self, t: np.ndarray, derivative: int = 0) -> np.ndarray:
+        """Position (or its ``derivative``) at times ``t`` [s] from the trajectory start."""
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        seg = np.minimum((t / self.tau).astype(int), len(self.control_points) - 1)
+        out = np.empty(t.shape + (self.control_points.shape[-1],))
+        for k in np.unique(seg):
+            sel = seg == k
+            C = bz.derivative_points(self.control_points[k], self.tau, derivative)
+            out[sel] = bz.evaluate(C, self.tau, t[sel] - k * self.tau)
+        return out
+
+    def to_com_reference(self, t_ref_ns: int, stamp_ns: int = 0, segments: int | None = None) -> ComReference:
+        """The trajectory as the message the low level tracks (positions in metres)."""
+        count = len(self.control_points) if segments is None else min(segments, len(self.control_points))
+        segs = [
+            BezierSegment(t0=k * self.tau, duration=self.tau, control_points=self.control_points[k].tolist())
+            for k in range(count)
+        ]
+        return ComReference(stamp_ns=stamp_ns, t_ref_ns=t_ref_ns, segments=segs, hold=not self.ok)
+
+
+@dataclass(eq=False)
+class BezierMpc:
+    """The Bezier MPC QP for one reachability model, horizon and plane budget.
+
+    ``init_radius`` (``(n,)``) is how far ``x_0`` may sit from the measured state (the
+    tube, 7.2b); a zero component is an equality. ``terminal="equal"`` pins ``x_N`` to
+    the reference. ``margin`` tightens every inequality (in each row's physical unit);
+    ``eps`` is the solver accuracy; ``max_iter`` caps OSQP's iterations (the thesis ran 50).
+
+    Accuracy and speed: acceleration rows have ``(p / tau)^2``-sized coefficients on the
+    positions, so a physical residual of ``margin`` on them needs position accuracy of
+    about ``margin * tau^2 / 6``. With ``unit_rows=True`` (default) the solver sees unit
+    rows and stops early (relative tolerance); polishing then usually makes the answer
+    exact, and the certificate rejects the few answers it does not (``ok=False``: the
+    caller keeps its previous plan). ``unit_rows=False`` keeps physical rows with an
+    absolute tolerance: every converged answer certifies, at several times the
+    iterations.
+    """
+
+    reach: BezierReachability
+    horizon: int
+    weights: MpcWeights
+    trust_region: np.ndarray | None = None
+    init_radius: np.ndarray | None = None
+    max_planes: int = 0
+    terminal: Literal["equal", "free"] = "equal"
+    backend: Backend = "osqp"
+    eps: float = 1e-4  # OSQP tolerance (PIQP: eps / 100)
+    margin: float = 1e-3  # [units of each row: m, m/s, m/s^2] tightening seen by the solver
+    max_iter: int = 500  # bounds the solve time; an unconverged answer is used only if certified
+    polish: bool = True  # active-set polishing: exact answers from loose iterates (OSQP's, then ours)
+    unit_rows: bool = True  # see above
+    _ready: bool = field(default=False, init=False)
+
+    def __post_init__(self) -> None:
+        R, N = self.reach, self.horizon
+        n = R.n
+        if N < 1:
+            raise ValueError("horizon must be >= 1")
+        if len(self.weights.state) != n or len(self.weights.terminal) != n:
+            raise ValueError(f"state and terminal weights need {n} entries")
+        if min(self.weights.state) < 0 or min(self.weights.terminal) < 0 or self.weights.effort < 0 or self.weights.path < 0:
+            raise ValueError("weights must be non-negative")
+        self.trust = np.full(n, np.inf) if self.trust_region is None else np.broadcast_to(np.asarray(self.trust_region, float), (n,)).copy()
+        self.x0_radius = np.zeros(n) if self.init_radius is None else np.broadcast_to(np.asarray(self.init_radius, float), (n,)).copy()
+        if np.any(self.trust <= self.margin) or np.any(self.x0_radius < 0):
+            raise ValueError("trust region must exceed the margin, init radius non-negative")
+        if np.any((self.x0_radius > 0) & (self.x0_radius <= self.margin)):
+            raise ValueError("a non-zero init radius must exceed the margin")
+        self.nx = (N + 1) * n
+        self.nvar = self.nx + N * R.nz
+        self._split_rows()
+        self._build_cost()
+        self._build_constraints()
+        self._setup_solver()
+
+    # --- structure ----------------------------------------------------------------
+
+    def _seg_cols(self, k: int) -> np.ndarray:
+        """Global variable index of each entry of segment k's vector ``[x_k; x_k+1; Z_k]``."""
+        R, n = self.reach, self.reach.n
+        return np.concatenate([np.arange(k * n, (k + 2) * n), self.nx + k * R.nz + np.arange(R.nz)]).astype(int)
+
+    def _split_rows(self) -> None:
+        """Separate rows acting on one waypoint only (imposed once per node) when G is
+        constant; pair each remaining row with its negation (one two-sided row)."""
+        R, n = self.reach, self.reach.n
+        F = R.F_full
+        if R.G_const is None:
+            self._pair_seg_rows(np.arange(F.shape[0]))
+            self.node_A = np.zeros((0, n))
+            self.node_b = np.zeros(0)
+            return
+        only0 = ~np.any(F[:, n:], axis=1)
+        onlyT = ~np.any(F[:, :n], axis=1) & ~np.any(F[:, 2 * n :], axis=1)
+        node = np.vstack([F[only0, :n], F[onlyT, n : 2 * n]])
+        rhs = np.concatenate([R.G_const[only0], R.G_const[onlyT]])
+        _, idx = np.unique(np.round(np.column_stack([node, rhs]), 12), axis=0, return_index=True)
+        node, rhs = node[np.sort(idx)], rhs[np.sort(idx)]
+        self._pair_seg_rows(np.flatnonzero(~(only0 | onlyT)))
+        # axis-aligned node rows fold into the waypoint bounds
+        self.node_lo = np.full(n, -np.inf)
+        self.node_hi = np.full(n, np.inf)
+        keep = []
+        for row, b in zip(node, rhs):
+            nz = np.flatnonzero(row)
+            if len(nz) == 1:
+                c = row[nz[0]]
+                if c > 0:
+                    self.node_hi[nz[0]] = min(self.node_hi[nz[0]], b / c)
+                else:
+                    self.node_lo[nz[0]] = max(self.node_lo[nz[0]], b / c)
+            else:
+                keep.append((row, b))
+        self.node_A = np.array([r for r, _ in keep]).reshape(-1, n)
+        self.node_b = np.array([b for _, b in keep])
+
+    def _pair_seg_rows(self, rows: np.ndarray) -> None:
+        """``seg_rows``: the segment rows of ``F_full`` the QP imposes as upper bounds;
+        ``seg_lower``: the row whose negation each one is (its lower bound), -1 for none.
+        The reachability rows come in such pairs (|velocity|, |acceleration| <= limit):
+        one two-sided row instead of two halves the rows ADMM iterates on."""
+        F = self.reach.F_full[rows]
+        scale = np.abs(F).max(axis=1, keepdims=True)
+        key = np.round(F / np.where(scale > 0, scale, 1.0), 12) + 0.0  # + 0.0: no negative zeros
+        index = {k.tobytes(): i for i, k in enumerate(key)}
+        taken = np.zeros(len(rows), bool)
+        upper, lower = [], []
+        for i in range(len(rows)):
+            if taken[i]:
+                continue
+            taken[i] = True
+            j = index.get((-key[i] + 0.0).tobytes(), -1)
+            if j >= 0 and not taken[j]:
+                taken[j] = True
+                lower.append(rows[j])
+            else:
+                lower.append(-1)
+            upper.append(rows[i])
+        self.seg_rows = np.array(upper, int)
+        self.seg_lower = np.array(lower, int)
+
+    def _seg_bounds(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the (scaled) segment rows from right-hand sides ``G`` ``(..., K)``."""
+        paired = self.seg_lower >= 0
+        lo = np.where(paired, -G[..., self.seg_lower], -np.inf)
+        return lo / self.seg_scale, G[..., self.seg_rows] / self.seg_scale
+
+    def _build_cost(self) -> None:
+        R, N, W = self.reach, self.horizon, self.weights
+        m, p = R.model.m, R.p
+        tau = float(R.tau)
+        Hg = np.linalg.matrix_power(bz.derivative_matrix(p, tau), R.model.gamma)
+        effort = Hg @ bz.gram_matrix(p, tau) @ Hg.T  # C' E C = integral ||q^(gamma)||^2
+        diff = np.diff(np.eye(p + 1), axis=0)
+        pts = W.effort * effort + W.path * diff.T @ diff
+        seg_cost = R.segment_map.T @ np.kron(pts, np.eye(m)) @ R.segment_map  # (ns, ns)
+        P = sp.lil_matrix((self.nvar, self.nvar))
+        Qd = np.asarray(W.state, float)
+        Vd = np.asarray(W.terminal, float)
+        diag = np.concatenate([np.tile(Qd, N), Vd])
+        P[np.arange(self.nx), np.arange(self.nx)] = diag
+        P = P.tocsc() + sp.csc_matrix((self.nvar, self.nvar))
+        rows, cols, vals = [], [], []
+        for k in range(N):
+            c = self._seg_cols(k)
+            rr, cc = np.meshgrid(c, c, indexing="ij")
+            rows.append(rr.ravel())
+            cols.append(cc.ravel())
+            vals.append(seg_cost.ravel())
+        P = P + sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=P.shape)
+        P = 2.0 * P  # the solvers minimize 0.5 y' P y + q' y
+        P.data[np.abs(P.data) < 1e-14 * max(1.0, np.abs(P.data).max())] = 0.0
+        P.eliminate_zeros()
+        self.P = sp.csc_matrix(sp.triu(P, format="csc"))
+        self.P.sort_indices()
+        self._P_full = sp.csr_matrix(P)
+        coo = P.tocoo()
+        self._P_full_coo = (coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data)
+        self.q_diag = diag
+
+    def _build_constraints(self) -> None:
+        R, N = self.reach, self.horizon
+        n, m, p = R.n, R.model.m, R.p
+        coo_r, coo_c, coo_v = [], [], []
+        row = 0
+
+        def add(r, c, v):
+            coo_r.append(np.asarray(r, int))
+            coo_c.append(np.asarray(c, int))
+            coo_v.append(np.asarray(v, float))
+
+        # (a) waypoint bounds: one identity row per waypoint entry
+        self.r_box = slice(row, row + self.nx)
+        add(np.arange(self.nx), np.arange(self.nx), np.ones(self.nx))
+        row += self.nx
+        # (b) node rows
+        kn = len(self.node_b)
+        self.r_node = slice(row, row + kn * (N + 1))
+        for k in range(N + 1):
+            rr, cc = np.nonzero(self.node_A)
+            add(row + k * kn + rr, k * n + cc, self.node_A[rr, cc])
+        row += kn * (N + 1)
+        # (c) segment reachability rows
+        # Rows scaled by seg_scale (1: physical units, so that margin and solver residual
+        # mean the same on every row; unit rows condition ADMM better but then need an
+        # accuracy of margin / scale).
+        self.seg_scale = np.abs(R.F_full[self.seg_rows]).max(axis=1) if self.unit_rows else np.ones(len(self.seg_rows))
+        Fs = R.F_full[self.seg_rows] / self.seg_scale[:, None]
+        ks = len(self.seg_rows)
+        self.r_seg = slice(row, row + ks * N)
+        rr, cc = np.nonzero(Fs)
+        for k in range(N):
+            add(row + k * ks + rr, self._seg_cols(k)[cc], Fs[rr, cc])
+        row += ks * N
+        # (d) plane rows: plane h on position control point j of segment k
+        P_ = self.max_planes
+        nrow_planes = N * P_ * (p + 1)
+        self.r_plane = slice(row, row + nrow_planes)
+        MN = R.segment_map.reshape(p + 1, m, R.ns)  # position point j, coord d -> s
+        ent = [(j, d, s, MN[j, d, s]) for j in range(p + 1) for d in range(m) for s in np.flatnonzero(MN[j, d])]
+        ej = np.array([e[0] for e in ent], int)
+        ed = np.array([e[1] for e in ent], int)
+        es = np.array([e[2] for e in ent], int)
+        ecoef = np.array([e[3] for e in ent])
+        self._plane_start = sum(len(v) for v in coo_v)
+        pflat, pcoef = [], []  # each plane entry: index into the flat (N, P, m) normals, coefficient
+        for k in range(N):
+            cols = self._seg_cols(k)
+            for h in range(P_):
+                base = row + (k * P_ + h) * (p + 1)
+                add(base + ej, cols[es], np.zeros(len(ej)))
+                pflat.append((k * P_ + h) * m + ed)
+                pcoef.append(ecoef)
+        row += nrow_planes
+        self._pflat = np.concatenate(pflat) if pflat else np.zeros(0, int)
+        self._pcoef = np.concatenate(pcoef) if pcoef else np.zeros(0)
+        r_all = np.concatenate(coo_r)
+        c_all = np.concatenate(coo_c)
+        v_all = np.concatenate(coo_v)
+        # CSC with explicit zeros kept: build on entry ids, then read back the order
+        ids = sp.csc_matrix((np.arange(1, len(v_all) + 1, dtype=float), (r_all, c_all)), shape=(row, self.nvar))
+        ids.sort_indices()
+        if ids.nnz != len(v_all):
+            raise AssertionError("duplicate constraint entries")
+        self._perm = ids.data.astype(int) - 1
+        self._A_indices = ids.indices.copy()
+        self._A_indptr = ids.indptr.copy()
+        self._coo_vals = v_all
+        where = np.empty_like(self._perm)
+        where[self._perm] = np.arange(len(self._perm))
+        self._plane_pos = where[self._plane_start :]  # the plane entries in the matrix's data
+        # the same matrix by rows (the polish gathers active rows): pattern, and where each
+        # row-major entry sits in the column-major data
+        by_rows = ids.tocsr()
+        self._row_ptr, self._row_cols = by_rows.indptr, by_rows.indices
+        self._row_data_pos = where[by_rows.data.astype(int) - 1]
+        self.n_rows = row
+        # static bounds
+        self.row_margin = np.full(row, self.margin)
+        self.row_margin[self.r_seg] = np.tile(self.margin / self.seg_scale, N)
+        self.l_static = np.full(row, -np.inf)
+        self.u_static = np.full(row, np.inf)
+        self.u_static[self.r_node] = np.tile(self.node_b, N + 1)
+        if R.G_const is not None:
+            lo, hi = self._seg_bounds(R.G_const)
+            self.l_static[self.r_seg], self.u_static[self.r_seg] = np.tile(lo, N), np.tile(hi, N)
+
+    def _A_matrix(self) -> sp.csc_matrix:
+        return sp.csc_matrix((self._coo_vals[self._perm], self._A_indices, self._A_indptr), shape=(self.n_rows, self.nvar))
+
+    @property
+    def _eps_rel(self) -> float:
+        return self.eps if self.unit_rows else 0.0
+
+    def _setup_solver(self) -> None:
+        A = self._A = self._A_matrix()
+        q = np.zeros(self.nvar)
+        l, u = self.l_static.copy(), self.u_static.copy()
+        l[self.r_box], u[self.r_box] = -1e3, 1e3  # placeholders, replaced at the first solve
+        if self.backend == "osqp":
+            # Our polish eliminates x with P's inverse when P is well conditioned (positive
+            # state and terminal weights): a small dense system per active set, ten times
+            # faster than factorizing the sparse KKT system each time.
+            self._P_inv = None
+            if self.polish:
+                Pd = self._P_full.toarray()
+                ev = np.linalg.eigvalsh(Pd)
+                if ev[0] > 0 and ev[-1] < _POLISH_MAX_COND * ev[0]:
+                    self._P_inv = np.linalg.inv(Pd)
+            # OSQP's polish prints a line when it finds no active constraint; an equality
+            # row (x_0 pinned in some component, or x_N) is always active, so it stays silent.
+            has_equality = bool(np.any(self.x0_radius == 0.0)) or self.terminal == "equal"
+            self._solver = osqp.OSQP()
+            self._solver.setup(
+                self.P, q, A, l, u,
+                verbose=False, warm_starting=True, polishing=self.polish and has_equality,
+                eps_abs=self.eps, eps_rel=self._eps_rel, max_iter=self.max_iter,
+                eps_prim_inf=1e-6, eps_dual_inf=1e-6, scaling=_OSQP_SCALING_UNIT_ROWS if self.unit_rows else _OSQP_SCALING_PHYSICAL_ROWS,
+                check_termination=_OSQP_CHECK_TERMINATION, adaptive_rho_interval=_OSQP_ADAPTIVE_RHO_INTERVAL,
+            )  # fmt: skip
+        elif self.backend == "piqp":
+            self._setup_piqp(A, q, l, u)
+        else:
+            raise ValueError(f"unknown backend {self.backend!r}")
+        self._ready = True
+
+    def _piqp_split(self, l: np.ndarray, u: np.ndarray):
+        """PIQP form: waypoint rows become variable bounds or equalities, the rest G."""
+        box_l, box_u = l[self.r_box], u[self.r_box]
+        x_l = np.full(self.nvar, -np.inf)
+        x_u = np.full(self.nvar, np.inf)
+        eq = self._eq_mask
+        x_l[: self.nx][~eq] = box_l[~eq]
+        x_u[: self.nx][~eq] = box_u[~eq]
+        b = box_l[eq]
+        rest = slice(self.r_box.stop, self.n_rows)
+        g_l, g_u = l[rest], u[rest].copy()
+        # PIQP wants no free rows (unused plane slots): give them a harmless finite bound
+        g_u[~np.isfinite(g_l) & ~np.isfinite(g_u)] = _PIQP_FREE_ROW_BOUND
+        return x_l, x_u, b, g_l, g_u
+
+    def _setup_piqp(self, A: sp.csc_matrix, q: np.ndarray, l: np.ndarray, u: np.ndarray) -> None:
+        n, N = self.reach.n, self.horizon
+        eq = np.zeros(self.nx, bool)
+        eq[:n] = self.x0_radius == 0.0
+        if self.terminal == "equal":
+            eq[N * n :] = True
+        self._eq_mask = eq
+        E = sp.csc_matrix((np.ones(eq.sum()), (np.arange(eq.sum()), np.flatnonzero(eq))), shape=(int(eq.sum()), self.nvar))
+        self._piqp_E = E
+        x_l, x_u, b, g_l, g_u = self._piqp_split(l, u)
+        self._solver = piqp.SparseSolver()
+        s = self._solver.settings
+        s.verbose = False
+        s.eps_abs = self.eps * 1e-2  # interior point: cheap to be accurate
+        s.eps_rel = self.eps * 1e-2
+        s.max_iter = 200
+        self._solver.setup(
+            self.P, q, E, b, A[self.r_box.stop :, :].tocsc(), g_l, g_u, x_l, x_u
+        )
+
+    # --- per tick -------------------------------------------------------------------
+
+    def _plane_values(self, planes: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        R, N, P_ = self.reach, self.horizon, self.max_planes
+        m, p = R.model.m, R.p
+        if planes is None:
+            a = np.zeros((N, P_, m))
+            b = np.full((N, P_), np.inf)
+        else:
+            a = np.asarray(planes[0], float)
+            b = np.asarray(planes[1], float)
+            if a.shape != (N, P_, m) or b.shape != (N, P_):
+                raise ValueError(f"planes must be ({N}, {P_}, {m}) and ({N}, {P_}); pad with b = inf")
+            if not np.all(np.isfinite(a)) or np.any(np.isnan(b)):
+                raise ValueError("plane normals must be finite and offsets not NaN")
+            dual = {1: np.inf, 2: 2, np.inf: 1}[R.limits.tube_norm]
+            b = b - np.linalg.norm(a, ord=dual, axis=-1) * R.limits.tube
+        vals = a.reshape(-1)[self._pflat] * self._pcoef
+        rhs = np.repeat(b, p + 1, axis=1).reshape(-1)  # row order: (k, h, j)
+        return vals, rhs
+
+    def solve(
+        self,
+        x_init: np.ndarray,
+        reference: np.ndarray,
+        planes: tuple[np.ndarray, np.ndarray] | None = None,
+        warm_start: np.ndarray | None = None,
+        shift: int = 0,
+        target: np.ndarray | None = None,
+    ) -> MpcSolution:
+        """Solve for measured ``x_init`` ``(n,)`` and reference waypoints ``(N + 1, n)``.
+
+        ``planes``: ``(a, b)`` of shapes ``(N, max_planes, m)`` and ``(N, max_planes)``;
+        unused planes have ``b = inf``. ``warm_start``: waypoints ``(N + 1, n)`` (for
+        example the graph path). ``shift``: knots the window advanced since the last
+        solve; OSQP then starts from the last solution shifted by as many knots, the new
+        knots on the reference (otherwise from the last solution as it is).
+        ``warm_start`` replaces the primal waypoints. ``target`` ``(N + 1, n)``: what the
+        cost tracks when it differs from the reference that centres the trust region and
+        the references of nonlinear models (eq. 6.12: cost to the origin, trust region
+        to a feasible reference).
+        """
+        R, N = self.reach, self.horizon
+        n = R.n
+        x_init = np.asarray(x_init, float)
+        ref = np.asarray(reference, float)
+        if x_init.shape != (n,) or ref.shape != (N + 1, n):
+            raise ValueError(f"x_init must be ({n},) and reference ({N + 1}, {n})")
+        if not (np.all(np.isfinite(x_init)) and np.all(np.isfinite(ref))):
+            raise ValueError("x_init and reference must be finite")
+        goal = ref if target is None else np.asarray(target, float)
+        if goal.shape != ref.shape or not np.all(np.isfinite(goal)):
+            raise ValueError(f"target must be finite and ({N + 1}, {n})")
+        q = np.zeros(self.nvar)
+        q[: self.nx] = -2.0 * self.q_diag * goal.reshape(-1)
+        l, u = self.l_static.copy(), self.u_static.copy()  # the true bounds
+        lo = ref - self.trust
+        hi = ref + self.trust
+        if R.G_const is not None:
+            lo = np.maximum(lo, self.node_lo)
+            hi = np.minimum(hi, self.node_hi)
+        else:
+            G = R.G(R.references(ref[:-1]))  # (N, K): references from each reference waypoint
+            lo_seg, hi_seg = self._seg_bounds(G)
+            l[self.r_seg], u[self.r_seg] = lo_seg.reshape(-1), hi_seg.reshape(-1)
+        lo[0], hi[0] = x_init - self.x0_radius, x_init + self.x0_radius
+        if self.terminal == "equal":
+            lo[N] = hi[N] = ref[N]
+        l[self.r_box], u[self.r_box] = lo.reshape(-1), hi.reshape(-1)
+        vals, rhs = self._plane_values(planes)
+        u[self.r_plane] = rhs
+        A = self._A
+        a_changed = self.max_planes > 0 and not np.array_equal(A.data[self._plane_pos], vals)
+        if a_changed:  # new values in the same pattern; the solver refactors only then
+            A.data[self._plane_pos] = vals
+        if np.any(l > u) or np.any(np.isnan(u)):
+            return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
+        # the solver sees every inequality tightened by the margin
+        eq = l == u
+        ls = np.where(eq, l, l + self.row_margin)
+        us = np.where(eq, u, u - self.row_margin)
+        if np.any(ls > us):
+            return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
+        if self.backend == "osqp":
+            upd = {"q": q, "l": ls, "u": us}
+            if a_changed:
+                upd["Ax"] = A.data
+            self._solver.update(**upd)
+            self._osqp_warm_start(warm_start, shift, ref)
+            first = None
+            for attempt in range(_ATTEMPTS):
+                if attempt:  # refine the same iterate: tighter tolerance, then polish again
+                    self._solver.update_settings(eps_abs=self.eps * _RETRY_EPS_FACTOR, eps_rel=self._eps_rel * _RETRY_EPS_FACTOR)
+                res = self._solver.solve(raise_error=False)  # the status is checked below
+                if attempt:
+                    self._solver.update_settings(eps_abs=self.eps, eps_rel=self._eps_rel)
+                status, obj = str(res.info.status), float(res.info.obj_val)
+                if res.info.status_polish == 1:  # OSQP's polish replaced the iterate
+                    status += " (osqp polish)"
+                iters = int(res.info.iter) + (first.iterations if first is not None else 0)
+                if not np.all(np.isfinite(res.x)):
+                    return self._certify(None, A, l, u, status, iters, obj)
+                self._last = res.x.copy()
+                first = self._certify(res.x, A, l, u, status, iters, obj)
+                if first.ok or not self.polish:
+                    return first
+                polished = self._polish(res.x, res.y, A, ls, us, q)
+                if polished is not None:
+                    obj_p = float(0.5 * polished @ (self._P_full @ polished) + q @ polished)
+                    sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj_p)
+                    if sol.ok:
+                        return sol
+            return first
+        else:
+            x_l, x_u, b, g_l, g_u = self._piqp_split(ls, us)
+            kw = {"c": q, "b": b, "h_l": g_l, "h_u": g_u, "x_l": x_l, "x_u": x_u}
+            if a_changed:
+                kw["G"] = A[self.r_box.stop :, :].tocsc()
+            self._solver.update(**kw)
+            st = self._solver.solve()
+            rs = self._solver.result
+            y, status, iters, obj = rs.x, str(st).split(".")[-1], int(rs.info.iter), float(rs.info.primal_obj)
+        return self._certify(y, A, l, u, status, iters, obj)
+
+    def _osqp_warm_start(self, warm_start: np.ndarray | None, shift: int, ref: np.ndarray) -> None:
+        """Primal warm start; OSQP keeps its last dual. Shifting the duals too was measured
+        to cost iterations (plane rows are re-chosen per tick, so their duals do not carry;
+        on the bench's knot ticks 25 -> 100-260 iterations, zero duals as bad)."""
+        R, N, n = self.reach, self.horizon, self.reach.n
+        last = getattr(self, "_last", None)
+        if shift < 0 or shift > N:
+            raise ValueError(f"shift must be in [0, {N}]")
+        if warm_start is None and not (shift and last is not None):
+            return  # OSQP starts from its last solution
+        if last is None:
+            x = np.zeros(self.nvar)
+        elif shift:
+            x = _shift_blocks(last, [(0, N + 1, n), (self.nx, N, R.nz)], shift)
+            x[(N + 1 - shift) * n : self.nx] = ref[N + 1 - shift :].reshape(-1)  # new knots: the reference
+        else:
+            x = last.copy()
+        if warm_start is not None:
+            x[: self.nx] = np.asarray(warm_start, float).reshape(-1)
+        self._solver.warm_start(x=x)
+
+    def _polish(self, x, dual, A, ls, us, q) -> np.ndarray | None:
+        """Solve the KKT system of the active set the ADMM iterate suggests (as OSQP's
+        polish does). A row the answer then violates joins the set and the system is
+        solved again (the iterate can miss a constraint it sits just inside of), at most
+        ``_POLISH_ROUNDS`` times. None when the system is singular."""
+        tol = 1e-7 * max(1.0, float(np.abs(dual).max(initial=0.0)))
+        eq = ls == us
+        active = eq | (np.abs(dual) > tol)
+        upper = ~eq & (dual > 0)  # which bound an active row sits on
+        for _ in range(_POLISH_ROUNDS):
+            rows = np.flatnonzero(active)
+            rhs_rows = np.where(upper[rows], us[rows], ls[rows])
+            if not np.all(np.isfinite(rhs_rows)):
+                return None
+            xp = self._solve_kkt(A, rows, q, rhs_rows)
+            if xp is None:
+                return None
+            Ay = A @ xp
+            over, under = ~active & (Ay > us), ~active & (Ay < ls)
+            if not (over.any() or under.any()):
+                break
+            active |= over | under
+            upper |= over
+        return xp
+
+    def _active_entries(self, A: sp.csc_matrix, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The entries of ``A[rows]``, row after row: where each row starts, columns, values.
+        Every row has at least one stored entry (unused plane slots store zeros)."""
+        start = self._row_ptr[rows]
+        count = self._row_ptr[rows + 1] - start
+        first = np.cumsum(count) - count
+        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
+        return first, self._row_cols[pos], A.data[self._row_data_pos[pos]]
+
+    def _solve_kkt(self, A: sp.csc_matrix, rows: np.ndarray, q: np.ndarray, rhs_rows: np.ndarray) -> np.ndarray | None:
+        """``x`` of ``min 0.5 x' P x + q' x`` subject to ``A[rows] x = rhs_rows``."""
+        first, cols, vals = self._active_entries(A, rows)
+        if self._P_inv is not None:
+            return self._polish_range_space(first, cols, vals, q, rhs_rows)
+        nv, na = self.nvar, len(rows)
+        Aa = sp.csr_matrix((vals, cols, np.append(first, len(vals))), shape=(na, nv))
+        Pr, Pc, Pv = self._P_full_coo
+        ar, ac = np.repeat(np.arange(na), np.diff(Aa.indptr)), Aa.indices
+        reg = _POLISH_REGULARIZATION
+        diag = np.arange(nv + na)
+        K = sp.csc_matrix(
+            (
+                np.concatenate([Pv, Aa.data, Aa.data, np.r_[np.full(nv, reg), np.full(na, -reg)]]),
+                (np.concatenate([Pr, nv + ar, ac, diag]), np.concatenate([Pc, ac, nv + ar, diag])),
+            ),
+            shape=(nv + na, nv + na),
+        )
+        rhs = np.concatenate([-q, rhs_rows])
+        try:
+            lu = spla.splu(K)
+            sol = lu.solve(rhs)
+            tol = _POLISH_RESIDUAL_TOL * max(1.0, float(np.abs(rhs).max()))
+            for _ in range(_POLISH_REFINEMENTS):  # iterative refinement undoes the regularization
+                xs, nu = sol[:nv], sol[nv:]
+                res = rhs - np.concatenate([self._P_full @ xs + Aa.T @ nu, Aa @ xs])
+                if np.abs(res).max() <= tol:
+                    break
+                sol = sol + lu.solve(res)
+        except (RuntimeError, ValueError):
+            return None
+        xp = sol[:nv]
+        return xp if np.all(np.isfinite(xp)) else None
+
+    def _polish_range_space(self, first: np.ndarray, cols: np.ndarray, vals: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """The polish's KKT system ``[P, Aa'; Aa, 0] [x; nu] = [-q; b]`` (``Aa = A[rows]``)
+        solved by eliminating ``x`` with P's dense inverse: ``(Aa P^-1 Aa') nu = Aa P^-1
+        (-q) - b``, ``x = P^-1 (-q - Aa' nu)``. Each active row has a few entries, so the
+        products are gathers of P^-1's rows (entries from :meth:`_active_entries`);
+        dependent rows get the least-squares ``nu``."""
+        x_free = self._P_inv @ -q  # the unconstrained minimizer
+        W = np.add.reduceat(vals[:, None] * self._P_inv[cols], first, axis=0)  # Aa P^-1
+        S = np.add.reduceat(W[:, cols] * vals, first, axis=1)  # Aa P^-1 Aa'
+        r = np.add.reduceat(vals * x_free[cols], first) - b
+        try:
+            nu = np.linalg.solve(S, r)
+            singular = np.linalg.norm(S @ nu - r) > _POLISH_RESIDUAL * (1.0 + np.linalg.norm(r))
+        except np.linalg.LinAlgError:
+            singular = True
+        if singular:  # dependent active rows
+            try:
+                nu = np.linalg.lstsq(S, r)[0]
+            except np.linalg.LinAlgError:  # "SVD did not converge": no polish this time
+                return None
+        x = x_free - W.T @ nu
+        return x if np.all(np.isfinite(x)) else None
+
+    def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
+        """Check the answer against the true (untightened) bounds."""
+        R, N = self.reach, self.horizon
+        n, m, p = R.n, R.model.m, R.p
+        y = None if y is None else np.asarray(y, float)
+        finite = y is not None and y.shape == (self.nvar,) and bool(np.all(np.isfinite(y)))
+        if not finite:
+            y = np.full(self.nvar, np.nan)
+        Ay = A @ y
+        eq = l == u
+        if finite:  # infinite bounds give -inf excess: Ay is finite
+            viol = float(np.max(np.maximum(Ay - u, l - Ay)[~eq], initial=-np.inf))
+            eq_res = float(np.abs(Ay[eq] - l[eq]).max(initial=0.0))
+        else:
+            viol = eq_res = np.inf
+        scale = 1.0 + float(np.abs(l[eq]).max(initial=0.0))
+        ok = finite and viol <= 0.0 and eq_res <= 10 * self.eps * scale
+        X = y[: self.nx].reshape(N + 1, n)
+        S = np.concatenate([np.concatenate([X[:-1], X[1:]], axis=1), y[self.nx :].reshape(N, R.nz)], axis=1)
+        C = (S @ R.segment_map.T).reshape(N, p + 1, m)
+        return MpcSolution(
+            ok=bool(ok), status=status, waypoints=X, control_points=C, tau=float(R.tau),
+            objective=obj, iterations=iters, max_violation=viol, equality_residual=eq_res,
+        )  # fmt: skip
+
+
+def _shift_blocks(vec: np.ndarray, blocks: list[tuple[int, int, int]], shift: int) -> np.ndarray:
+    """Shift knot-major blocks ``(start, units, size)`` of ``vec`` by ``shift`` units; the tail repeats the last."""
+    out = vec.copy()
+    for start, units, size in blocks:
+        if size == 0 or units == 0:
+            continue
+        blk = vec[start : start + units * size].reshape(units, size)
+        new = np.empty_like(blk)
+        new[: units - shift] = blk[shift:]
+        new[units - shift :] = blk[-1]
+        out[start : start + units * size] = new.reshape(-1)
+    return out
