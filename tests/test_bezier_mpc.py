@@ -273,7 +273,7 @@ def test_both_polish_solvers_give_the_active_set_optimum(seed):
     reach = di_reach()
     N, P = 20, 2
     mpc = bm.BezierMpc(reach, N, WEIGHTS, trust_region=[0.3, 0.3, 0.4, 0.4], init_radius=[0.02, 0.02, 0.0, 0.0], max_planes=P)
-    assert mpc._P_inv is not None  # positive weights: the dense path
+    assert mpc._polisher.P_inv is not None  # positive weights: the dense path
     ref = sine_reference(seed, N, 0.1)
     a, b = planes_around(seed, ref, P, 0.0)
     target = ref.copy()
@@ -286,21 +286,21 @@ def test_both_polish_solvers_give_the_active_set_optimum(seed):
     assume(np.linalg.matrix_rank(Aa) == len(rows))  # independent rows: one answer
     q = rng.normal(size=mpc.nvar)
     rhs = rng.normal(size=len(rows)) * 0.1
-    dense = mpc._solve_kkt(A, rows, q, rhs)
-    P_inv, mpc._P_inv = mpc._P_inv, None
-    sparse = mpc._solve_kkt(A, rows, q, rhs)
-    mpc._P_inv = P_inv
+    dense = mpc._polisher.solve_kkt(A, rows, q, rhs)
+    P_inv, mpc._polisher.P_inv = mpc._polisher.P_inv, None
+    sparse = mpc._polisher.solve_kkt(A, rows, q, rhs)
+    mpc._polisher.P_inv = P_inv
     assert dense is not None and sparse is not None
     np.testing.assert_allclose(Aa @ dense, rhs, atol=1e-8)
     np.testing.assert_allclose(dense, sparse, atol=1e-6)
     # a row twice (dependent rows, consistent right-hand side): the same answer
-    twice = mpc._solve_kkt(A, np.append(rows, rows[-1]), q, np.append(rhs, rhs[-1]))
+    twice = mpc._polisher.solve_kkt(A, np.append(rows, rows[-1]), q, np.append(rhs, rhs[-1]))
     np.testing.assert_allclose(twice, dense, atol=1e-6)
 
 
 def test_an_ill_conditioned_cost_polishes_with_the_sparse_kkt_system():
     weights = bm.MpcWeights(state=(1.0, 1.0, 0.0, 0.0), terminal=(1.0, 1.0, 0.0, 0.0))  # no velocity cost
     mpc = bm.BezierMpc(di_reach(), 10, weights, trust_region=[0.3, 0.3, 0.4, 0.4])
-    assert mpc._P_inv is None
+    assert mpc._polisher.P_inv is None
     ref = sine_reference(4, 10, 0.1)
     assert mpc.solve(ref[0], ref).ok

@@ -38,23 +38,15 @@ import numpy as np
 import osqp
 import piqp
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from onboard.geometry import bezier as bz
 from onboard.contracts.messages import BezierSegment, ComReference
+from onboard.high_level.tracking.mpc_polish import ActiveSetPolish
 from onboard.high_level.tracking.reachability import BezierReachability
 
 Backend = Literal["osqp", "piqp"]
 
 _PIQP_FREE_ROW_BOUND = 1e4  # on rows that are all zero: never active
-_POLISH_REGULARIZATION = 1e-9  # keeps the active-set KKT system factorizable
-# iterative refinement steps at most; each shrinks the regularization's error by about
-# reg / (the KKT system's smallest eigenvalue), which nearly dependent active rows make small
-# (3 steps left 2e-6 of constraint residual and a 3 cm error on one Hypothesis example)
-_POLISH_REFINEMENTS = 30
-_POLISH_RESIDUAL_TOL = 1e-12  # relative to the right-hand side: refinement stops below this
-_POLISH_ROUNDS = 5  # active-set solves per polish: violated rows join the set after each
-_POLISH_RESIDUAL = 1e-9  # relative residual of the range-space system past which its rows count as dependent
 _POLISH_MAX_COND = 1e8  # P better conditioned than this: polish with its dense inverse (range space)
 _ATTEMPTS = 2  # a second, tighter ADMM pass when neither the iterate nor its polish certifies
 _RETRY_EPS_FACTOR = 0.01
@@ -383,12 +375,14 @@ class BezierMpc:
             # Our polish eliminates x with P's inverse when P is well conditioned (positive
             # state and terminal weights): a small dense system per active set, ten times
             # faster than factorizing the sparse KKT system each time.
-            self._P_inv = None
+            P_inv = None
             if self.polish:
                 Pd = self._P_full.toarray()
                 ev = np.linalg.eigvalsh(Pd)
                 if ev[0] > 0 and ev[-1] < _POLISH_MAX_COND * ev[0]:
-                    self._P_inv = np.linalg.inv(Pd)
+                    P_inv = np.linalg.inv(Pd)
+            self._polisher = ActiveSetPolish(self._P_full, self._P_full_coo, P_inv, self._row_ptr, self._row_cols,
+                                             self._row_data_pos)
             # OSQP's polish prints a line when it finds no active constraint; an equality
             # row (x_0 pinned in some component, or x_N) is always active, so it stays silent.
             has_equality = bool(np.any(self.x0_radius == 0.0)) or self.terminal == "equal"
@@ -547,7 +541,7 @@ class BezierMpc:
                 first = self._certify(res.x, A, l, u, status, iters, obj)
                 if first.ok or not self.polish:
                     return first
-                polished = self._polish(res.x, res.y, A, ls, us, q)
+                polished = self._polisher.polish(res.x, res.y, A, ls, us, q)
                 if polished is not None:
                     obj_p = float(0.5 * polished @ (self._P_full @ polished) + q @ polished)
                     sol = self._certify(polished, A, l, u, status + " (polished)", iters, obj_p)
@@ -585,97 +579,6 @@ class BezierMpc:
         if warm_start is not None:
             x[: self.nx] = np.asarray(warm_start, float).reshape(-1)
         self._solver.warm_start(x=x)
-
-    def _polish(self, x, dual, A, ls, us, q) -> np.ndarray | None:
-        """Solve the KKT system of the active set the ADMM iterate suggests (as OSQP's
-        polish does). A row the answer then violates joins the set and the system is
-        solved again (the iterate can miss a constraint it sits just inside of), at most
-        ``_POLISH_ROUNDS`` times. None when the system is singular."""
-        tol = 1e-7 * max(1.0, float(np.abs(dual).max(initial=0.0)))
-        eq = ls == us
-        active = eq | (np.abs(dual) > tol)
-        upper = ~eq & (dual > 0)  # which bound an active row sits on
-        for _ in range(_POLISH_ROUNDS):
-            rows = np.flatnonzero(active)
-            rhs_rows = np.where(upper[rows], us[rows], ls[rows])
-            if not np.all(np.isfinite(rhs_rows)):
-                return None
-            xp = self._solve_kkt(A, rows, q, rhs_rows)
-            if xp is None:
-                return None
-            Ay = A @ xp
-            over, under = ~active & (Ay > us), ~active & (Ay < ls)
-            if not (over.any() or under.any()):
-                break
-            active |= over | under
-            upper |= over
-        return xp
-
-    def _active_entries(self, A: sp.csc_matrix, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The entries of ``A[rows]``, row after row: where each row starts, columns, values.
-        Every row has at least one stored entry (unused plane slots store zeros)."""
-        start = self._row_ptr[rows]
-        count = self._row_ptr[rows + 1] - start
-        first = np.cumsum(count) - count
-        pos = np.repeat(start - first, count) + np.arange(int(count.sum()))
-        return first, self._row_cols[pos], A.data[self._row_data_pos[pos]]
-
-    def _solve_kkt(self, A: sp.csc_matrix, rows: np.ndarray, q: np.ndarray, rhs_rows: np.ndarray) -> np.ndarray | None:
-        """``x`` of ``min 0.5 x' P x + q' x`` subject to ``A[rows] x = rhs_rows``."""
-        first, cols, vals = self._active_entries(A, rows)
-        if self._P_inv is not None:
-            return self._polish_range_space(first, cols, vals, q, rhs_rows)
-        nv, na = self.nvar, len(rows)
-        Aa = sp.csr_matrix((vals, cols, np.append(first, len(vals))), shape=(na, nv))
-        Pr, Pc, Pv = self._P_full_coo
-        ar, ac = np.repeat(np.arange(na), np.diff(Aa.indptr)), Aa.indices
-        reg = _POLISH_REGULARIZATION
-        diag = np.arange(nv + na)
-        K = sp.csc_matrix(
-            (
-                np.concatenate([Pv, Aa.data, Aa.data, np.r_[np.full(nv, reg), np.full(na, -reg)]]),
-                (np.concatenate([Pr, nv + ar, ac, diag]), np.concatenate([Pc, ac, nv + ar, diag])),
-            ),
-            shape=(nv + na, nv + na),
-        )
-        rhs = np.concatenate([-q, rhs_rows])
-        try:
-            lu = spla.splu(K)
-            sol = lu.solve(rhs)
-            tol = _POLISH_RESIDUAL_TOL * max(1.0, float(np.abs(rhs).max()))
-            for _ in range(_POLISH_REFINEMENTS):  # iterative refinement undoes the regularization
-                xs, nu = sol[:nv], sol[nv:]
-                res = rhs - np.concatenate([self._P_full @ xs + Aa.T @ nu, Aa @ xs])
-                if np.abs(res).max() <= tol:
-                    break
-                sol = sol + lu.solve(res)
-        except (RuntimeError, ValueError):
-            return None
-        xp = sol[:nv]
-        return xp if np.all(np.isfinite(xp)) else None
-
-    def _polish_range_space(self, first: np.ndarray, cols: np.ndarray, vals: np.ndarray, q: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-        """The polish's KKT system ``[P, Aa'; Aa, 0] [x; nu] = [-q; b]`` (``Aa = A[rows]``)
-        solved by eliminating ``x`` with P's dense inverse: ``(Aa P^-1 Aa') nu = Aa P^-1
-        (-q) - b``, ``x = P^-1 (-q - Aa' nu)``. Each active row has a few entries, so the
-        products are gathers of P^-1's rows (entries from :meth:`_active_entries`);
-        dependent rows get the least-squares ``nu``."""
-        x_free = self._P_inv @ -q  # the unconstrained minimizer
-        W = np.add.reduceat(vals[:, None] * self._P_inv[cols], first, axis=0)  # Aa P^-1
-        S = np.add.reduceat(W[:, cols] * vals, first, axis=1)  # Aa P^-1 Aa'
-        r = np.add.reduceat(vals * x_free[cols], first) - b
-        try:
-            nu = np.linalg.solve(S, r)
-            singular = np.linalg.norm(S @ nu - r) > _POLISH_RESIDUAL * (1.0 + np.linalg.norm(r))
-        except np.linalg.LinAlgError:
-            singular = True
-        if singular:  # dependent active rows
-            try:
-                nu = np.linalg.lstsq(S, r)[0]
-            except np.linalg.LinAlgError:  # "SVD did not converge": no polish this time
-                return None
-        x = x_free - W.T @ nu
-        return x if np.all(np.isfinite(x)) else None
 
     def _certify(self, y, A, l, u, status, iters, obj) -> MpcSolution:
         """Check the answer against the true (untightened) bounds."""
