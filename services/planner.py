@@ -187,6 +187,7 @@ class PlannerService(Service):
         await asyncio.to_thread(warm_up, params, radius)
         self.state_in = self.latest("state")
         self.goal_in = self.latest("goal")
+        self._pending_goal: msgs.Goal | None = None  # arrived, judged once a state says where the robot is
         self.polytopes_in = self.latest("polytopes")
         self.grid_in = self.latest("grid")
         self.tube_in = self.latest("tube")
@@ -324,15 +325,32 @@ class PlannerService(Service):
             return True
         return graph is not None and _holds(graph.spec.bounds, pos, self.planner.goal)
 
+    def _take_goal(self) -> None:
+        """The goal that arrived, once a state tells where the robot starts: refused once, with its
+        reason in the log and the status (``last_error``, ``rejected.goal_unreachable``), when the planner cannot take it; the
+        robot then keeps its last goal and plan."""
+        state = self.state_in.get()
+        if state is None:
+            return  # judged against the first state
+        goal, self._pending_goal = self._pending_goal, None
+        assert goal is not None
+        why = self.planner.goal_refusal(goal.position, np.array(state[0].position[:2]))
+        if why is None:
+            try:
+                self.planner.set_goal(goal.position, goal.tolerance)
+                return
+            except gp.PlanningError as exc:
+                why = str(exc)
+        self.count("rejected.goal_unreachable")
+        self.last_error = f"goal refused: {why}"  # the status says why; no plan fails over it
+        self.log.warning("goal refused, keeping the last one", extra={"fields": {"goal": list(goal.position), "reason": why}})
+
     def _ingest(self) -> None:
         got = self.goal_in.take()
         if got is not None:
-            goal, _ = got
-            try:
-                self.planner.set_goal(goal.position, goal.tolerance)
-            except gp.PlanningError as exc:
-                self.count("rejected.goal_value")
-                self.fail(f"goal: {exc}")
+            self._pending_goal = got[0]
+        if self._pending_goal is not None:
+            self._take_goal()
         got = self.polytopes_in.take()
         if got is not None:
             msg, _ = got

@@ -21,10 +21,10 @@ def _builds(root: Path) -> list[tuple[str, Path, Path]]:
     found = []
     for package in PACKAGES:
         for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-            for ext in sorted((root / package).glob(f"*{suffix}")):
+            for ext in sorted((root / package).rglob(f"*{suffix}")):  # the layers are subpackages
                 source = ext.with_name(ext.name[: -len(suffix)] + ".py")
                 if source.exists():
-                    found.append((f"{package}.{source.stem}", ext, source))
+                    found.append((".".join(source.relative_to(root).with_suffix("").parts), ext, source))
     return found
 
 

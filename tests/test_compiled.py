@@ -17,18 +17,18 @@ SUFFIX = importlib.machinery.EXTENSION_SUFFIXES[0]
 
 
 def test_a_build_older_than_its_source_is_refused(tmp_path) -> None:
-    package = tmp_path / "onboard"
-    package.mkdir()
+    package = tmp_path / "onboard" / "estimation"  # a layer's subpackage, as the compiled modules live
+    package.mkdir(parents=True)
     source, build = package / "estimator.py", package / f"estimator{SUFFIX}"
     source.write_text("")
     build.write_bytes(b"")
     (package / f"orphan{SUFFIX}").write_bytes(b"")  # no source beside it: not ours
     os.utime(source, (1000.0, 1000.0))
     os.utime(build, (2000.0, 2000.0))
-    assert compiled_modules(tmp_path) == ["onboard.estimator"]
+    assert compiled_modules(tmp_path) == ["onboard.estimation.estimator"]
     check_fresh(tmp_path)
     os.utime(source, (3000.0, 3000.0))  # edited after the build
-    with pytest.raises(ImportError, match="onboard.estimator"):
+    with pytest.raises(ImportError, match="onboard.estimation.estimator"):
         check_fresh(tmp_path)
 
 

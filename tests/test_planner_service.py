@@ -160,6 +160,50 @@ def test_perceived_obstacles_commit_the_robot_only_over_ground_the_grid_saw_free
     asyncio.run(asyncio.wait_for(scenario(), 60))
 
 
+def test_a_goal_the_planner_cannot_take_is_refused_once_and_the_last_plan_kept(zenoh_router, tmp_path):
+    """A goal far outside any graph the planner can build (1000, 1000) is refused when it arrives,
+    once, with its reason in the status; the planner does not fail on every tick over it, and the
+    robot keeps the goal and the plan it had."""
+    ns = NS + "-far"
+
+    async def scenario() -> None:
+        service = PlannerService(ns=ns, endpoint=zenoh_router, params={"planner": PARAMS}, robot_radius=ROBOT_RADIUS,
+                                 cache_dir=tmp_path)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        refs: list[m.ComReference] = []
+        sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
+        stop_state = asyncio.Event()
+        feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
+        try:
+            await wait_for(lambda: service.state == "running")
+            client.put(TOPICS["polytopes"].key(ns), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[], source="ground_truth")))
+            client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
+            await wait_for(lambda: any(not r.hold for r in refs))
+            errors_before = service.counters.get("errors")
+            client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[1000.0, 1000.0], tolerance=0.1)))
+            await wait_for(lambda: service.counters.get("rejected.goal_unreachable") == 1)
+            n0 = len(refs)
+            await asyncio.sleep(1.0)  # about refine_hz ticks with the refused goal gone by
+            status = await asyncio.to_thread(query_status, client, ns, "planner")
+            assert status.counters["rejected.goal_unreachable"] == 1  # refused once, not per tick
+            assert service.counters.get("errors") == errors_before
+            assert "goal refused" in status.last_error and "1000.0" in status.last_error
+            assert np.array_equal(service.planner.goal, [2.0, 0.0]) and status.extra["path"] == 1.0
+            kept = refs[n0:]
+            assert kept and not any(r.hold for r in kept)
+            assert np.allclose(kept[-1].segments[-1].control_points[-1], [2.0, 0.0], atol=1e-6)
+        finally:
+            stop_state.set()
+            await feeder
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 120))
+
+
 def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
     async def scenario() -> None:
         service = PlannerService(ns=NS + "2", endpoint=zenoh_router, params={"planner": PARAMS},

@@ -186,6 +186,25 @@ class GraphPlanner(MpcRefinement):
             self.path = None
             self._frontier_target = None  # a new goal: explore toward it afresh
 
+    def goal_refusal(self, position: tuple[float, float] | np.ndarray, start: np.ndarray) -> str | None:
+        """Why a goal at ``position`` cannot be taken from a start at ``start`` (None when it can):
+        outside the fixed bounds, or so far that no graph covering start and goal can be built.
+        Checked when a goal arrives, so that a goal the planner cannot take is refused once
+        instead of failing every plan."""
+        g = np.asarray(position, dtype=float).reshape(-1)
+        if g.shape != (2,) or not np.all(np.isfinite(g)):
+            return "goal must be a finite [x, y]"
+        if self.fixed_bounds is not None:
+            x0, y0, x1, y1 = self.fixed_bounds
+            if not (x0 <= g[0] <= x1 and y0 <= g[1] <= y1):
+                return f"goal {g.tolist()} lies outside the planning bounds {list(self.fixed_bounds)}"
+            return None
+        try:
+            self.graph_spec_for(np.asarray(start, float)[:2], g)
+        except PlanningError as exc:
+            return f"goal {g.tolist()} is beyond any graph the planner can build from {np.asarray(start, float)[:2].tolist()}: {exc}"
+        return None
+
     def set_obstacles(self, polygons: list) -> None:
         """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
         try:
@@ -232,16 +251,17 @@ class GraphPlanner(MpcRefinement):
 
     # --- graph -------------------------------------------------------------------------
 
-    def region_for(self, position: np.ndarray) -> tuple[float, float, float, float]:
-        """Planning region: the fixed bounds, or start, goal and obstacles (or cells) padded by
+    def region_for(self, position: np.ndarray, goal: np.ndarray | None = None) -> tuple[float, float, float, float]:
+        """Planning region: the fixed bounds, or start, goal (``goal``, else the one set) and obstacles (or cells) padded by
         ``bounds_padding`` plus twice the margin (room to pass an obstacle at the edge; the
         margin of a tube of at least ``region_tube``, so that a tube growing up to it needs
         no new graph), snapped outward to ``bounds_quantum``."""
         if self.fixed_bounds is not None:
             return self.fixed_bounds
         pts = [np.asarray(position, float)[:2]]
-        if self.goal is not None:
-            pts.append(self.goal)
+        goal = self.goal if goal is None else goal
+        if goal is not None:
+            pts.append(goal)
         polys = self.obstacles if self.mode == "obstacles" else self.cells
         if len(polys):
             pts.extend([polys.aabb[:, :2].min(axis=0), polys.aabb[:, 2:].max(axis=0)])
@@ -252,14 +272,14 @@ class GraphPlanner(MpcRefinement):
         hi = np.ceil((pts_arr.max(axis=0) + pad) / q) * q
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
-    def graph_spec_for(self, position: np.ndarray) -> GraphSpec:
-        """The spec of the graph :meth:`plan` needs for a start at ``position``.
+    def graph_spec_for(self, position: np.ndarray, goal: np.ndarray | None = None) -> GraphSpec:
+        """The spec of the graph :meth:`plan` needs for a start at ``position`` (and ``goal``, else the one set).
 
         An automatic region keeps the current graph while it covers the region needed
         (no rebuild when obstacles move inside it); its node count is ``node_density``
         times its area, at most ``nodes``.
         """
-        bounds = self.region_for(position)
+        bounds = self.region_for(position, goal)
         if self.fixed_bounds is not None:
             return spec_from_params(self.params, bounds, nodes=self.fixed_nodes)
         if self.graph is not None and _covers(self.graph.spec.bounds, bounds):
