@@ -1,14 +1,22 @@
-"""Packaging lives in pyproject.toml; this file only adds the optional compiled build.
+"""Packaging lives in pyproject.toml; this file only adds the compiled tick.
 
-``ARCHER_COMPILE=1 python setup.py build_ext --inplace`` (with ``pip install -e '.[compile]'``
-first) compiles the modules below with mypyc, next to their sources: the lockstep tick's
-scalar-arithmetic modules, which the profile of ``archer sim`` puts on top (docs/twin_speed.md).
-mypyc compiles the same source to C with the same IEEE double operations, so runs are bit for
-bit the pure-Python ones (tests/test_lockstep_pinned.py holds that in either mode). Without the
-variable, or on the robot, nothing is compiled. ``sim_twin.compiled`` refuses a stale build.
+``pip install .`` or ``pip install -e .`` compiles the modules below with mypyc (a build
+requirement, pyproject.toml), next to their sources in an editable install: the lockstep tick's
+scalar-arithmetic modules, which the profile of ``archer sim`` puts on top (docs/twin_speed.md),
+so campaigns run at the speed the README reports. mypyc compiles the same source to C with the
+same IEEE double operations, so runs are bit for bit the pure-Python ones (tests/test_compiled.py
+holds that). Where no C compiler is found, mypyc is missing or the build fails, the install goes
+on in pure Python (about 2.5 times slower a tick), and ``archer sim``, ``campaign`` and ``bench``
+say so in one line. ``ARCHER_COMPILE=0`` installs pure Python on purpose; after editing a
+compiled module, rebuild with ``python setup.py build_ext --inplace`` (``sim_twin.compiled``
+refuses a stale build).
 """
 
 import os
+import shlex
+import shutil
+import sys
+import sysconfig
 
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
@@ -34,12 +42,39 @@ COMPILED_GROUP = "onboard.compiled_tick"
 # mypy checks the compiled modules only; what they import is taken as it is typed
 MYPYC_FLAGS = ["--ignore-missing-imports", "--follow-imports=silent"]
 
-ext_modules = []
-if os.environ.get("ARCHER_COMPILE") == "1":
-    from mypyc.build import mypycify
 
-    # the shared runtime of the group inside a package: a top-level module is not importable from every directory
-    ext_modules = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3", group_name=COMPILED_GROUP)
+
+def _pure_python(why: str) -> list:
+    print(f"archer-onboard: the lockstep tick stays pure Python ({why})", file=sys.stderr)
+    return []
+
+
+def _c_compiler() -> str | None:
+    cc = shlex.split(os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc")
+    return shutil.which(cc[0]) if cc else None
+
+
+def compiled_extensions() -> list:
+    """The compiled tick's extensions, or none (and one line saying why) where they cannot be built."""
+    if os.environ.get("ARCHER_COMPILE") == "0":
+        return _pure_python("ARCHER_COMPILE=0")
+    try:
+        from mypyc.build import mypycify
+    except ImportError:
+        return _pure_python("mypyc is not installed: pip install mypy")
+    if _c_compiler() is None:
+        return _pure_python("no C compiler found")
+    try:
+        # the shared runtime of the group inside a package: a top-level module is not importable from every directory
+        extensions = mypycify(MYPYC_FLAGS + COMPILED_MODULES, opt_level="3", group_name=COMPILED_GROUP)
+    except (Exception, SystemExit) as exc:  # mypy refused a module: mypyc exits
+        return _pure_python(f"mypyc refused the modules: {exc}")
+    for extension in extensions:
+        extension.optional = True  # a compiler error leaves the pure-Python module in use, with setuptools' warning
+    return extensions
+
+
+ext_modules = compiled_extensions()
 
 
 class BuildExtStamped(build_ext):

@@ -4,7 +4,7 @@ A compiled module lies next to its source (``estimator.cpython-311-x86_64-linux-
 beside ``estimator.py``) and Python imports it in place of the source. One older than its
 source was built from another text: importing it would run code that is not in the file
 (an edit, a checkout of another branch). The lockstep runner refuses such a build rather than
-run it; rebuild (``ARCHER_COMPILE=1 python setup.py build_ext --inplace``) or delete it.
+run it; rebuild (``python setup.py build_ext --inplace``, or ``pip install -e .`` again) or delete it.
 """
 
 from __future__ import annotations
@@ -38,4 +38,4 @@ def check_fresh(root: Path = ROOT) -> None:
     stale = [f"{name} ({ext.name})" for name, ext, source in _builds(root) if ext.stat().st_mtime < source.stat().st_mtime]
     if stale:
         raise ImportError(f"compiled modules older than their sources: {', '.join(stale)}; rebuild them with "
-                          "ARCHER_COMPILE=1 python setup.py build_ext --inplace, or delete them")
+                          "python setup.py build_ext --inplace (or pip install -e . again), or delete them")

@@ -59,10 +59,29 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
+TICK_COMMANDS = ("sim", "campaign", "bench", "soak")  # what runs the lockstep tick (and starts the real-time stack from this checkout)
+
+
+def _check_compiled_tick() -> None:
+    """A stale compiled module (an edit since the build) refuses to run; a missing build says so in one line."""
+    from sim_twin.compiled import check_fresh, compiled_modules  # reads file times only: no MuJoCo
+
+    check_fresh()
+    if not compiled_modules():
+        print("archer: the compiled tick is not built here (no C compiler or mypyc at install, or ARCHER_COMPILE=0); "
+              "lockstep runs about 2.5x slower", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     prepare_environment()  # before a command's module loads numba
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(argv).parse_args(argv)
+    if args.command in TICK_COMMANDS:
+        try:
+            _check_compiled_tick()
+        except ImportError as exc:
+            print(f"archer: {exc}", file=sys.stderr)
+            return 2
     try:
         return int(args._runner(args) or 0)
     except KeyboardInterrupt:
