@@ -13,7 +13,8 @@ import time
 import zenoh
 
 from onboard.contracts import messages as m
-from onboard.contracts.commander import FOREIGN_COMMANDER, NO_LIVE_COMMANDER, UNKNOWN_COMMANDER, CommanderLatch
+from onboard.contracts.commander import (FOREIGN_COMMANDER, NO_LIVE_COMMANDER, RESTART_GAP_NS, SECOND_STREAM, UNKNOWN_COMMANDER,
+                                        CommanderLatch)
 from onboard.contracts.params import SafetyLimits, TwinParams
 from onboard.contracts.topics import TOPICS, liveliness_key
 from services.runtime.service import EXIT_CONFLICT, StandInCommander
@@ -29,20 +30,40 @@ START_TIMEOUT_S = 60.0
 
 def test_the_latch_obeys_only_the_live_identified_commander() -> None:
     latch = CommanderLatch()
-    assert latch.refusal("a") == NO_LIVE_COMMANDER  # no token: nobody's commander
+    assert latch.refusal("a", 1, 0) == NO_LIVE_COMMANDER  # no token: nobody's commander
     latch.commander_appeared()
-    assert latch.refusal("a") == UNKNOWN_COMMANDER  # alive, status not heard yet
+    assert latch.refusal("a", 1, 0) == UNKNOWN_COMMANDER  # alive, status not heard yet
     assert latch.commander_identified("a")
-    assert latch.refusal("a") is None
-    assert latch.refusal("b") == FOREIGN_COMMANDER and latch.refusal("") == FOREIGN_COMMANDER
+    assert latch.refusal("a", 1, 0) is None
+    assert latch.refusal("b", 2, 0) == FOREIGN_COMMANDER and latch.refusal("", 2, 0) == FOREIGN_COMMANDER
     assert not latch.commander_identified("b")  # a second instance answering keeps nothing
-    assert latch.refusal("b") == FOREIGN_COMMANDER
+    assert latch.refusal("b", 2, 0) == FOREIGN_COMMANDER
     latch.commander_gone()  # the takeover needs the first one gone
-    assert latch.refusal("a") == NO_LIVE_COMMANDER
+    assert latch.refusal("a", 2, 0) == NO_LIVE_COMMANDER
     latch.commander_appeared()
-    assert latch.commander_identified("b") and latch.refusal("b") is None and latch.refusal("a") == FOREIGN_COMMANDER
+    assert latch.commander_identified("b") and latch.refusal("b", 1, 0) is None and latch.refusal("a", 2, 0) == FOREIGN_COMMANDER
     assert latch.latches == 2
-    assert latch.refused == {NO_LIVE_COMMANDER: 2, UNKNOWN_COMMANDER: 1, FOREIGN_COMMANDER: 4}
+    assert latch.refused == {NO_LIVE_COMMANDER: 2, UNKNOWN_COMMANDER: 1, FOREIGN_COMMANDER: 4, SECOND_STREAM: 0}
+
+
+def test_the_live_commanders_id_copied_into_a_second_stream_is_refused() -> None:
+    """The id is in every payload: a copier has it. Its commands are refused as a second stream
+    (a number not after the last obeyed) while the real stream runs; a stream that stopped for
+    a restart of the loop may start again from 1."""
+    latch = CommanderLatch()
+    latch.commander_appeared()
+    latch.commander_identified("a")
+    ms = 1_000_000
+    assert [latch.refusal("a", seq, seq * ms) for seq in (1, 2, 3)] == [None] * 3
+    assert latch.refusal("a", 3, 3 * ms) == SECOND_STREAM  # a replay of the last one
+    assert latch.refusal("a", 2, 4 * ms) == SECOND_STREAM  # an older one
+    assert latch.refusal("a", 4, 4 * ms) is None  # the real stream goes on
+    assert latch.refusal("a", 5, 5 * ms) is None and latch.refusal("a", 5, 5 * ms) == SECOND_STREAM  # interleaved copies
+    assert latch.refusal("a", 7, 6 * ms) is None  # a dropped command is a gap, not a second stream
+    quiet = 6 * ms + RESTART_GAP_NS
+    assert latch.refusal("a", 1, quiet - 1) == SECOND_STREAM
+    assert latch.refusal("a", 1, quiet) is None and latch.refusal("a", 2, quiet + ms) is None  # the loop restarted
+    assert latch.refused[SECOND_STREAM] == 4
 
 
 # --- one instance per service ---------------------------------------------------------------------
@@ -88,9 +109,12 @@ def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_rou
         def wheel_speed() -> float:
             return max(abs(float(twin.data.qvel[d])) for d in wheel_dofs)
 
+        seqs: dict[str, int] = {}
+
         def put(commander: str, torque: float) -> None:
-            client.put(key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[torque] * 3, foot_torque=torque,
-                                                     armed=True, commander=commander)),
+            seqs[commander] = seqs.get(commander, 0) + 1  # each sender numbers its own stream
+            client.put(key, m.encode(m.TorqueCommand(seq=seqs[commander], stamp_ns=time.monotonic_ns(), wheel_torque=[torque] * 3,
+                                                     foot_torque=torque, armed=True, commander=commander)),
                        congestion_control=zenoh.CongestionControl.BLOCK)  # every one arrives: the count is exact
 
         sent: dict[str, int] = {}
@@ -120,6 +144,22 @@ def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_rou
             await wait_for(lambda: twin.counters.get(f"rejected.{FOREIGN_COMMANDER}") >= forged)
             assert twin.counters.get(f"rejected.{FOREIGN_COMMANDER}") == forged  # every forged one, no real one
             assert twin.actuation.counters["applied"] > 100
+            assert twin.actuation.last_applied == (0.0, 0.0, 0.0, 0.0)
+
+            # a copier: the live commander's id and the number of its last command, asking 1e9 N m
+            copied_before = twin.counters.get(f"rejected.{SECOND_STREAM}")
+            copies, fastest, t0 = 0, 0.0, time.monotonic()
+            while time.monotonic() - t0 < 1.0:
+                put(legit.instance, 0.0)
+                client.put(key, m.encode(m.TorqueCommand(seq=seqs[legit.instance], stamp_ns=time.monotonic_ns(), wheel_torque=[1e9] * 3,
+                                                         foot_torque=1e9, armed=True, commander=legit.instance)),
+                           congestion_control=zenoh.CongestionControl.BLOCK)
+                copies += 1
+                fastest = max(fastest, wheel_speed())
+                await asyncio.sleep(0.001)
+            assert fastest < 0.5, f"a copied commander's torque reached the wheels: {fastest:.1f} rad/s"
+            await wait_for(lambda: twin.counters.get(f"rejected.{SECOND_STREAM}") - copied_before >= copies)
+            assert twin.counters.get(f"rejected.{SECOND_STREAM}") - copied_before == copies  # every copy, no real one
             assert twin.actuation.last_applied == (0.0, 0.0, 0.0, 0.0)
 
             # the commander's token gone: nobody commands, the forger least of all

@@ -46,7 +46,7 @@ def test_twin_publishes_sensors_applies_commands_and_zeroes_stale_ones(zenoh_rou
             await wait_for(lambda: twin.state == "running" and len(got["imu"]) > 50)
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.4:  # commands at about 500 Hz: wheel x spins up
-                client.put(cmd_key, m.encode(m.TorqueCommand(stamp_ns=time.monotonic_ns(), wheel_torque=[0.05, 0.0, 0.0],
+                client.put(cmd_key, m.encode(m.TorqueCommand(seq=commander.next_seq(), stamp_ns=time.monotonic_ns(), wheel_torque=[0.05, 0.0, 0.0],
                                                              foot_torque=0.0, armed=True, commander=commander.instance)))
                 await asyncio.sleep(0.002)
             spin = twin.data.qvel[twin.model.joint("wheel_x").dofadr[0]]

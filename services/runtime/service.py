@@ -489,9 +489,10 @@ class Service:
         last_query = [0.0]
 
         def deliver(msg: Any) -> None:  # Zenoh thread
-            reason = latch.refusal(msg.commander)
+            now = self.clock.now_ns()
+            reason = latch.refusal(msg.commander, msg.seq, now)
             if reason is None:
-                slot.put(msg, self.clock.now_ns())
+                slot.put(msg, now)
                 return
             if reason == UNKNOWN_COMMANDER and time.monotonic() - last_query[0] > COMMANDER_REQUERY_S:
                 last_query[0] = time.monotonic()
@@ -736,6 +737,7 @@ class StandInCommander:
 
     def __init__(self, session: zenoh.Session, ns: str) -> None:
         self.instance = secrets.token_hex(8)
+        self._seq = 0
         self._started_ns = time.monotonic_ns()
         self._entities = [  # answerable before announced, as a service
             session.declare_queryable(status_key(ns, COMMANDER), self._on_status_query),
@@ -746,6 +748,12 @@ class StandInCommander:
         status = msgs.ServiceStatus(service=COMMANDER, state="running", uptime_s=(time.monotonic_ns() - self._started_ns) / 1e9,
                                     rates_hz={}, counters={}, instance=self.instance, host=socket.gethostname(), pid=os.getpid())
         query.reply(query.key_expr, msgs.encode(status), encoding=zenoh.Encoding(JSON_ENCODING))
+
+    def next_seq(self) -> int:
+        """The number of this commander's next command: a consumer obeys one stream, each number
+        after the last (:mod:`onboard.contracts.commander`)."""
+        self._seq += 1
+        return self._seq
 
     def close(self) -> None:
         for entity in self._entities:
