@@ -108,6 +108,7 @@ class FoxgloveBridge:
 
 class ViewService(Service):
     name = "view"
+    zenoh_mode = "client"  # a person's tool: it waits for the stack and never serves its endpoint
     params_sections = ("view",)
     subscribes = EVERY_TOPIC  # it shows every topic (scene channels from some, JSON from all)
 

@@ -262,6 +262,32 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
     assert last_json["foot_pos"] == FOOT_POS and last_json["quat"] == pytest.approx(list(QUAT))
 
 
+def test_archer_view_started_before_the_stack_waits_as_a_client_and_never_takes_its_endpoint():
+    """A person starts the viewer first: it waits (saying so) without serving the stack's endpoint,
+    so the stack still starts on it, and the viewer joins it when it comes."""
+    from services.runtime.zenoh_session import endpoint_in_use, free_endpoint
+
+    endpoint, port = free_endpoint(), free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "view", "--endpoint", endpoint, "--namespace", NS,
+                             "--port", str(port), "--log-level", "WARNING"], stderr=subprocess.PIPE, text=True)
+    router = None
+    try:
+        waiting = proc.stderr.readline()  # the one line it says while it waits
+        assert "waiting for the stack at " + endpoint in waiting, waiting
+        time.sleep(1.0)
+        assert proc.poll() is None and not endpoint_in_use(endpoint)
+        router = open_session(endpoint, "router")  # the stack comes up on its endpoint
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while "view" not in live_services(router, NS):
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.monotonic() < deadline, "the viewer never joined the stack"
+            time.sleep(0.1)
+    finally:
+        assert stop(proc) == 0
+        if router is not None:
+            router.close()
+
+
 def test_archer_view_refuses_a_bad_port_by_name():
     out = subprocess.run([sys.executable, "-m", "services.cli.main", "view", "--port", "70000"], capture_output=True, text=True,
                          timeout=60)

@@ -14,7 +14,7 @@ from onboard.contracts import messages as msgs
 from onboard.contracts.binary_messages import decode_depth, decode_grid
 from onboard.contracts.topics import TOPICS, Topic, namespace, topic_for_key
 from services.runtime.peers import live_services, query_status
-from services.runtime.zenoh_session import open_session
+from services.runtime.zenoh_session import default_endpoint, open_tool_session
 
 
 
@@ -104,11 +104,14 @@ def run_echo(args: argparse.Namespace) -> int:
     ns = args.namespace or namespace()
     topic = _resolve(ns, args.key)
     inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-    session = open_session(args.endpoint, "client")
+    deadline = time.monotonic() + args.timeout if args.timeout > 0 else float("inf")
+    session = open_tool_session(args.endpoint, deadline=deadline)
+    if session is None:
+        print(f"archer echo: no stack served {args.endpoint or default_endpoint()} within {args.timeout} s", file=sys.stderr)
+        return 1
     try:
         sub = session.declare_subscriber(topic.key(ns), lambda s: inbox.put(s.payload.to_bytes()))
         shown, rejected = 0, 0
-        deadline = time.monotonic() + args.timeout if args.timeout > 0 else float("inf")
         while (args.count == 0 or shown < args.count) and time.monotonic() < deadline:
             try:
                 payload = inbox.get(timeout=0.1)
@@ -133,7 +136,8 @@ def add_status_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_status(args: argparse.Namespace) -> int:
     ns = args.namespace or namespace()
-    session = open_session(args.endpoint, "client")
+    session = open_tool_session(args.endpoint)
+    assert session is not None  # no deadline: it waits for the stack
     try:
         statuses = {name: query_status(session, ns, name) for name in live_services(session, ns)}
     finally:

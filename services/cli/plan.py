@@ -264,14 +264,17 @@ def add_goal_arguments(parser: argparse.ArgumentParser) -> None:
 def run_goal(args: argparse.Namespace) -> int:
     import zenoh
 
-    from services.runtime.zenoh_session import open_session
+    from services.runtime.zenoh_session import default_endpoint, open_tool_session
 
     if not (math.isfinite(args.x) and math.isfinite(args.y)) or not (math.isfinite(args.tolerance) and args.tolerance >= 0):
         print("archer goal: X, Y and the tolerance must be finite (tolerance >= 0)", file=sys.stderr)
         return 2
     topic = TOPICS["goal"]
     ns = args.namespace or namespace()
-    session = open_session(args.endpoint, "client")
+    session = open_tool_session(args.endpoint, deadline=time.monotonic() + args.wait)
+    if session is None:
+        print(f"archer goal: no stack served {args.endpoint or default_endpoint()} within {args.wait} s", file=sys.stderr)
+        return 1
     try:
         pub = session.declare_publisher(topic.key(ns), encoding=zenoh.Encoding("application/json"),
                                         reliability=zenoh.Reliability.RELIABLE,

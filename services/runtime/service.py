@@ -39,7 +39,8 @@ from onboard.contracts.params import SECTIONS, as_dict, with_overrides
 from onboard.contracts.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
 from services.runtime import sd_notify
 from services.runtime.clock import Clock, WallClock
-from services.runtime.zenoh_session import Mode, default_endpoint, endpoint_in_use, open_client_session, open_session
+from services.runtime.zenoh_session import (Mode, default_endpoint, endpoint_in_use, open_client_session, open_session,
+                                            open_tool_session)
 
 JSON_ENCODING = "application/json"
 REJECT_LOG_INTERVAL_S = 1.0  # one log line per burst of rejections per topic
@@ -626,8 +627,10 @@ class Service:
 
     # --- lifecycle ----------------------------------------------------------------------
 
-    def _open_session(self) -> zenoh.Session:
+    def _open_session(self) -> zenoh.Session | None:
         mode = self.zenoh_mode
+        if mode == "client":  # a person's tool: waits for the stack, never serves its endpoint (None: stopped first)
+            return open_tool_session(self.endpoint, self._zenoh_config_file, stopped=self.stopping.is_set)
         if mode == "peer" and not self._zenoh_config_file and not endpoint_in_use(self.endpoint):
             # No router yet: this service serves the well-known endpoint itself.
             try:
@@ -643,6 +646,8 @@ class Service:
         self._started_ns = self.clock.now_ns()
         if self.session is None:
             self.session = await asyncio.to_thread(self._open_session)
+            if self.session is None:
+                return  # stopped while waiting for the stack
         try:
             await asyncio.to_thread(self._refuse_if_running)
             # answerable before announced: whoever sees the token asks the status who we are

@@ -10,8 +10,12 @@ for other deployments live in ``deploy/zenoh/`` and are passed with ``config_fil
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
+import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -94,6 +98,29 @@ def open_client_session(endpoint: str | None = None, config_file: str | os.PathL
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("listen/endpoints", "[]")
     return zenoh.open(conf)
+
+
+STACK_POLL_S = 0.2  # how often a person's tool looks for the stack while it waits
+
+
+def open_tool_session(endpoint: str | None = None, config_file: str | os.PathLike | None = None,
+                      deadline: float = math.inf, stopped: Callable[[], bool] = lambda: False) -> zenoh.Session | None:
+    """A client session for a person's tool (viewer, ``archer status``, ``echo``, ``goal``): it waits
+    for the stack to serve ``endpoint`` (saying so once on stderr) and never serves it itself,
+    so a stack started afterwards finds its endpoint free. None when ``deadline`` (monotonic [s])
+    passes or ``stopped()`` says so first. With a config file the file says where to connect."""
+    endpoint = endpoint or default_endpoint()
+    config_file = config_file or os.environ.get(CONFIG_ENV)
+    said = False
+    while not config_file and not endpoint_in_use(endpoint):
+        if time.monotonic() >= deadline or stopped():
+            return None
+        if not said:
+            print(f"archer: waiting for the stack at {endpoint} (start it with archer sim or archer run; Ctrl-C to stop)",
+                  file=sys.stderr, flush=True)
+            said = True
+        time.sleep(STACK_POLL_S)
+    return open_client_session(endpoint, config_file)
 
 
 def endpoint_in_use(endpoint: str) -> bool:
