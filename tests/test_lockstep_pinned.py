@@ -16,13 +16,13 @@ the planner's solver iterations amplify them. So "the same run" is checked in th
    ``SPREAD_MARGIN`` times the spread measured, when the reference was made, between this
    host's full kernels and lower ones (``ALTERNATE_KERNELS``: numpy without its AVX2/AVX-512
    dispatch, OpenBLAS forced to older cores), and not below a per-channel floor
-   (``FLOORS``) far under what a behaviour change makes. Measured at 5ed2f6b on an AMD EPYC
+   (``FLOORS``) far under what a behaviour change makes. Measured on c9ea2b0 on an AMD EPYC
    (X86_V3, OpenBLAS Haswell): the largest spread is ``forest graph``'s (the planner's MPC
    turns last bits into solver-tolerance differences), CoM 7.5e-5 m, wheel speeds 4.3e-2
    rad/s; the other runs' CoM spreads are under 1e-8 m. A 2 % change of the attitude PD's
    ``kp_tilt`` moves the CoM by 1.2e-3 m (hop-in-place), 3e-5 m (push), 3.6e-3 m (forest
    graph), 2.7e-3 m (forest graph depth): over each run's tolerance (see ISSUE31 in the
-   commit log).
+   choices.
 3. Bit for bit (``tests/data/lockstep_pinned.json``): a SHA-256 of the whole trace and the
    report, per host fingerprint (:func:`host_fingerprint`: library versions, numpy's SIMD
    dispatch in use, OpenBLAS's core type); skipped, saying so, on a host without a pin.
