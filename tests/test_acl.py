@@ -232,3 +232,7 @@ def test_tls_router_admits_only_clients_with_a_certificate_and_keeps_the_acl(tmp
     finally:
         for s in reversed(sessions):
             s.close()
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -186,3 +186,7 @@ def test_the_hardware_service_drives_the_board_through_this_backend(zenoh_router
         client.close()
         emu.close()
     assert board_loop.error is None
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

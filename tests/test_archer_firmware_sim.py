@@ -3,6 +3,8 @@ boards (UDP) and the OptiTrack stream (NatNet), one twin behind both, for a few 
 
 from __future__ import annotations
 
+import pytest
+
 import json
 import os
 import signal
@@ -44,3 +46,7 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
     assert board["setpoints"] > 1000 and board["replies"] >= board["setpoints"]  # the control loop commanded it
     assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0
     assert m["natnet"]["frames"] > 50 * DURATION_S  # the pose went out at the mocap rate
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -89,3 +89,7 @@ def test_without_the_pd_the_hopping_twin_falls(gains: str) -> None:
     finally:
         os.unlink(path)
     assert max(quat.tilt(s.quat) for s in states) > 0.3
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -124,3 +124,7 @@ def test_the_loop_publishes_attitude_setpoints_with_its_commander_and_no_torques
     assert not first.armed and second.armed
     assert first.commander == second.commander == "c0ffee"
     assert got["torque_cmd"] == []
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

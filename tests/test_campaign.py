@@ -170,3 +170,7 @@ def test_ray_gives_the_local_pool_results(tmp_path) -> None:
     assert len(ray_runs) == len(by_key) == 2
     for r in ray_runs:
         assert _deterministic(r["report"]) == _deterministic(by_key[r["key"]]["report"])
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

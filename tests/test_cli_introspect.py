@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import json
 import subprocess
@@ -64,3 +66,7 @@ def test_echo_and_status_see_a_running_service(zenoh_router):
         service.request_stop()
         runner.join(10)
     assert not runner.is_alive()
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -5,6 +5,8 @@ process is refused while armed and applied by a restart, watchdog fed, when disa
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import contextlib
 import socket
@@ -217,3 +219,7 @@ def test_a_restart_parameter_is_refused_while_armed_and_applied_when_disarmed_wi
         asyncio.run(scenario())
     finally:
         manager.close()
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

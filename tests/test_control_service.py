@@ -4,6 +4,8 @@ bad payloads, falls back to safe torque on a stale estimate and reports its timi
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import math
 import threading
@@ -115,3 +117,7 @@ def test_control_service_end_to_end(zenoh_router):
         assert proc is not None and not proc.alive  # the loop process ends with the service
 
     asyncio.run(scenario())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -134,3 +134,7 @@ def test_the_status_line_leaves_status_extra_alone():
     service.fail("boom")
     assert status_line(service) == "starting; tick 0 Hz; errors 1; last error: boom"
     assert service.extra_calls == 0
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

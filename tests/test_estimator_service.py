@@ -262,3 +262,7 @@ def test_loop_scheduling_and_rate_are_refused_live_and_named(field, value):
     with pytest.raises(ValueError, match=f"estimator.{field}.*restart"):
         service.set_params({f"estimator.{field}": value})
     assert service.params["estimator"] is params
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

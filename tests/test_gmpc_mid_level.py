@@ -193,3 +193,7 @@ def test_realtime_mid_level_flag_joins_the_users_config(tmp_path, monkeypatch):
     assert seen["config"] == {"control": {"kp_tilt": 30.0, "mid_level": "geometric_mpc", **robot}, "gmpc": {"horizon": 16},
                               "estimator": robot, "planner": robot}
     assert not Path(seen["path"]).exists()  # gone after the run
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -4,6 +4,8 @@ and both processes end with the service."""
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import math
 import time
@@ -75,3 +77,7 @@ def test_the_mpc_process_publishes_setpoints_the_loop_tracks(zenoh_router):
         assert mid is not None and not mid.alive and loop is not None and not loop.alive
 
     asyncio.run(scenario())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

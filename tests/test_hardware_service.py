@@ -306,3 +306,7 @@ def test_four_drives_at_1khz_through_the_service_short_run(zenoh_router) -> None
     load = delta["bus_bits"] / (window_s * params.can_bitrate)
     cyclic = budget(params)
     assert cyclic["budget_total_nominal"] < load < cyclic["budget_total_worst_stuffing"], load
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -189,3 +189,7 @@ def test_archer_run_stops_on_a_signal(zenoh_router, sig, code) -> None:
         if proc.poll() is None:
             proc.kill()
         proc.wait()
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -211,3 +211,7 @@ def test_mocap_service_without_a_server_or_its_body_publishes_nothing_and_counts
         stop_emulator(proc)
     assert (state, n) == ("degraded", 0)
     assert counters["connects"] == 1 and counters["rejected.body_missing"] > 50
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import os
 import signal
@@ -182,3 +184,7 @@ def test_the_twin_counts_and_never_applies_a_forged_commanders_torques(zenoh_rou
             await asyncio.wait_for(task, 10.0)
 
     asyncio.run(scenario())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -99,3 +99,7 @@ def test_service_refuses_a_rate_outside_the_band(zenoh_router):
             await asyncio.wait_for(service.run(), 30)
 
     asyncio.run(scenario())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

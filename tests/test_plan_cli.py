@@ -126,3 +126,7 @@ def test_goal_command_reaches_a_subscriber(zenoh_router, zenoh_session, tmp_path
     lonely = _archer(["goal", "1", "1", "--endpoint", zenoh_router, "--namespace", "archer/nobody", "--wait", "0.3"], tmp_path)
     assert lonely.returncode == 1 and "nothing subscribes" in lonely.stderr
     assert not math.isnan(got[0].position[0])
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -251,3 +251,7 @@ def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
 def test_footprint_radius_comes_from_the_mjcf():
     # The housing is a 0.13 m cylinder about the spine (robot_description/models/archer.xml).
     assert robot_footprint_radius() == pytest.approx(0.13)
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

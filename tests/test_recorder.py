@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 import asyncio
 import json
 import os
@@ -193,3 +195,7 @@ def test_status_before_setup_answers():
     """The status queryable exists before setup(): an early `archer status` must get a reply."""
     status = RecorderService(ns=NS).status()
     assert status.state == "starting" and status.extra == {}
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

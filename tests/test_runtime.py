@@ -176,3 +176,7 @@ def test_sigterm_stops_a_service_process():
 def test_keys_come_from_the_table():
     assert liveliness_key(NS, "x") == "archer/test/alive/x"
     assert status_key(NS, "x").startswith(NS + "/")
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

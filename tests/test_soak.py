@@ -357,3 +357,7 @@ def sf_processes(endpoint: str) -> list[int]:
     from deploy.sil_soak import _processes_with
 
     return _processes_with(endpoint.encode())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -252,3 +252,7 @@ def test_a_real_service_notifies_through_the_runtime_and_is_restarted_after_kill
     finally:
         codes = sup.stop()
     assert codes["router"] == 0  # SIGTERM: a clean shutdown
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

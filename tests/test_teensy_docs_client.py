@@ -145,3 +145,7 @@ def test_a_docs_only_client_commands_torque_and_reads_sensors(emulated_teensy) -
         assert any(struct.unpack("<HH", f[2])[0] == 1 for f in status)  # STATUS 1
     finally:
         port.close()
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

@@ -150,3 +150,7 @@ def load_params_of(config: dict, tmp_path) -> dict:
     path = tmp_path / "merged.toml"
     path.write_text(_toml(config))
     return load_params(str(path))
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

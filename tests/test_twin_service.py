@@ -132,3 +132,7 @@ def test_setting_the_seed_puts_a_fallen_robot_back_and_other_twin_parameters_are
             await asyncio.wait_for(task, TIMEOUT_S)
 
     asyncio.run(scenario())
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")

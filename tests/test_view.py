@@ -461,3 +461,7 @@ def test_an_estimate_that_is_not_valid_is_not_drawn():
     invalid = state(1)
     invalid.valid = False
     assert list(maker.messages("state", invalid, 1)) == []
+
+
+# real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
+pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")
