@@ -63,6 +63,10 @@ ROUTINE_UNIT_EVENTS = ("start", "ready")  # the rest says why a unit went down
 SERVICES_START_TIMEOUT_S = 120.0  # [s] for every service to report READY (the planner compiles its kernels)
 STOP_DEADLINE_S = 2.9  # [s] after SIGINT/SIGTERM the run is gone by then, its services with it
 PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
+# A real-time run lasts --duration of the twin's time, so that the scenario's events (pushes,
+# flips, all in its time) happen alike on a busy machine, whose twin falls behind the wall;
+# it ends anyway after this many times the duration of wall time (the twin stalled).
+REALTIME_WALL_CAP = 3.0
 BAR_WIDTH = 30
 
 
@@ -461,7 +465,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             twin_started = time.monotonic()
             cpu0 = sup.cpu_seconds(), time.process_time()
             flips_due = list(scenario.flip_requests_s)  # sent as an operator would: control.flip_request
-            while time.perf_counter() - wall0 < duration and not stop_requested.is_set():
+            while (twin.sim_ns / 1e9 < duration and time.perf_counter() - wall0 < REALTIME_WALL_CAP * duration
+                   and not stop_requested.is_set()):
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
                 if flips_due and twin.sim_ns / 1e9 >= flips_due[0]:
