@@ -51,6 +51,7 @@ from services.runtime.service import Service
 CACHE_ENV = "ARCHER_CACHE_DIR"
 REFERENCE_KEEPALIVE_NS = 100_000_000  # an unchanged reference is republished every 0.1 s (staleness is 0.5 s)
 WARM_NODES = 300  # throwaway graph that loads the kernels at start
+REFINE_BUDGET_SHARE = 0.4  # of a refine period, each MPC solve attempt's time limit (two attempts at most)
 WARM_BOUNDS = (0.0, 0.0, 2.0, 2.0)  # [m]
 
 
@@ -180,7 +181,8 @@ class PlannerService(Service):
         if radius is None:
             radius = self.prm.robot_radius or robot.footprint_radius
         params = rd.planner_params_for(self.prm, robot)  # no faster than the robot hops
-        self.planner = gp.GraphPlanner(params, radius)
+        # the refinement never blocks the planner: each MPC solve ends within its share of a tick
+        self.planner = gp.GraphPlanner(params, radius, mpc_time_limit_s=REFINE_BUDGET_SHARE / params.refine_hz)
         self.planner.set_seen(None, required=self.prm.require_seen)  # nothing seen yet, no world given
         # Load every compiled kernel now, before the service reports ready: done later, it
         # would cost the robot's first seconds CPU that the hard-rate loops need.

@@ -304,3 +304,35 @@ def test_an_ill_conditioned_cost_polishes_with_the_sparse_kkt_system():
     assert mpc._polisher.P_inv is None
     ref = sine_reference(4, 10, 0.1)
     assert mpc.solve(ref[0], ref).ok
+
+
+def _octagon_mpc(**kw) -> bm.BezierMpc:
+    """The planner's refinement MPC shape: the speed octagon's diagonal rows are single-waypoint rows."""
+    from onboard.high_level.planning.bezier_graph import speed_limits
+
+    reach = rc.BezierReachability(rc.double_integrator(2), speed_limits(A_MAX, V_MAX, tube=TUBE, tube_norm=2), 0.1)
+    return bm.BezierMpc(reach, 20, WEIGHTS, trust_region=[0.3, 0.3, np.inf, np.inf], init_radius=[0.02, 0.02, 0.0, 0.0],
+                        **kw)
+
+
+def test_a_start_past_the_speed_bound_is_refused_at_once_with_its_reason():
+    """A measured speed past the speed octagon (a push): no answer exists, and it is said at once,
+    not after the solver's whole iteration budget."""
+    mpc = _octagon_mpc()
+    ref = sine_reference(0, 20, 0.1)
+    assert mpc.solve(ref[0], ref).ok  # the same problem from a start inside the bound
+    fast = ref[0].copy()
+    fast[2:] = 0.95 * V_MAX  # each axis within the bound, the diagonal far past it
+    sol = mpc.solve(fast, ref)
+    assert not sol.ok and "initial state" in sol.status and sol.iterations == 0
+
+
+def test_a_time_limit_ends_the_solve_with_its_reason():
+    mpc = _octagon_mpc(time_limit_s=1e-7, polish=False)
+    ref = sine_reference(1, 20, 0.1)
+    target = ref.copy()
+    target[1:-1, :2] += 0.2  # away from the warm start: many iterations' work
+    sol = mpc.solve(ref[0], ref, target=target)
+    assert "time limit" in sol.status
+    with pytest.raises(ValueError, match="time_limit_s"):
+        _octagon_mpc(time_limit_s=-1.0)

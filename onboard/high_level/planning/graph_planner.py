@@ -128,7 +128,7 @@ class GraphPlanner(MpcRefinement):
     """
 
     def __init__(self, params: PlannerParams, robot_radius: float, bounds: tuple[float, float, float, float] | None = None,
-                 nodes: int | None = None) -> None:
+                 nodes: int | None = None, mpc_time_limit_s: float = 0.0) -> None:
         if not (math.isfinite(robot_radius) and robot_radius >= 0):
             raise PlanningError(f"robot radius must be finite and >= 0, got {robot_radius}")
         self.params = params
@@ -136,6 +136,9 @@ class GraphPlanner(MpcRefinement):
         self.tube = float(params.tube)
         self.fixed_bounds = None if bounds is None else tuple(float(b) for b in bounds)
         self.fixed_nodes = nodes
+        # [s] each MPC solve's bound (OSQP's own limit), set by a real-time caller; 0 (lockstep): none,
+        # so that a run's answers do not depend on the machine's speed
+        self.mpc_time_limit_s = float(mpc_time_limit_s)
         self.stats = PlannerStats()
         self.graph: BezierGraph | None = None
         self._tree: cKDTree | None = None

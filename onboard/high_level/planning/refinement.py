@@ -99,7 +99,7 @@ class MpcRefinement:
             test = reach.BezierReachability(model, speed_limits(prm.a_max, prm.v_max, tube=self.tube, tube_norm=2), prm.mpc_dt)
             self._mpc = BezierMpc(test, prm.mpc_horizon, MPC_WEIGHTS, trust_region=[prm.mpc_trust, prm.mpc_trust, inf, inf],
                                   init_radius=self._init_radius(),
-                                  max_planes=max(planes, prm.halfspaces), terminal="equal")
+                                  max_planes=max(planes, prm.halfspaces), terminal="equal", time_limit_s=self.mpc_time_limit_s)
             self._mpc_tube = self.tube
             self._last_solution = None
         return self._mpc

@@ -31,6 +31,7 @@ tightened by ``margin`` so that a solver's small residual never becomes a violat
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -141,6 +142,9 @@ class BezierMpc:
     eps: float = 1e-4  # OSQP tolerance (PIQP: eps / 100)
     margin: float = 1e-3  # [units of each row: m, m/s, m/s^2] tightening seen by the solver
     max_iter: int = 500  # bounds the solve time; an unconverged answer is used only if certified
+    # [s] OSQP's own limit on each attempt (0: none). A real-time caller bounds its refinement by
+    # it; lockstep runs leave it 0, so that their answers do not depend on the machine's speed.
+    time_limit_s: float = 0.0
     polish: bool = True  # active-set polishing: exact answers from loose iterates (OSQP's, then ours)
     unit_rows: bool = True  # see above
     _ready: bool = field(default=False, init=False)
@@ -156,6 +160,8 @@ class BezierMpc:
             raise ValueError("weights must be non-negative")
         self.trust = np.full(n, np.inf) if self.trust_region is None else np.broadcast_to(np.asarray(self.trust_region, float), (n,)).copy()
         self.x0_radius = np.zeros(n) if self.init_radius is None else np.broadcast_to(np.asarray(self.init_radius, float), (n,)).copy()
+        if not (self.time_limit_s >= 0.0 and math.isfinite(self.time_limit_s)):
+            raise ValueError(f"time_limit_s must be finite and >= 0, got {self.time_limit_s}")
         if np.any(self.trust <= self.margin) or np.any(self.x0_radius < 0):
             raise ValueError("trust region must exceed the margin, init radius non-negative")
         if np.any((self.x0_radius > 0) & (self.x0_radius <= self.margin)):
@@ -392,6 +398,7 @@ class BezierMpc:
                 verbose=False, warm_starting=True, polishing=self.polish and has_equality,
                 eps_abs=self.eps, eps_rel=self._eps_rel, max_iter=self.max_iter,
                 eps_prim_inf=1e-6, eps_dual_inf=1e-6, scaling=_OSQP_SCALING_UNIT_ROWS if self.unit_rows else _OSQP_SCALING_PHYSICAL_ROWS,
+                **({"time_limit": self.time_limit_s} if self.time_limit_s > 0 else {}),  # OSQP refuses 0
                 check_termination=_OSQP_CHECK_TERMINATION, adaptive_rho_interval=_OSQP_ADAPTIVE_RHO_INTERVAL,
             )  # fmt: skip
         elif self.backend == "piqp":
@@ -518,6 +525,10 @@ class BezierMpc:
         us = np.where(eq, u, u - self.row_margin)
         if np.any(ls > us):
             return self._certify(None, A, l, u, "infeasible bounds", 0, np.nan)
+        if self._start_outside_node_rows(lo[0], hi[0], us):
+            # e.g. a measured speed past the speed bound: no answer exists, and an iterative solver
+            # would spend its whole iteration budget finding that out
+            return self._certify(None, A, l, u, "infeasible: the initial state breaks the state constraints", 0, np.nan)
         if self.backend == "osqp":
             upd = {"q": q, "l": ls, "u": us}
             if a_changed:
@@ -558,6 +569,15 @@ class BezierMpc:
             rs = self._solver.result
             y, status, iters, obj = rs.x, str(st).split(".")[-1], int(rs.info.iter), float(rs.info.primal_obj)
         return self._certify(y, A, l, u, status, iters, obj)
+
+    def _start_outside_node_rows(self, lo0: np.ndarray, hi0: np.ndarray, us: np.ndarray) -> bool:
+        """Whether some single-waypoint row (the speed polygon) holds for no first waypoint in
+        the box ``[lo0, hi0]`` the initial state allows, as the solver sees the rows (tightened)."""
+        if not len(self.node_b):
+            return False
+        centre, half = (lo0 + hi0) / 2, (hi0 - lo0) / 2
+        least = self.node_A @ centre - np.abs(self.node_A) @ half  # each row's smallest value over the box
+        return bool(np.any(least > us[self.r_node][: len(self.node_b)]))
 
     def _osqp_warm_start(self, warm_start: np.ndarray | None, shift: int, ref: np.ndarray) -> None:
         """Primal warm start; OSQP keeps its last dual. Shifting the duals too was measured
