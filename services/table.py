@@ -13,6 +13,7 @@ tests read it.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from dataclasses import dataclass
 
 from onboard.contracts.topics import TOPICS
@@ -25,6 +26,13 @@ class ServiceRow:
     target: str  # "module:Class"
     unit: str | None  # its unit file in deploy/systemd; None: a stand-in only `archer sim` runs
     on_robot: bool  # runs on the robot (no MuJoCo, no simulator)
+    needs: tuple[tuple[str, str], ...] = ()  # (module, the package extra that installs it): optional dependencies
+
+    def missing(self) -> list[str]:
+        """One line per optional dependency this service needs and this install lacks."""
+        return [f"{self.process} needs the Python module {module!r}: install the {extra!r} extra "
+                f"(pip install -e '.[{extra}]' in the checkout)"
+                for module, extra in self.needs if importlib.util.find_spec(module) is None]
 
     def service_class(self) -> type[Service]:
         module_name, _, class_name = self.target.partition(":")
@@ -44,7 +52,7 @@ class ServiceRow:
 SERVICES: dict[str, ServiceRow] = {row.process: row for row in (
     ServiceRow("router", "services.runtime.router:RouterService", "archer-router.service", True),
     ServiceRow("hardware", "services.hardware:HardwareService", "archer-hardware.service", True),
-    ServiceRow("mocap", "services.mocap:MocapService", "archer-mocap.service", True),
+    ServiceRow("mocap", "services.mocap:MocapService", "archer-mocap.service", True, needs=(("motioncapture", "mocap"),)),
     ServiceRow("estimator", "services.estimator:EstimatorService", "archer-estimator.service", True),
     ServiceRow("control", "services.control:ControlService", "archer-control.service", True),
     ServiceRow("planner", "services.planner:PlannerService", "archer-planner.service", True),
@@ -54,3 +62,8 @@ SERVICES: dict[str, ServiceRow] = {row.process: row for row in (
     ServiceRow("twin", "services.twin:TwinService", "archer-twin.service", False),
     ServiceRow("scenario_reference", "services.twin:ScenarioReferenceService", None, False),
 )}
+
+
+def missing_dependencies(processes: list[str]) -> list[str]:
+    """What the optional dependencies of ``processes`` lack here, one line each (empty: nothing)."""
+    return [line for name in processes if name in SERVICES for line in SERVICES[name].missing()]

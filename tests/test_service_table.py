@@ -48,3 +48,26 @@ def test_the_runtime_refuses_a_publisher_or_a_subscription_the_row_does_not_list
         service.on_message("imu", lambda msg: None)
     with pytest.raises(ValueError, match="planner subscribes to 'state'"):
         service.latest_sampled("state")
+
+
+def test_a_missing_optional_dependency_is_one_clear_line_before_anything_starts(monkeypatch):
+    """Without the `mocap` extra, the run that needs it says which extra to install, at once,
+    instead of a unit that never comes up."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    from services.table import SERVICES, missing_dependencies
+
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "motioncapture" else real_find_spec(name, *a))
+    lines = missing_dependencies(["estimator", "mocap"])
+    assert lines == ["mocap needs the Python module 'motioncapture': install the 'mocap' extra (pip install -e '.[mocap]' in the checkout)"]
+    assert SERVICES["estimator"].missing() == []
+    # the same through the command line, in a process where the module cannot be found
+    hide = ("import importlib.util, sys; f = importlib.util.find_spec; "
+            "importlib.util.find_spec = lambda n, *a: None if n == 'motioncapture' else f(n, *a); "
+            "from services.cli.main import main; sys.exit(main(sys.argv[1:]))")
+    done = subprocess.run([sys.executable, "-c", hide, "run", "mocap", "--endpoint", "tcp/127.0.0.1:9"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2 and "install the 'mocap' extra" in done.stderr and done.stderr.count("\n") == 1, done.stderr

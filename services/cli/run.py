@@ -37,6 +37,10 @@ def build_service(args: argparse.Namespace) -> Service:
 def run(args: argparse.Namespace) -> int:
     die_with_parent(int(os.environ.get(SUPERVISOR_PID_ENV, "0") or 0), signal.SIGTERM)
     setup_logging(args.log_level)
+    lacking = SERVICES[args.service].missing()
+    if lacking:
+        print(f"archer run: {'; '.join(lacking)}", file=sys.stderr)
+        return 2
     try:
         service = build_service(args)
     except ConfigError as exc:

@@ -357,7 +357,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
 
 
 def _run_realtime(args: argparse.Namespace) -> dict:
-    from services.table import SERVICES
+    from services.table import SERVICES, missing_dependencies
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
     from services.runtime.peers import query_status, request_once
     from services.runtime.supervisor import Supervisor, sim_specs
@@ -404,6 +404,9 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     if view and "view" not in wanted:
         wanted.append("view")
     missing = [s for s in wanted if s not in SERVICES]
+    lacking = missing_dependencies(wanted)
+    if lacking:  # said before anything starts, not as a unit that never came up
+        raise ValueError("; ".join(lacking))
     progress = _Progress(enabled=not args.quiet and duration >= PROGRESS_MIN_S)
 
     _take_twin_priority()
