@@ -180,3 +180,19 @@ def test_keys_come_from_the_table():
 
 # real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
 pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")
+
+
+def test_loop_statistics_say_which_ticks_they_cover_and_keep_every_ticks_maximum():
+    """Percentiles over the ring of recent ticks (``window`` of them), maxima and overruns over every
+    tick: a spike that has left the ring is still the maximum."""
+    from services.runtime.realtime import LoopRecorder
+
+    rec = LoopRecorder(capacity=100)
+    rec.record(late_s=5e-3, compute_s=9e-4, overrun=True)  # early spike
+    for _ in range(250):
+        rec.record(late_s=1e-5, compute_s=1e-4, overrun=False)
+    st = rec.stats()
+    assert st.ticks == 251 and st.window == 100 and st.overruns == 1
+    assert st.tick_us_p99 == pytest.approx(100.0) and st.period_jitter_us_p99 == pytest.approx(10.0)
+    assert st.tick_us_max == pytest.approx(900.0) and st.period_jitter_us_max == pytest.approx(5000.0)
+    assert rec.stats(last=10).window == 10

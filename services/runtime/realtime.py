@@ -116,14 +116,15 @@ def freeze_heap() -> None:
 
 @dataclass
 class LoopStats:
-    ticks: int
-    overruns: int
+    ticks: int  # every tick of the run
+    overruns: int  # of every tick
+    window: int  # the most recent ticks the percentiles cover (the ring, or fewer when asked)
     period_jitter_us_p50: float
     period_jitter_us_p99: float
     period_jitter_us_max: float
     tick_us_p50: float
     tick_us_p99: float
-    tick_us_max: float
+    tick_us_max: float  # the maxima cover every tick of the run
 
     def as_dict(self) -> dict[str, float]:
         return {k: (round(v, 2) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -137,12 +138,19 @@ class LoopRecorder:
         self._compute = np.zeros(capacity)
         self._n = 0
         self.overruns = 0
+        self._late_max = 0.0  # over every tick, not only the ring's
+        self._compute_max = 0.0
 
     def record(self, late_s: float, compute_s: float, overrun: bool) -> None:
         i = self._n % len(self._late)
         self._late[i] = late_s
         self._compute[i] = compute_s
         self._n += 1
+        late = abs(late_s)
+        if late > self._late_max:
+            self._late_max = late
+        if compute_s > self._compute_max:
+            self._compute_max = compute_s
         if overrun:
             self.overruns += 1
 
@@ -151,24 +159,26 @@ class LoopRecorder:
         return self._n
 
     def stats(self, last: int | None = None) -> LoopStats:
-        """Percentiles over the ring, or over the ``last`` ticks only (cheap enough for a status)."""
+        """Percentiles over the ring, or over the ``last`` ticks only (cheap enough for a status);
+        maxima and overruns over every tick."""
         n = min(self._n, len(self._late))
         if last is not None:
             n = min(n, last)
         if n == 0:
-            return LoopStats(self._n, self.overruns, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            return LoopStats(self._n, self.overruns, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         idx = (self._n - n + np.arange(n)) % len(self._late)
         late = np.abs(self._late[idx]) * 1e6
         compute = self._compute[idx] * 1e6
         return LoopStats(
             ticks=self._n,
             overruns=self.overruns,
+            window=n,
             period_jitter_us_p50=float(np.percentile(late, 50)),
             period_jitter_us_p99=float(np.percentile(late, 99)),
-            period_jitter_us_max=float(late.max()),
+            period_jitter_us_max=self._late_max * 1e6,
             tick_us_p50=float(np.percentile(compute, 50)),
             tick_us_p99=float(np.percentile(compute, 99)),
-            tick_us_max=float(compute.max()),
+            tick_us_max=self._compute_max * 1e6,
         )
 
 
