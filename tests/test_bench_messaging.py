@@ -47,4 +47,5 @@ def test_a_reachable_rate_is_measured_close_to_the_request() -> None:
     assert fig["sent"] == 1000
     assert fig["received"] >= 990, fig  # loopback, one subscriber: nothing should be dropped
     assert 950.0 <= fig["rate_hz"] <= 1050.0, fig
-    assert fig["latency_us_p50"] > 0
+    # one hop over loopback through a router: tens to hundreds of microseconds, never the period's 1000
+    assert 5.0 < fig["latency_us_p50"] < 1000.0 and fig["latency_us_p50"] <= fig["latency_us_p99"] <= fig["latency_us_max"], fig

@@ -55,7 +55,9 @@ def test_the_mpc_process_publishes_setpoints_the_loop_tracks(zenoh_router):
                 assert abs(sum(v * v for v in sp.quat_des) - 1.0) < 1e-9 and len(sp.qp_iterations) == 2
             await wait_for(lambda: service._loop_proc.last.get("mid_level_ticks", 0) > 500, timeout_s=10.0)
             status = await asyncio.to_thread(query_status, client, NS, "control")
-            assert status.extra["gmpc_published"] > 100 and status.extra["gmpc_solve_ms_p50"] > 0.0
+            assert status.extra["gmpc_published"] > 100
+            # the SQP's two QPs and linearizations: milliseconds (CPU p50 ~5 ms at rest), under a second even on a loaded host
+            assert 0.5 < status.extra["gmpc_solve_ms_p50"] < 1000.0
             # the loop tracked the MPC rather than falling back (the first ticks before a setpoint aside)
             assert status.extra["mid_level_ticks"] > 10 * status.extra["mid_level_fallback_ticks"]
 
