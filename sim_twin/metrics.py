@@ -8,9 +8,13 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   goes down and ends when it has been up again for ``RECOVERY_S``. A run stops at the first fall
   unless it keeps going (``archer sim --keep-going``), so only then can this exceed 1;
   ``fall_time_s`` and ``fall_reason`` are the first fall's. In a scenario that flips
-  (``Scenario.flip_requests_s``) a tilt in flight is the manoeuvre: it is a fall only on the ground;
-- ``full_turns`` and ``flight_turn_max_deg`` (flip scenarios only): flights in which the body turned
-  at least ``FULL_TURN`` about horizontal axes, and the most any flight turned, from the true body rate;
+  (``Scenario.flip_requests_s``) a tilt is the manoeuvre only in a flight that starts while a
+  request is pending (made, not yet turned, and at most ``FLIP_PENDING_S`` old): there it is a
+  fall only on the ground (an upside-down landing); any other flight keeps the tilt bound;
+- ``full_turns``, ``flight_turn_max_deg`` and ``flight_turns_deg`` (flip scenarios only): flights
+  in which the body turned at least ``FULL_TURN`` about horizontal axes, the most any flight
+  turned, and every flight's turn past ``TURN_REPORTED`` (so each flip's angle can be read),
+  from the true body rate;
 - ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
 - ``collisions``: contact episodes between the robot and an obstacle;
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
@@ -40,6 +44,10 @@ from sim_twin.stack import TruthEstimator
 NS = 1_000_000_000
 MIN_FLIGHT_S = 0.08  # [s] an airborne spell shorter than this (apex < 8 mm) is a chatter, not a hop
 FULL_TURN = 0.9 * 2.0 * math.pi  # [rad] a flight turning the body this far counts as a flip
+TURN_REPORTED = 0.25 * math.pi  # [rad] flights turning further are listed one by one
+# [s] a flip request not turned by then was refused or dropped (the low level gives up after
+# control.flip_pump_hops hops of about 0.6 s): later flights keep the tilt bound
+FLIP_PENDING_S = 8.0
 RECOVERY_S = 0.5  # [s] up this long ends a fall: a fallen robot rocking on its housing is one fall
 TRACE_EVERY = 10  # ticks between trace samples (plots, continuous tracking error)
 
@@ -138,9 +146,12 @@ class PhysicsMetrics:
         self._on_ground = False
         self._airborne_since = 0.0
         self._aerial_turns = bool(scenario.flip_requests_s)  # the body turns over in flight on purpose
+        self._pending: list[float] = sorted(scenario.flip_requests_s)  # requests not yet turned [s]
+        self._turn_flight = False  # this flight started with a request pending: its tilt is the manoeuvre
         self._turned = 0.0  # [rad] the body turned about horizontal axes in this flight (flip scenarios)
         self.turn_max = 0.0  # [rad] the most of any flight
         self.full_turns = 0  # flights that turned the body at least FULL_TURN
+        self.turns: list[float] = []  # [rad] every flight's turn past TURN_REPORTED
         self._t_prev = 0.0
         self._in_collision = False
         self._impact_err: list[float] = []
@@ -164,7 +175,12 @@ class PhysicsMetrics:
                 self.hops += 1
             if self._aerial_turns:
                 self.turn_max = max(self.turn_max, self._turned)
-                self.full_turns += self._turned >= FULL_TURN
+                if self._turned >= TURN_REPORTED:
+                    self.turns.append(self._turned)
+                if self._turned >= FULL_TURN:
+                    self.full_turns += 1
+                    if self._pending and self._pending[0] <= t:
+                        self._pending.pop(0)  # the oldest request was turned
                 self._turned = 0.0
             if reference is not None:
                 (px, py, _), _ = self.truth.com(data)
@@ -175,6 +191,10 @@ class PhysicsMetrics:
         elif not foot_ground and self._on_ground:
             self._on_ground = False
             self._airborne_since = t
+            if self._aerial_turns:
+                while self._pending and t - self._pending[0] > FLIP_PENDING_S:
+                    self._pending.pop(0)  # refused or dropped by the low level
+                self._turn_flight = bool(self._pending) and self._pending[0] <= t
         elif not foot_ground and self._airborne_since == 0.0:
             self._airborne_since = t  # the initial drop: a flight start for timing
         if obstacle and not self._in_collision:
@@ -185,8 +205,9 @@ class PhysicsMetrics:
         qx, qy = qpos[self.qp_root + 4], qpos[self.qp_root + 5]
         tilted = 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max
         if self._aerial_turns:
-            if not foot_ground:
+            if not foot_ground and self._turn_flight:
                 tilted = tilted and body_ground  # turning over in flight is the manoeuvre; landing so is a fall
+            if not foot_ground:
                 self._turned += self._horizontal_rate(qpos, qvel) * (t - self._t_prev)
             self._t_prev = t
         fallen_now = body_ground or tilted
@@ -265,6 +286,7 @@ class PhysicsMetrics:
             "torque_saturation_fraction": round(actuation.saturation_fraction, 5),
             "commands_refused": {k: v for k, v in actuation.counters.items() if k != "applied" and v},
             "world": self.scenario.world_summary(),
-            **({"full_turns": self.full_turns, "flight_turn_max_deg": round(math.degrees(self.turn_max), 1)}
+            **({"full_turns": self.full_turns, "flight_turn_max_deg": round(math.degrees(self.turn_max), 1),
+                "flight_turns_deg": [round(math.degrees(a), 1) for a in self.turns]}
                if self._aerial_turns else {}),
         }

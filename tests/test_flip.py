@@ -16,6 +16,7 @@ from robot_description import params as rd
 from robot_description.controller import build_controller
 from services.runtime.zenoh_session import free_endpoint
 from sim_twin import lockstep as ls
+from sim_twin.metrics import PhysicsMetrics
 
 
 def controller(variant: str):
@@ -122,6 +123,8 @@ def test_the_twin_flips_twice_lands_upright_and_hops_on(seed):
     assert out["falls"] == 0 and out["goal_reached"], out
     assert out["flip"] == {"flips": 2, "flips_dropped": 0, "flips_refused": 0}
     assert out["full_turns"] == 2 and out["flight_turn_max_deg"] > 340.0  # measured on the true body rate
+    turns = out["flight_turns_deg"]  # every flight that turned the body past 45 deg, one by one: the two flips
+    assert len(turns) == 2 and all(340.0 < a < 380.0 for a in turns), turns
     assert out["hops"] >= 25  # hopping before, between and after
     assert 1000.0 < out["max_wheel_speed_rad_s"] < rd.robot_params("sim15nm").wheel_speed_knee
 
@@ -144,3 +147,47 @@ def test_in_real_time_the_flip_request_reaches_the_control_loop_as_a_parameter()
     assert out["falls"] == 0, out
     assert out["flip"]["requests_sent"] == 1 and out["flip"]["request_errors"] == []
     assert out["flip"]["flips"] == 1 and out["full_turns"] == 1
+
+
+def _posed(runner: ls.LockstepRunner, z: float, quat: tuple[float, float, float, float]):
+    """The twin's data with the robot's root at height ``z`` [m] and attitude ``quat``, its contacts found."""
+    import mujoco
+
+    data = mujoco.MjData(runner.model)
+    root = runner.metrics.qp_root
+    data.qpos[:] = runner.data.qpos
+    data.qpos[root + 2] = z
+    data.qpos[root + 3:root + 7] = quat
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(runner.model, data)
+    return data
+
+
+def test_in_a_flip_scenario_only_a_flight_with_a_request_pending_may_turn_over():
+    """The tilt bound is lifted in flight only while a requested flip is pending: a tumble in any
+    other flight is a fall, and an upside-down landing is a fall whatever was requested."""
+    runner = ls.LockstepRunner(ls.RunConfig("flip", seed=0, variant="sim15nm", duration_s=1.0))
+    request = runner.scenario.flip_requests_s[0]
+    zs = [z / 200 for z in range(120, -40, -1)]  # [m] root heights tried, lowering it to the first contact
+    standing = next(d for d in (_posed(runner, z, (1.0, 0.0, 0.0, 0.0)) for z in zs) if any(runner.metrics.contacts.classify(d)))
+    assert runner.metrics.contacts.classify(standing)[:2] == (True, False)  # on its foot alone
+    sideways = (math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0)  # 90 deg about x
+    in_the_air = _posed(runner, 2.0, sideways)
+    upside_down = next(d for d in (_posed(runner, z, (0.0, 1.0, 0.0, 0.0)) for z in zs) if any(runner.metrics.contacts.classify(d)))
+    assert runner.metrics.contacts.classify(upside_down)[:2] == (False, True)  # on its head
+    assert not any(runner.metrics.contacts.classify(in_the_air))
+
+    def fly(metrics, t0: float, tumble) -> None:
+        """Lift off from the foot at ``t0`` and spend a flight tilted 90 deg."""
+        metrics.update(t0, 0, standing, None, None, (0.0, 0.0, 0.0, 0.0))
+        metrics.update(t0 + 0.01, 0, tumble, None, None, (0.0, 0.0, 0.0, 0.0))
+
+    before = PhysicsMetrics(runner.model, runner.scenario, runner.truth, runner.safety)
+    fly(before, request - 1.0, in_the_air)  # no request yet: a tumble
+    assert before.falls == 1 and before.fall_reason == "tilt"
+
+    pending = PhysicsMetrics(runner.model, runner.scenario, runner.truth, runner.safety)
+    fly(pending, request + 0.5, in_the_air)  # the requested turn, under way
+    assert pending.falls == 0
+    pending.update(request + 0.6, 0, upside_down, None, None, (0.0, 0.0, 0.0, 0.0))  # ...landing on its head
+    assert pending.falls == 1 and pending.fall_reason == "body on the ground"
