@@ -46,7 +46,7 @@ from typing import Any
 import zenoh
 
 from deploy import soak_faults as sf
-from deploy.soak_analysis import TWIN, Injection, Streams, analyze, window_losses
+from deploy.soak_analysis import TWIN, Injection, Streams, analyze, falls_by_window, window_losses
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard.contracts import messages as m
 from onboard.contracts.topics import TOPICS, liveliness_key, topic_for_key
@@ -326,6 +326,9 @@ class Soak:
     # --- faults ---
 
     def _inject(self, f: Fault, sim_pid: int, session: zenoh.Session, window_end: int) -> Injection:
+        if f.kind == "noop":  # nothing done: what shows in its window is a false detection
+            now = time.monotonic_ns()
+            return Injection(f, now, now, window_end)
         if f.kind in ("kill", "router_restart"):
             pid = sf.target_pid(sim_pid, ROUTER if f.kind == "router_restart" else f.target)
             start = time.monotonic_ns()
@@ -461,12 +464,13 @@ class Soak:
         windows = [(inj.start_ns, inj.window_end_ns) for inj in self.injections]
         losses = window_losses(_recorded_seqs(files, self.ns, wall_minus_mono), windows) if files else [None] * len(windows)
         faults = [analyze(streams, inj, t0, loss) for inj, loss in zip(self.injections, losses)]
+        falls = falls_by_window(streams, self.injections, t0)
         finished = [p for p in files if p.suffix == ".mcap"]
         summary = {
             "run": {"duration_s": self.duration_s, "services": self.services, "endpoint": self.endpoint, "namespace": self.ns,
                     "schedule": [f.describe() for f in self.schedule.faults], "put_backs_s": [round((t - t0) / 1e9, 3) for t in self.put_backs]},
             "faults": faults,
-            "totals": _totals(faults),
+            "totals": _totals(faults, falls),
             "metrics": metrics,
             "recorder": file_metadata(finished[-1]) if finished else {},
             "recording_files": len(files),
@@ -501,20 +505,35 @@ def _recorded_seqs(files: list[Path], ns: str, wall_minus_mono: int):
         yield rec.log_ns - wall_minus_mono, topic.name, seq
 
 
-def _totals(faults: list[dict[str, Any]]) -> dict[str, Any]:
-    zero = [f["zero_torque_ms"] for f in faults if f.get("zero_torque_ms") is not None]
-    recovery = [f["recovery_s"] for f in faults if f.get("recovery_s") is not None]
-    return {
-        "faults": len(faults),
-        "detected": sum(1 for f in faults if f["detected"]),
-        "undetected": [f"{f['kind']}@{f['at']:g}" for f in faults if not f["detected"]],
-        "falls": sum(1 for f in faults if f.get("fell")),
-        "fell_on": [f"{f['kind']}@{f['at']:g}" for f in faults if f.get("fell")],
-        "not_recovered": [f"{f['kind']}@{f['at']:g}" for f in faults if not f["recovered"]],
+def _totals(faults: list[dict[str, Any]], falls: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run's figures and its verdict: ``passed`` only when every fault was carried out and
+    detected, the robot never fell (by its physics), and a lost commander always reached zero
+    torque."""
+    real = [f for f in faults if f["kind"] != "noop"]
+    noops = [f for f in faults if f["kind"] == "noop"]
+    zero = [f["zero_torque_ms"] for f in real if f.get("zero_torque_ms") is not None]
+    recovery = [f["recovery_s"] for f in real if f.get("recovery_s") is not None]
+    name = lambda f: f"{f['kind']}@{f['at']:g}"  # noqa: E731
+    totals = {
+        "faults": len(real),
+        "detected": sum(1 for f in real if f["detected"]),
+        "undetected": [name(f) for f in real if f["injected"] and not f["detected"]],
+        "not_injected": [name(f) for f in real if not f["injected"]],
+        "noop_faults": len(noops),
+        "false_detections": [name(f) for f in noops if f["detected"]],
+        "false_detection_rate": round(sum(f["detected"] for f in noops) / len(noops), 3) if noops else None,
+        "falls": len(falls),  # every fall of the run, by the physics
+        "fall_times": falls,
+        "falls_outside_faults": sum(1 for fall in falls if fall["fault"] is None),
+        "fell_on": [name(f) for f in real if f.get("fell")],
+        "zero_torque_missing": [name(f) for f in real if f.get("zero_torque_missing")],
+        "not_recovered": [name(f) for f in real if not f["recovered"]],
         "zero_torque_ms_max": max(zero) if zero else None,
         "recovery_s_max": max(recovery) if recovery else None,
-        "lost": {t: n for t, n in _sum_lost(faults).items() if n},
+        "lost": {t: n for t, n in _sum_lost(real).items() if n},
     }
+    totals["passed"] = not (totals["undetected"] or totals["not_injected"] or falls or totals["zero_torque_missing"])
+    return totals
 
 
 def _sum_lost(faults: list[dict[str, Any]]) -> dict[str, int]:
@@ -578,7 +597,7 @@ def run(args: argparse.Namespace) -> int:
     for fault in summary["faults"]:
         print(json.dumps(fault), flush=True)
     print(json.dumps({"totals": summary["totals"], "summary": str(soak.out / "summary.json")}), flush=True)
-    return 0
+    return 0 if summary["totals"]["passed"] else 1  # a fault not carried out or not detected, a fall, torque never cut
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,14 @@ Per fault (:func:`analyze`):
 - **time to zero torque**: from injection to the twin's ``command_stale`` / ``command_refused``
   event (it stopped applying torque) or the first ``torque_cmd`` with ``armed`` false, whichever
   is first, within the same attribution bound; only when the robot was armed at injection.
-- **fell**: the twin's ``falls`` count (its physics, not an estimate) rose during the fault's window.
+- **fell**: the twin's ``falls`` count (its physics, not an estimate) rose during the fault's window;
+  every fall of the run, with its time and the window it lies in (or none), is in the totals
+  (:func:`falls_by_window`).
+- **not injected**: a fault whose action could not be carried out (no process found, a refused
+  signal) is reported as such, never as detected, and fails the run; a ``noop`` fault does
+  nothing, and any signal seen in its window is a false detection (the rate is in the totals);
+- **zero torque missing**: the commander (control) killed or stalled while armed and the
+  motors never reached zero torque: fails the run.
 - **recovery**: from injection until everything the fault disturbed is back: each service whose
   liveliness was lost declared it again (the unit is active); the commands are armed again (and
   stay armed ``ARMED_HOLD_S``) and the robot touched down after that (hopping); the reference
@@ -61,7 +68,9 @@ SIGNALS = {
     "cpu_hog": ("safety", "counter"),
     "malformed_flood": ("safety", "counter"),
     "bad_stamps": ("safety", "counter"),
+    "noop": ("safety", "liveliness", "noticed_exit", "counter"),  # every kind's: a false detection is any of them
 }
+COMMANDER = "control"  # the service whose loss leaves the motors without a commander
 _STAMP_SIGNS = re.compile(r"future|past|order|stale|outlier|reject|reset|bad_stamp|invalid")
 
 
@@ -74,7 +83,7 @@ def counter_matters(fault: Fault, name: str) -> bool:
         return any(t in lowered for t in fault.topics) and bool(_STAMP_SIGNS.search(lowered))
     if fault.kind == "cpu_hog":
         return "overrun" in lowered
-    if fault.kind in ("kill", "stall"):  # a service's own watchdog-like counters
+    if fault.kind in ("kill", "stall", "noop"):  # a service's own watchdog-like counters
         return "stale" in lowered or "errors" == lowered
     return False
 
@@ -245,6 +254,26 @@ def twin_falls(s: Streams, lo: int, hi: int) -> tuple[float | None, float | None
     return before, after
 
 
+def fall_times(s: Streams) -> list[int]:
+    """When each fall of the run showed: the twin status reply whose ``falls`` count rose (its
+    physics, at the status poll's resolution)."""
+    out, last = [], 0.0
+    for t, service, values in s.statuses:
+        if service == TWIN and "falls" in values:
+            out.extend([t] * int(max(0.0, values["falls"] - last)))
+            last = max(last, values["falls"])
+    return out
+
+
+def falls_by_window(s: Streams, injections: Sequence[Injection], t0_ns: int) -> list[dict[str, Any]]:
+    """Every fall with its time [s after the twin started] and the fault window it lies in (None: outside any)."""
+    out = []
+    for t in fall_times(s):
+        inside = next((inj for inj in injections if inj.start_ns <= t < inj.window_end_ns), None)
+        out.append({"t_s": _s(t, t0_ns), "fault": None if inside is None else f"{inside.fault.kind}@{inside.fault.at_s:g}"})
+    return out
+
+
 def analyze(s: Streams, inj: Injection, t0_ns: int, losses: dict[str, dict[str, int]] | None = None) -> dict[str, Any]:
     """The summary of one fault (see the module docstring); times relative to ``t0_ns`` (the twin's start)."""
     f, lo, hi = inj.fault, inj.start_ns, inj.window_end_ns
@@ -263,6 +292,10 @@ def analyze(s: Streams, inj: Injection, t0_ns: int, losses: dict[str, dict[str, 
 
     signals = detection_signals(s, inj)
     first = min(signals.items(), key=lambda kv: kv[1]) if signals else None
+    out["injected"] = not inj.error and f.kind != "noop"
+    if inj.error:  # nothing was done: whatever showed is not this fault's detection
+        out["signals_without_injection_ms"] = {name: _ms(t, lo) for name, t in sorted(signals.items(), key=lambda kv: kv[1])}
+        signals, first = {}, None
     out["detected"] = first is not None
     out["detection_ms"] = _ms(first[1], lo) if first else None
     out["detected_by"] = first[0] if first else None
@@ -273,6 +306,8 @@ def analyze(s: Streams, inj: Injection, t0_ns: int, losses: dict[str, dict[str, 
     zero_ns, zero_by = zero_torque(s, inj) if was_armed else (None, "")
     out["zero_torque_ms"] = _ms(zero_ns, lo)
     out["zero_torque_by"] = zero_by or None
+    commander_lost = out["injected"] and f.kind in ("kill", "stall") and f.service == COMMANDER
+    out["zero_torque_missing"] = bool(commander_lost and was_armed and zero_ns is None)
 
     before, after = twin_falls(s, lo, hi)
     out["fell"] = None if before is None or after is None else after > before

@@ -38,7 +38,9 @@ from typing import Any
 
 from onboard.contracts.topics import TOPICS
 
-KINDS = ("kill", "stall", "router_restart", "cpu_hog", "malformed_flood", "bad_stamps")
+# noop: nothing is done; looked at for every kind's signals, it measures how often "detected"
+# fires with nothing injected (the false-detection rate)
+KINDS = ("kill", "stall", "router_restart", "cpu_hog", "malformed_flood", "bad_stamps", "noop")
 TARGETED = ("kill", "stall")
 TIMED = ("stall", "cpu_hog", "malformed_flood", "bad_stamps")  # the fault lasts ``duration``
 FLOODS = ("malformed_flood", "bad_stamps")
@@ -59,6 +61,7 @@ _ALLOWED = {
     "cpu_hog": {"duration", "cpu"},
     "malformed_flood": {"topics", "duration", "rate_hz"},
     "bad_stamps": {"topics", "duration", "offset", "rate_hz"},
+    "noop": set(),
 }
 
 

@@ -15,8 +15,8 @@ import msgspec
 import pytest
 
 from deploy import soak_faults as sf
-from deploy.sil_soak import DEFAULT_SCHEDULE, commanded_armed
-from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, window_losses
+from deploy.sil_soak import DEFAULT_SCHEDULE, _totals, commanded_armed
+from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, window_losses
 from deploy.soak_schedule import (
     FLOOD_RATE_HZ, KINDS, Fault, ScheduleError, check_schedule, load_schedule, parse_kill, parse_schedule, parse_shorthand,
 )
@@ -243,6 +243,46 @@ def test_a_fault_nobody_noticed_is_reported_undetected_and_undisturbed() -> None
     assert not out["detected"] and out["detection_ms"] is None and out["signals_ms"] == {}
     assert out["armed_at_injection"] and out["zero_torque_ms"] is None
     assert out["fell"] is False and not out["degraded"] and out["recovered"] and out["recovery_s"] == 0.0
+
+
+def test_a_fault_not_carried_out_is_never_detected_and_fails_the_run() -> None:
+    """No process to kill: whatever shows in its window (here a routine stale estimate) is not its
+    detection; the run's verdict fails on it."""
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)
+    s.safety = [(int(10.2 * NS), "estimate_stale")]
+    inj = Injection(Fault("kill", 10.0, target="estimator"), 10 * NS, 10 * NS, 30 * NS, error="no process for 'estimator' found")
+    out = analyze(s, inj, t0_ns=0)
+    assert not out["injected"] and not out["detected"] and out["detected_by"] is None
+    assert out["signals_without_injection_ms"] == {"safety:estimate_stale": 200.0}
+    totals = _totals([out], [])
+    assert totals["not_injected"] == ["kill@10"] and totals["detected"] == 0 and not totals["passed"]
+
+
+def test_noop_faults_measure_false_detections() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)
+    s.safety = [(int(25.5 * NS), "estimate_stale")]  # something in the second noop's window
+    quiet = analyze(s, Injection(Fault("noop", 10.0), 10 * NS, 10 * NS, 20 * NS), t0_ns=0)
+    noisy = analyze(s, Injection(Fault("noop", 25.0), 25 * NS, 25 * NS, 35 * NS), t0_ns=0)
+    assert not quiet["detected"] and noisy["detected"] and noisy["detected_by"] == "safety:estimate_stale"
+    totals = _totals([quiet, noisy], [])
+    assert totals["faults"] == 0 and totals["noop_faults"] == 2
+    assert totals["false_detections"] == ["noop@25"] and totals["false_detection_rate"] == 0.5
+
+
+def test_every_fall_is_counted_by_the_physics_with_its_window_and_a_lost_commander_must_cut_torque() -> None:
+    s = _nominal()
+    _torque(s, 0.0, 40.0, armed=True)  # the torque never stops: a stall of control that nobody cut
+    s.statuses = [(t, "twin", {"falls": 0.0 if t < 12 * NS else 1.0 if t < 34 * NS else 2.0}) for t in _every(1.0, 40.0, 2.0)]
+    stall = Injection(Fault("stall", 10.0, target="control", duration_s=0.2), 10 * NS, int(10.2 * NS), 20 * NS, pid=7)
+    falls = falls_by_window(s, [stall], t0_ns=0)
+    assert falls == [{"t_s": 13.0, "fault": "stall@10"}, {"t_s": 35.0, "fault": None}]  # the second outside any fault
+    out = analyze(s, stall, t0_ns=0)
+    assert out["armed_at_injection"] and out["zero_torque_ms"] is None and out["zero_torque_missing"]
+    totals = _totals([out], falls)
+    assert totals["falls"] == 2 and totals["falls_outside_faults"] == 1 and totals["zero_torque_missing"] == ["stall@10"]
+    assert not totals["passed"]
 
 
 def test_a_flood_is_detected_by_the_rejection_counter_of_its_topic_only() -> None:
