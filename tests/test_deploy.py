@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes.util
 import json
+import os
 import shutil
+import signal
+import socket
+import time
 import stat
 import subprocess
 import sys
@@ -149,6 +154,74 @@ def test_locked_down_units_keep_what_each_service_needs():
     for service in ("planner", "perception"):
         assert parsed[f"archer-{service}.service"]["Service"]["CacheDirectory"] == ["archer"]  # numba's cache
     assert parsed["archer-recorder.service"]["Service"]["StateDirectory"] == ["archer"]  # the recordings
+
+
+JAILED = ("router", "estimator", "control", "recorder", "view")  # the router first: the others are its clients
+JAIL_READY_TIMEOUT_S = 180.0  # imports and Zenoh on a loaded 2-core machine
+
+
+def test_services_start_under_their_units_system_call_filter(tmp_path):
+    """The filters take nothing a service needs to start: the router and its clients, each run
+    under its unit's SystemCallFilter, RestrictAddressFamilies and MemoryDenyWriteExecute
+    (tests/unit_jail.py, libseccomp as systemd loads it), report READY=1 and keep running;
+    control's loop process and its real-time request included."""
+    if shutil.which("systemd-analyze") is None or ctypes.util.find_library("seccomp") is None:
+        pytest.skip("needs systemd-analyze (its system call groups) and libseccomp")
+    rendered = render_units(str(Path(sys.executable).parent / "archer"))
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    config = tmp_path / "archer.toml"
+    config.write_text(f'[recorder]\ndirectory = "{tmp_path / "rec"}"\n')
+    procs: dict[str, subprocess.Popen] = {}
+    managers: dict[str, socket.socket] = {}
+    ready: set[str] = set()
+
+    def collect(until: float, wanted: set[str]) -> None:
+        while time.monotonic() < until and not wanted <= ready:
+            for name, sock in managers.items():
+                try:
+                    if "READY=1" in sock.recv(4096).decode().splitlines():
+                        ready.add(name)
+                except BlockingIOError:
+                    pass
+            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+            assert not dead, (dead, {n: (tmp_path / f"{n}.log").read_text()[-2000:] for n in dead})
+            time.sleep(0.05)
+
+    try:
+        for name in JAILED:
+            unit = tmp_path / f"archer-{name}.service"
+            unit.write_text(rendered[unit.name])
+            notify = tmp_path / f"{name}.notify"
+            managers[name] = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+            managers[name].bind(str(notify))
+            managers[name].setblocking(False)
+            env = dict(os.environ, NOTIFY_SOCKET=str(notify), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+            command = [sys.executable, "-m", "services.cli.main", "run", name, "--endpoint", endpoint,
+                       "--namespace", "archer/jail", "--config", str(config)]
+            procs[name] = subprocess.Popen([sys.executable, str(Path(__file__).with_name("unit_jail.py")), str(unit), "--", *command],
+                                           env=env, stdout=open(tmp_path / f"{name}.log", "w"), stderr=subprocess.STDOUT,
+                                           start_new_session=True)
+            if name == "router":
+                collect(time.monotonic() + JAIL_READY_TIMEOUT_S, {"router"})
+        collect(time.monotonic() + JAIL_READY_TIMEOUT_S, set(JAILED))
+        assert ready == set(JAILED), {n: (tmp_path / f"{n}.log").read_text()[-2000:] for n in set(JAILED) - ready}
+        collect(time.monotonic() + 2.0, set(JAILED) | {"never"})  # and they keep running
+        logs = {n: (tmp_path / f"{n}.log").read_text() for n in JAILED}
+        assert all("Traceback" not in text for text in logs.values()), logs
+    finally:
+        for proc in reversed(procs.values()):
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs.values():
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        for sock in managers.values():
+            sock.close()
 
 
 def test_install_opens_the_ip_allow_lists_to_what_the_config_names(tmp_path):
