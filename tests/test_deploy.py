@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes.util
 import json
+import os
 import shutil
+import signal
+import socket
+import time
 import stat
 import subprocess
 import sys
@@ -13,7 +18,8 @@ import pytest
 import zenoh
 
 from services.runtime import zenoh_configs as zc
-from services.cli.deploy import EXAMPLE_CONFIG_DIR, plan_install, apply, render_units, systemd_verify, unit_templates
+from services.cli.deploy import (EXAMPLE_CONFIG_DIR, EXPOSURE_MAX, apply, ip_allow_dropins, plan_install, render_units,
+                                 systemd_exposure, systemd_verify, unit_templates)
 from services.table import SERVICES
 from services.runtime.config import load_params
 from onboard.contracts.params import ControlParams, EstimatorParams, HardwareParams
@@ -87,6 +93,157 @@ def test_rendered_units_pass_systemd_analyze_verify(tmp_path):
     assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
 
 
+def needs_systemd_security() -> None:
+    if shutil.which("systemd-analyze") is None:
+        pytest.skip("systemd-analyze is not installed")
+    probe = subprocess.run(["systemd-analyze", "security", "--offline=true", "--help"], capture_output=True, text=True, check=False)
+    if probe.returncode != 0:
+        pytest.skip(f"this systemd-analyze cannot rate unit files offline (systemd 250 or later): {probe.stderr.strip()}")
+
+
+def test_every_unit_is_locked_down_and_still_verifies(tmp_path):
+    """Issue 30.4: each service unit rates an exposure of at most 2.0, with the drop-ins
+    `archer deploy install` adds for the robot too, and systemd still accepts every unit."""
+    needs_systemd_security()
+    archer = str(Path(sys.executable).parent / "archer")  # ExecStart must exist for verify
+    rendered = render_units(archer)
+    result = systemd_verify(rendered, tmp_path)
+    assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
+    exposure = systemd_exposure(rendered, tmp_path)
+    assert sorted(exposure) == sorted(f"archer-{s}.service" for s in (*ROBOT, "twin", "mocap", "view"))
+    assert all(level <= EXPOSURE_MAX for level in exposure.values()), exposure
+    # the robot's drop-ins open the allow lists (a unit's settings then its drop-in's, as systemd reads them)
+    dropins = ip_allow_dropins(EXAMPLE_CONFIG_DIR / "archer-firmware.toml")
+    dropins["archer-router.service"] = (Path(__file__).resolve().parents[1] / "deploy/systemd/archer-lan.conf").read_text()
+    opened = {name: rendered[name] + "\n" + text.split("[Service]\n", 1)[1] for name, text in dropins.items()}
+    (tmp_path / "robot").mkdir()
+    assert all(level <= EXPOSURE_MAX for level in systemd_exposure(opened, tmp_path / "robot").values())
+    # and the rating would catch a unit that lost its hardening
+    loose = {"archer-view.service": rendered["archer-view.service"].replace("SystemCallFilter=", "#SystemCallFilter=")}
+    (tmp_path / "loose").mkdir()
+    assert systemd_exposure(loose, tmp_path / "loose")["archer-view.service"] > EXPOSURE_MAX
+
+
+def test_locked_down_units_keep_what_each_service_needs():
+    """The hardening takes nothing a service uses: real time where a loop asks for it, the
+    drives' bus and serial adapters for the hardware, writable memory for numba's JIT, the
+    recorder's directory, loopback for every Zenoh session."""
+    parsed = units()
+    for service in ROBOT + ("twin", "mocap", "view"):
+        unit = parsed[f"archer-{service}.service"]["Service"]
+        filters = unit["SystemCallFilter"]
+        assert filters[0] == "@system-service" and all(f.startswith("~") for f in filters[1:]), service
+        denied = {g for f in filters[1:] for g in f.removeprefix("~").split()}
+        assert "@privileged" in denied
+        raises_itself = service in ("control", "estimator", "hardware")
+        # sched_setscheduler / sched_setaffinity (the loops), setpriority (the planner's lower_priority)
+        assert ("@resources" in denied) == (not raises_itself and service != "planner"), service
+        assert unit["CapabilityBoundingSet"][-1] == ("CAP_SYS_NICE" if raises_itself else "")
+        assert ("PrivateUsers" in unit) == (not raises_itself)  # a user namespace voids the capability
+        assert ("MemoryDenyWriteExecute" in unit) == (service not in ("planner", "perception")), service
+        assert unit["IPAddressDeny"] == ["any"] and unit["IPAddressAllow"] == ["localhost"]
+        assert unit["ProtectProc"] == ["invisible"] and unit["RemoveIPC"] == ["yes"]
+        # /proc without its system files, but where numba (/proc/cpuinfo) or a library (/proc/mounts) reads them
+        assert ("ProcSubset" in unit) == (service not in ("planner", "perception", "twin")), service
+        assert unit["UMask"] == (["0027"] if service == "recorder" else ["0077"])
+        # AF_CAN for the drives; AF_NETLINK for the router only (it lists the interfaces it listens on)
+        extra = {"hardware": {"AF_CAN"}, "router": {"AF_NETLINK"}}.get(service, set())
+        assert set(unit["RestrictAddressFamilies"][-1].split()) == {"AF_UNIX", "AF_INET"} | extra, service
+    hardware = parsed["archer-hardware.service"]["Service"]
+    assert hardware["DeviceAllow"] == ["char-ttyACM rw", "char-ttyUSB rw"] and hardware["DevicePolicy"] == ["closed"]
+    for service in ("planner", "perception"):
+        assert parsed[f"archer-{service}.service"]["Service"]["CacheDirectory"] == ["archer"]  # numba's cache
+    assert parsed["archer-recorder.service"]["Service"]["StateDirectory"] == ["archer"]  # the recordings
+
+
+JAILED = ("router", "estimator", "control", "recorder", "view")  # the router first: the others are its clients
+JAIL_READY_TIMEOUT_S = 180.0  # imports and Zenoh on a loaded 2-core machine
+
+
+def test_services_start_under_their_units_system_call_filter(tmp_path):
+    """The filters take nothing a service needs to start: the router and its clients, each run
+    under its unit's SystemCallFilter, RestrictAddressFamilies and MemoryDenyWriteExecute
+    (tests/unit_jail.py, libseccomp as systemd loads it), report READY=1 and keep running;
+    control's loop process and its real-time request included."""
+    if shutil.which("systemd-analyze") is None or ctypes.util.find_library("seccomp") is None:
+        pytest.skip("needs systemd-analyze (its system call groups) and libseccomp")
+    rendered = render_units(str(Path(sys.executable).parent / "archer"))
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    config = tmp_path / "archer.toml"
+    config.write_text(f'[recorder]\ndirectory = "{tmp_path / "rec"}"\n')
+    procs: dict[str, subprocess.Popen] = {}
+    managers: dict[str, socket.socket] = {}
+    ready: set[str] = set()
+
+    def collect(until: float, wanted: set[str]) -> None:
+        while time.monotonic() < until and not wanted <= ready:
+            for name, sock in managers.items():
+                try:
+                    if "READY=1" in sock.recv(4096).decode().splitlines():
+                        ready.add(name)
+                except BlockingIOError:
+                    pass
+            dead = {n: p.returncode for n, p in procs.items() if p.poll() is not None}
+            assert not dead, (dead, {n: (tmp_path / f"{n}.log").read_text()[-2000:] for n in dead})
+            time.sleep(0.05)
+
+    try:
+        for name in JAILED:
+            unit = tmp_path / f"archer-{name}.service"
+            unit.write_text(rendered[unit.name])
+            notify = tmp_path / f"{name}.notify"
+            managers[name] = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+            managers[name].bind(str(notify))
+            managers[name].setblocking(False)
+            env = dict(os.environ, NOTIFY_SOCKET=str(notify), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+            command = [sys.executable, "-m", "services.cli.main", "run", name, "--endpoint", endpoint,
+                       "--namespace", "archer/jail", "--config", str(config)]
+            procs[name] = subprocess.Popen([sys.executable, str(Path(__file__).with_name("unit_jail.py")), str(unit), "--", *command],
+                                           env=env, stdout=open(tmp_path / f"{name}.log", "w"), stderr=subprocess.STDOUT,
+                                           start_new_session=True)
+            if name == "router":
+                collect(time.monotonic() + JAIL_READY_TIMEOUT_S, {"router"})
+        collect(time.monotonic() + JAIL_READY_TIMEOUT_S, set(JAILED))
+        assert ready == set(JAILED), {n: (tmp_path / f"{n}.log").read_text()[-2000:] for n in set(JAILED) - ready}
+        collect(time.monotonic() + 2.0, set(JAILED) | {"never"})  # and they keep running
+        logs = {n: (tmp_path / f"{n}.log").read_text() for n in JAILED}
+        assert all("Traceback" not in text for text in logs.values()), logs
+    finally:
+        for proc in reversed(procs.values()):
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs.values():
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        for sock in managers.values():
+            sock.close()
+
+
+def test_install_opens_the_ip_allow_lists_to_what_the_config_names(tmp_path):
+    assert ip_allow_dropins(EXAMPLE_CONFIG_DIR / "archer.toml") == {}  # drives on CAN, mocap on loopback
+    firmware = ip_allow_dropins(EXAMPLE_CONFIG_DIR / "archer-firmware.toml")
+    params = load_params(EXAMPLE_CONFIG_DIR / "archer-firmware.toml")
+    assert f"IPAddressAllow={params['archer_firmware'].board_host}\n" in firmware["archer-hardware.service"]
+    assert f"IPAddressAllow={params['mocap'].host}\n" in firmware["archer-mocap.service"]
+    apply(plan_install(tmp_path, FAKE_ARCHER, profile="archer-firmware"), dry_run=False)
+    unit_dir = tmp_path / "etc/systemd/system"
+    assert (unit_dir / "archer-hardware.service.d/50-ip-allow.conf").read_text() == firmware["archer-hardware.service"]
+    lan = unit_dir / "archer-router.service.d/archer-lan.conf"
+    assert "IPAddressAllow=" in lan.read_text()
+    lan.write_text("[Service]\nIPAddressAllow=192.168.7.0/24\n")  # the operator's robot LAN is kept
+    apply(plan_install(tmp_path, FAKE_ARCHER, profile="archer-firmware"), dry_run=False)
+    assert lan.read_text() == "[Service]\nIPAddressAllow=192.168.7.0/24\n"
+    named = tmp_path / "named.toml"
+    named.write_text('[mocap]\nhost = "motive.lab"\n')
+    with pytest.raises(ValueError, match="needs an address"):
+        ip_allow_dropins(named)
+
+
 def test_systemd_analyze_verify_would_catch_a_broken_unit(tmp_path):
     if shutil.which("systemd-analyze") is None:
         pytest.skip("systemd-analyze is not installed")
@@ -110,10 +267,10 @@ def test_install_writes_everything_and_keeps_edits_and_passwords(tmp_path):
 
     lines = apply(plan_install(tmp_path, FAKE_ARCHER), dry_run=False)
     unit_dir = tmp_path / "etc/systemd/system"
-    assert sorted(p.name for p in unit_dir.iterdir()) == sorted(unit_templates())
+    assert sorted(p.name for p in unit_dir.glob("archer*[!d]")) == sorted(unit_templates())  # *.d: drop-ins
     control = (unit_dir / "archer-control.service").read_text()
     assert f"ExecStart={FAKE_ARCHER} run control --config /etc/archer/archer.toml --zenoh-config /etc/archer/zenoh/control.json5" in control
-    assert "@" not in control
+    assert "@ARCHER@" not in control and "@CONFIG_DIR@" not in control  # (@system-service is a filter set)
     conf = tmp_path / "etc/archer"
     users = conf / "zenoh/users.txt"
     assert stat.S_IMODE(users.stat().st_mode) == 0o640

@@ -7,13 +7,18 @@
   ``archer`` executable) and ``@CONFIG_DIR@`` (``/etc/archer``) filled in;
 - ``usr/lib/sysusers.d/archer.conf`` (the ``archer`` user) and
   ``etc/systemd/network/80-archer-can.network`` (the CAN bus);
+- the drop-ins that open a unit's IP allow list (loopback only in the units) to what it
+  talks to: the robot's LAN for the router (``archer-lan.conf``, kept once installed), and,
+  from the installed ``archer.toml``, ARCHER's board for the hardware service and the mocap
+  server for the mocap service;
 - ``etc/archer/archer.toml`` and ``etc/archer/environment`` from ``deploy/config/``,
   only when absent (an operator's edits are kept);
 - ``etc/archer/zenoh/``: the router's config with access control, its password file
   (``users.txt``) and one client config per service and for the operator;
   secrets are mode 0640, group ``archer``. Passwords are generated once and kept on later installs.
 
-``archer deploy verify`` runs ``systemd-analyze verify`` on the rendered units;
+``archer deploy verify`` runs ``systemd-analyze verify`` on the rendered units and
+``systemd-analyze security`` on each service (exposure at most ``EXPOSURE_MAX``);
 ``archer deploy render DIR`` writes them to ``DIR``; ``archer deploy acl [--write]``
 prints (or rewrites) the generated Zenoh configs checked in under ``deploy/zenoh/``.
 """
@@ -22,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import grp
+import ipaddress
 import json
 import os
 import re
@@ -33,15 +39,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from services.runtime import zenoh_configs as zc
+from services.runtime.config import load_params
 
 DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 UNIT_DIR = DEPLOY_DIR / "systemd"
 EXAMPLE_CONFIG_DIR = DEPLOY_DIR / "config"
+EXPOSURE_MAX = 2.0  # `systemd-analyze security` exposure every service unit stays within (tests/test_deploy.py)
 ZENOH_DIR = DEPLOY_DIR / "zenoh"
 TARGET_CONFIG_DIR = "/etc/archer"
 SYSTEMD_UNIT_DIR = "etc/systemd/system"
 SYSUSERS_PATH = "usr/lib/sysusers.d/archer.conf"
 NETWORK_PATH = "etc/systemd/network/80-archer-can.network"
+LAN_DROPIN = "archer-lan.conf"  # the robot's LAN: the router serves an offboard workstation there
+IP_DROPIN_NAME = "50-ip-allow.conf"
 SERVICE_GROUP = "archer"
 UNIT_SUFFIXES = (".service", ".target")
 KEPT_CONFIGS = ("archer.toml", "environment")  # never overwritten once installed
@@ -86,6 +96,28 @@ def render_units(archer: str, config_dir: str = TARGET_CONFIG_DIR) -> dict[str, 
     return out
 
 
+def ip_allow_dropins(config: Path) -> dict[str, str]:
+    """Unit name -> drop-in adding the addresses beyond loopback that ``config`` (an
+    ``archer.toml``) makes the unit talk to: ARCHER's board (``[archer_firmware] board_host``,
+    hardware backend ``archer-firmware``) and the mocap server (``[mocap] host``)."""
+    params = load_params(config)
+    wanted = {"archer-mocap.service": ("[mocap] host", params["mocap"].host)}
+    if params["hardware"].backend == "archer-firmware":
+        wanted["archer-hardware.service"] = ("[archer_firmware] board_host", params["archer_firmware"].board_host)
+    out = {}
+    for unit, (key, host) in wanted.items():
+        try:
+            address = ipaddress.ip_address(host)
+        except ValueError:
+            raise ValueError(f"{config}: {key} = {host!r}: the unit's IP allow list needs an address, not a name") from None
+        if address.is_loopback:
+            continue  # the units allow loopback already
+        out[unit] = (f"# {unit}: the one address beyond loopback it talks to, {key} of {config.name}.\n"
+                     f"# Written by `archer deploy install`; rerun it after changing {key}.\n"
+                     f"[Service]\nIPAddressAllow={address}\n")
+    return out
+
+
 def read_users_file(path: Path) -> dict[str, str]:
     if not path.is_file():
         return {}
@@ -103,9 +135,15 @@ def plan_install(prefix: Path, archer: str, config_dir: str = TARGET_CONFIG_DIR,
     actions = [Action(prefix / SYSTEMD_UNIT_DIR / name, text) for name, text in render_units(archer, config_dir).items()]
     actions.append(Action(prefix / SYSUSERS_PATH, (UNIT_DIR / "archer.sysusers.conf").read_text()))
     actions.append(Action(prefix / NETWORK_PATH, (UNIT_DIR / "80-archer-can.network").read_text()))
+    actions.append(Action(prefix / SYSTEMD_UNIT_DIR / "archer-router.service.d" / LAN_DROPIN, (UNIT_DIR / LAN_DROPIN).read_text(),
+                          keep_existing=True))
     sources = {"archer.toml": f"{profile}.toml"}
     for name in KEPT_CONFIGS:
         actions.append(Action(local / name, (EXAMPLE_CONFIG_DIR / sources.get(name, name)).read_text(), keep_existing=True))
+    # the allow lists follow the config the services will read: the installed one when kept
+    installed = local / "archer.toml"
+    for unit, text in ip_allow_dropins(installed if installed.is_file() else EXAMPLE_CONFIG_DIR / sources["archer.toml"]).items():
+        actions.append(Action(prefix / SYSTEMD_UNIT_DIR / f"{unit}.d" / IP_DROPIN_NAME, text))
     # Zenoh: passwords generated once, kept afterwards (services already hold theirs).
     users_path = local / "zenoh" / "users.txt"
     passwords = read_users_file(users_path)
@@ -162,6 +200,27 @@ def systemd_verify(units: dict[str, str], directory: Path) -> subprocess.Complet
     return subprocess.run(["systemd-analyze", "verify", *paths], capture_output=True, text=True, check=False)
 
 
+_EXPOSURE = re.compile(r"Overall exposure level for (\S+): ([0-9.]+)")
+
+
+def systemd_exposure(units: dict[str, str], directory: Path) -> dict[str, float]:
+    """``systemd-analyze security --offline=true`` on each service of ``units`` written to
+    ``directory``: its overall exposure, 0 (locked down) to 10 (exposed)."""
+    out = {}
+    for name, text in units.items():
+        if not name.endswith(".service"):
+            continue
+        path = directory / name
+        path.write_text(text)
+        result = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager", str(path)],
+                                capture_output=True, text=True, check=False)
+        found = _EXPOSURE.search(result.stdout)
+        if found is None:
+            raise RuntimeError(f"systemd-analyze security {name}: no exposure in its answer: {result.stderr.strip()}")
+        out[name] = float(found.group(2))
+    return out
+
+
 # --- command line ------------------------------------------------------------------------------
 
 
@@ -176,7 +235,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("render", help="write the rendered units to a directory")
     p.add_argument("directory")
     p.add_argument("--archer", default=None)
-    sub.add_parser("verify", help="systemd-analyze verify the rendered units")
+    sub.add_parser("verify", help="systemd-analyze verify the rendered units and rate their exposure (security)")
     p = sub.add_parser("acl", help="print the generated Zenoh router configs (access control from the topic table)")
     p.add_argument("--write", action="store_true", help=f"rewrite them under {ZENOH_DIR}")
 
@@ -201,10 +260,14 @@ def run(args: argparse.Namespace) -> int:
                 print("archer deploy verify: systemd-analyze is not installed", file=sys.stderr)
                 return 2
             with tempfile.TemporaryDirectory() as tmp:
-                result = systemd_verify(render_units(archer_executable()), Path(tmp))
+                units = render_units(archer_executable())
+                result = systemd_verify(units, Path(tmp))
+                exposure = systemd_exposure(units, Path(tmp))
             sys.stdout.write(result.stdout)
             sys.stderr.write(result.stderr)
-            clean = result.returncode == 0 and not result.stderr.strip()
+            for name, level in exposure.items():
+                print(f"{name}: exposure {level:.1f}{'' if level <= EXPOSURE_MAX else f' > {EXPOSURE_MAX}'}")
+            clean = result.returncode == 0 and not result.stderr.strip() and max(exposure.values()) <= EXPOSURE_MAX
             print(f"{len(unit_templates())} units: {'ok' if clean else 'problems above'}")
             return 0 if clean else 1
         if args.action == "acl":
@@ -214,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 print(json.dumps(zc.access_control(), indent=2))
             return 0
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RuntimeError) as exc:  # RuntimeError: a systemd-analyze that cannot rate
         print(f"archer deploy {args.action}: {exc}", file=sys.stderr)
         return 2
     return 2
