@@ -177,6 +177,7 @@ class LockstepRunner:
         joints: m.JointSensors | None = None
         reference: m.ComReference | None = None
         last_ref_seen: m.ComReference | None = None
+        last_world: object = None  # moving obstacles: the last world the planner was handed (recorded when new)
         safety_events = phase_events = contract_violations = 0
         progress_ticks = max(1, int(PROGRESS_EVERY_S * NS / tick_ns))
         mj_step = mujoco.mj_step
@@ -235,6 +236,10 @@ class LockstepRunner:
                 messages.append(("torque_cmd", now_ns, cmd))
                 if reference is not last_ref_seen and reference is not None:
                     messages.append(("reference", now_ns, reference))
+                world = getattr(planner, "world", None)
+                if world is not last_world and world is not None:
+                    messages.append(("polytopes", now_ns, world))
+                    last_world = world
                 messages.extend(("phase", now_ns, ev) for ev in phase)
                 messages.extend(("safety", now_ns, ev) for ev in trips)
             last_ref_seen = reference
@@ -289,6 +294,9 @@ class LockstepRunner:
             out["planner_plans"] = planner.plans
             out["planner_no_path"] = planner.no_path
             out["planner_unseen_holds"] = planner.planner.stats.unseen_holds  # refined references held back: not yet seen
+            if scenario.movers:  # obstacles that move: how often the planner planned anew, and around shorter sweeps
+                out["planner_replans_per_s"] = round(planner.plans / t, 3) if t > 0 else 0.0
+                out["planner_sweep_relaxed"] = planner.planner.stats.sweep_relaxed
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
 
 

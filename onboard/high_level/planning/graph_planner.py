@@ -68,6 +68,7 @@ from scipy.spatial import cKDTree
 from onboard.geometry import bezier as bz
 from onboard.high_level.tracking import collision as col
 from onboard.high_level.planning import densify as dn
+from onboard.high_level.planning import moving_obstacles as mo
 from onboard.geometry import polygons as pg
 from onboard.contracts import messages as msgs
 from onboard.high_level.planning.bezier_graph import (
@@ -118,6 +119,7 @@ class PlannerStats:
     densify_rounds: int = 0  # densification rounds that added nodes
     densify_nodes: int = 0  # nodes they added
     frontier_plans: int = 0  # free mode: plans that end at a frontier, the goal being beyond the known free cells
+    sweep_relaxed: int = 0  # searches with moving obstacles swept shorter, the longer sweep having left no path
 
 
 class GraphPlanner(MpcRefinement):
@@ -143,6 +145,11 @@ class GraphPlanner(MpcRefinement):
         self.mode = "obstacles"
         self.obstacles = pg.pack_polygons([])
         self.cells = pg.pack_polygons([])
+        # moving obstacles (onboard.high_level.planning.moving_obstacles): as given, their velocities, and
+        # the sweep level they are cut at now (an index into SWEEP_LEVELS); None: no obstacle moves
+        self._moving: tuple[list[np.ndarray], np.ndarray] | None = None
+        self._sweep_level = 0
+        self._world_moves = False  # the obstacles come with velocities: a world that changes keeps a path still clear of it
         self._world_version = 0
         self._cut_key: tuple | None = None
         self.free: np.ndarray | None = None  # edge mask after the cut
@@ -186,10 +193,25 @@ class GraphPlanner(MpcRefinement):
             self.path = None
             self._frontier_target = None  # a new goal: explore toward it afresh
 
-    def set_obstacles(self, polygons: list) -> None:
-        """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
+    def set_obstacles(self, polygons: list, velocities: object | None = None) -> None:
+        """Convex obstacles ``[(k, 2) vertices, ...]`` [m], and optionally their velocities ``(M, 2)`` [m/s]:
+        a moving one is cut swept along its velocity over ``obstacle_sweep_s`` (at most
+        ``obstacle_sweep_max_m``); raises :class:`PlanningError` on a bad one."""
+        polygons = list(polygons)
+        self._moving = None
+        self._world_moves = velocities is not None
+        if velocities is not None:
+            try:
+                vel = mo.check_velocities(velocities, len(polygons))
+                polys = [pg.validate_polygon(p) for p in polygons]
+            except (ValueError, pg.PolygonError) as exc:
+                raise PlanningError(f"obstacle: {exc}") from None
+            if mo.moving(vel):
+                self._moving = (polys, vel)
+                self._sweep_level = 0
+                polygons = self._swept()
         try:
-            packed = pg.pack_polygons(list(polygons))
+            packed = pg.pack_polygons(polygons)
         except pg.PolygonError as exc:
             raise PlanningError(f"obstacle: {exc}") from None
         if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
@@ -197,6 +219,22 @@ class GraphPlanner(MpcRefinement):
         self.mode = "obstacles"
         self.obstacles = packed
         self._world_version += 1
+
+    def _swept(self) -> list[np.ndarray]:
+        """The moving obstacles swept at the current level."""
+        assert self._moving is not None
+        polys, vel = self._moving
+        horizon = self.params.obstacle_sweep_s * mo.SWEEP_LEVELS[self._sweep_level]
+        return mo.sweep_obstacles(polys, vel, horizon, self.params.obstacle_sweep_max_m)
+
+    def _set_sweep_level(self, level: int) -> bool:
+        """Cut the moving obstacles at sweep ``level`` from now on; whether that changed the world."""
+        if self._moving is None or level == self._sweep_level or not 0 <= level < len(mo.SWEEP_LEVELS):
+            return False
+        self._sweep_level = level
+        self.obstacles = pg.pack_polygons(self._swept())
+        self._world_version += 1
+        return True
 
     def set_free_cells(self, polygons: list) -> None:
         """Convex free cells: a curve is free iff its control points lie in one cell."""
@@ -395,7 +433,13 @@ class GraphPlanner(MpcRefinement):
         # replan, at the perception rate, has new cells fitted around the robot; densifying every
         # time was most of a maze run's time)
         approach = self.mode == "free" and self.params.frontier_approach_weight > 0
+        if self.mode == "obstacles" and self._set_sweep_level(0):  # moving obstacles: the full sweep first
+            self.cut()
         result, start_seeds, goal_seeds = self._search(x0, approach)
+        while result is None and self.mode == "obstacles" and self._set_sweep_level(self._sweep_level + 1):
+            self.cut()  # no way past the sweeps: shorter ones, down to where the obstacles are now
+            self.stats.sweep_relaxed += 1
+            result, start_seeds, goal_seeds = self._search(x0, approach)
         if result is not None or self.params.densify_budget_s <= 0:
             self.last_densify = None
         elif not self._settled():
@@ -557,11 +601,27 @@ class GraphPlanner(MpcRefinement):
     def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
         """True when there is no path, the world changed since it was planned, or the
         state is more than ``deviation`` [m] from where the path says it should be."""
-        if self.path is None or self.path_world_version != self._world_version:
+        if self.path is None:
             return True
+        if self.path_world_version != self._world_version:
+            # obstacles that move change the world at its rate; a path still clear of them (swept) is kept
+            if not (self._world_moves and self.mode == "obstacles" and self._path_clear(position, stamp_ns)):
+                return True
+            self.path_world_version = self._world_version
         t = (stamp_ns - self.path_t0_ns) * 1e-9
         expected = path_states(self.path.control_points, self.path.tau, np.array([t]))[0, :2]
         return float(np.hypot(*(np.asarray(position, float)[:2] - expected))) > deviation
+
+    def _path_clear(self, position: np.ndarray, stamp_ns: int) -> bool:
+        """Whether what is left of the path (from the segment under way) keeps its clearance from the
+        obstacles now (swept in full; the segment under way at least what the robot has now)."""
+        assert self.path is not None
+        if self._sweep_level != 0 and self._moving is not None:
+            self._set_sweep_level(0)
+        ctrl = self.path.control_points
+        k0 = min(max(int((stamp_ns - self.path_t0_ns) * 1e-9 / self.path.tau), 0), len(ctrl) - 1)
+        margin = min(self.margin, self.start_margin(position))
+        return not bool(np.any(self._blocked(col.hull_set(ctrl[k0:]), margin)[0]))
 
     # --- contract with the low level ------------------------------------------------------
 
