@@ -158,6 +158,9 @@ class PhysicsMetrics:
         self.ticks = 0
         self.hops = self.falls = self.recoveries = self.collisions = 0
         self.collisions_by_robot = self.collisions_by_obstacle = 0
+        goal = scenario.goal()
+        self._goal_tol = goal.tolerance if goal is not None else sc.GOAL_TOLERANCE
+        self.goal_time = math.nan  # [s] when the CoM first came within the goal's tolerance (trace samples)
         self.fell = False  # at least once: what stops a run and fails its goal
         self.down = False  # in a fall episode now
         self._up_since = math.nan  # when a fallen robot was last seen up again
@@ -254,6 +257,8 @@ class PhysicsMetrics:
             rx, ry = reference_at(reference, now_ns) if reference is not None else self.target
             err = math.hypot(px - rx, py - ry)
             self._cont_err.append(err)
+            if math.isnan(self.goal_time) and math.hypot(px - self.target[0], py - self.target[1]) <= self._goal_tol:
+                self.goal_time = t
             tr.t.append(t)
             tr.com.append((px, py, pz))
             if estimate is not None:
@@ -299,7 +304,8 @@ class PhysicsMetrics:
             "fall_reason": self.fall_reason,
             "collisions": self.collisions,
             # who moved: only where obstacles move (a static world's collisions are all the robot's)
-            **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle}
+            **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle,
+                "time_to_goal_s": None if math.isnan(self.goal_time) else round(self.goal_time, 3)}
                if self.scenario.movers else {}),
             "goal_reached": bool(final_err <= tol and not self.fell),
             "final_goal_error_m": round(final_err, 4),

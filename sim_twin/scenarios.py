@@ -570,8 +570,10 @@ class Kicked(Forest):
     KICK_S = 0.2  # [s] a kick's displacement takes this long (up to 2.5 m/s)
     KICK_CLEAR = 0.5  # [m] a kick's sweep keeps this far from the robot's centre, beyond the obstacle's circumradius
     GOAL_CLEAR = 0.5  # [m] and from the goal
-    OBSTACLE_GAP = 0.3  # [m] a kicked obstacle lands at least this far from the others (circumcircles)
+    OBSTACLE_GAP = 0.1  # [m] a kicked obstacle lands at least this far from the others (circumcircles)
+    FIELD_SLACK = 0.5  # [m] a kicked obstacle's centre stays within the field grown by this
     KICKS = 256  # drawn ahead (more than a run uses)
+    KICK_TRIES = 8  # (obstacle, direction, distance) drawn per kick; the first the kicker may make is made
 
     def setup(self, obstacles: int | None) -> None:
         super().setup(obstacles)
@@ -579,9 +581,10 @@ class Kicked(Forest):
         n = max(len(self.obstacles), 1)
         rng = self.rng
         self.kick_times = (self.KICK_FIRST + np.cumsum(rng.exponential(self.KICK_EVERY, self.KICKS))).tolist()
-        self.kick_which = rng.integers(0, n, self.KICKS).tolist()
-        self.kick_angle = rng.uniform(-math.pi, math.pi, self.KICKS).tolist()
-        self.kick_dist = rng.uniform(self.KICK_MIN, self.KICK_MAX, self.KICKS).tolist()
+        shape = (self.KICKS, self.KICK_TRIES)
+        self.kick_which = rng.integers(0, n, shape).tolist()
+        self.kick_angle = rng.uniform(-math.pi, math.pi, shape).tolist()
+        self.kick_dist = rng.uniform(self.KICK_MIN, self.KICK_MAX, shape).tolist()
         self.geometry = [_centre_radius(o) for o in self.obstacles]
         self.kicks_applied = self.kicks_skipped = 0
         self._next = 0
@@ -593,7 +596,8 @@ class Kicked(Forest):
         ox, oy = self.offsets[k]
         a, b = (cx + ox, cy + oy), (cx + ox + dx, cy + oy + dy)
         (x0, x1), (y0, y1) = self.region
-        if not (x0 <= b[0] <= x1 and y0 <= b[1] <= y1):
+        e = self.FIELD_SLACK
+        if not (x0 - e <= b[0] <= x1 + e and y0 - e <= b[1] <= y1 + e):
             return False
         if _segment_distance(robot, a, b) < r + self.KICK_CLEAR:
             return False
@@ -610,14 +614,16 @@ class Kicked(Forest):
         while self._next < len(self.kick_times) and t_s >= self.kick_times[self._next]:
             i = self._next
             self._next += 1
-            k = int(self.kick_which[i])
-            d, ang = self.kick_dist[i], self.kick_angle[i]
-            dx, dy = d * math.cos(ang), d * math.sin(ang)
-            if k in self._active or not self._admissible(k, dx, dy, self._robot.robot_xy(model, data)):
+            robot = self._robot.robot_xy(model, data)
+            for k, d, ang in zip(self.kick_which[i], self.kick_dist[i], self.kick_angle[i]):
+                dx, dy = d * math.cos(ang), d * math.sin(ang)
+                if k not in self._active and self._admissible(k, dx, dy, robot):
+                    self.kicks_applied += 1
+                    self._active[k] = (t_s, float(self.offsets[k, 0]), float(self.offsets[k, 1]),
+                                       dx / self.KICK_S, dy / self.KICK_S)
+                    break
+            else:
                 self.kicks_skipped += 1
-                continue
-            self.kicks_applied += 1
-            self._active[k] = (t_s, float(self.offsets[k, 0]), float(self.offsets[k, 1]), dx / self.KICK_S, dy / self.KICK_S)
         for k, (t0, fx, fy, vx, vy) in list(self._active.items()):
             s = min(t_s - t0, self.KICK_S)
             self.offsets[k] = (fx + vx * s, fy + vy * s)
