@@ -105,10 +105,30 @@ class FloorCalibration:
         rms_m = float(np.sqrt(np.mean(np.sum((back - floor) ** 2, axis=1))))
         return cls(lens, H, rms_px, rms_m, tuple(used))
 
-    def image_to_floor(self, pixels: np.ndarray) -> np.ndarray:
-        """Captured-frame pixels (N, 2) -> floor points (N, 2) [m]."""
+    def image_to_floor(self, pixels: np.ndarray, height: float = 0.0) -> np.ndarray:
+        """Captured-frame pixels (N, 2) -> points (N, 2) [m] of the horizontal plane ``height`` [m] above
+        the floor (0: the floor itself) that they show."""
         ideal = self.lens.undistort(pixels)
-        return cv2.perspectiveTransform(ideal.reshape(-1, 1, 2), np.linalg.inv(self.H)).reshape(-1, 2)
+        H = self.H if height == 0.0 else self.plane_homography(height)
+        return cv2.perspectiveTransform(ideal.reshape(-1, 1, 2), np.linalg.inv(H)).reshape(-1, 2)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's rotation R (world -> camera) and translation t, from the floor homography and
+        the lens (H = K [r1 r2 t] up to scale; R made orthonormal)."""
+        M = np.linalg.inv(self.lens.K) @ self.H
+        lam = 1.0 / np.linalg.norm(M[:, 0])
+        if (lam * M[:, 2])[2] < 0:  # the floor lies in front of the camera
+            lam = -lam
+        r1, r2 = lam * M[:, 0], lam * M[:, 1]
+        U, _, Vt = np.linalg.svd(np.stack([r1, r2, np.cross(r1, r2)], axis=1))
+        R = U @ Vt
+        return R, lam * M[:, 2]
+
+    def plane_homography(self, height: float) -> np.ndarray:
+        """(3, 3) points of the plane ``height`` [m] above the floor -> ideal-image pixels."""
+        R, t = self.pose()
+        H = self.lens.K @ np.stack([R[:, 0], R[:, 1], height * R[:, 2] + t], axis=1)
+        return H / H[2, 2]
 
     def floor_to_ideal(self, points: np.ndarray) -> np.ndarray:
         """Floor points (N, 2) [m] -> ideal-image pixels (N, 2)."""

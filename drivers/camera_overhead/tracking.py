@@ -2,8 +2,10 @@
 
 Segmentation is by colour (the lab's obstacles are painted one colour; HSV thresholds), each blob's
 pixels taken to the floor through the calibration and wrapped in their convex hull. A blob's outline
-is its silhouette: seen from above, a tall obstacle's top shows outside its footprint, so the floor
-polygon is the footprint grown away from the camera's axis (on the safe side). Tracking: each track is
+is its silhouette: seen from above, a vertical prism's top shows beyond its footprint. Taken to the
+plane of the obstacles' tops (``height``; the calibration knows the camera's pose) the silhouette
+holds the top, which is the footprint, grown toward the camera's nadir; on the floor it holds the
+base, grown away from it: the footprint lies in both, and their intersection is the polygon. Tracking: each track is
 a constant-velocity Kalman filter on its centroid; blobs are given to tracks greedily by distance
 within a gate, an unclaimed blob starts a track, a track unseen ``max_missed`` frames ends.
 """
@@ -17,6 +19,7 @@ import cv2
 import numpy as np
 
 from drivers.camera_overhead.calibration import FloorCalibration
+from onboard.geometry import polygons as pg
 
 
 @dataclass(frozen=True)
@@ -36,18 +39,39 @@ def segment(frame: np.ndarray, colour: ColourRange, min_area_px: int = 40) -> li
     return [cv2.convexHull(c).reshape(-1, 2).astype(float) for c in contours if cv2.contourArea(c) >= min_area_px]
 
 
-def floor_polygon(hull_px: np.ndarray, calib: FloorCalibration, max_vertices: int = 12, tolerance_m: float = 0.01) -> np.ndarray:
+def floor_polygon(hull_px: np.ndarray, calib: FloorCalibration, max_vertices: int = 12, tolerance_m: float = 0.01,
+                  height: float = 0.0) -> np.ndarray:
     """A blob's convex hull on the floor (k, 2) [m], counter-clockwise, at most ``max_vertices`` corners
-    (simplified outward: the hull of the simplified outline and nothing inside it is lost)."""
-    pts = calib.image_to_floor(hull_px).astype(np.float32)
-    hull = cv2.convexHull(pts).reshape(-1, 2)
+    (simplified outward: the outline simplified within ``eps`` and its faces pushed out by ``eps``, so
+    nothing inside the hull is lost)."""
+    hull = cv2.convexHull(calib.image_to_floor(hull_px).astype(np.float32)).reshape(-1, 2)
+    if height > 0.0:
+        top = _ccw(cv2.convexHull(calib.image_to_floor(hull_px, height).astype(np.float32)).reshape(-1, 2).astype(float))
+        both = pg.clip_polygon(_ccw(hull.astype(float)), *pg.polygon_halfspaces(top))
+        if len(both) >= 3:
+            hull = cv2.convexHull(both.astype(np.float32)).reshape(-1, 2)
+    poly = _ccw(hull.astype(float))
     eps = tolerance_m
-    while len(hull) > max_vertices:
-        hull = cv2.convexHull(cv2.approxPolyDP(hull.reshape(-1, 1, 2), eps, True)).reshape(-1, 2)
+    while len(poly) > max_vertices:
+        inner = _ccw(cv2.convexHull(cv2.approxPolyDP(hull.reshape(-1, 1, 2), eps, True)).reshape(-1, 2).astype(float))
+        if len(inner) >= 3:
+            A, b = pg.polygon_halfspaces(inner)
+            poly = _ccw(pg.polygon_from_halfspaces(A, b + eps))
         eps *= 2
-    poly = hull.astype(float)
+    return poly
+
+
+def _ccw(poly: np.ndarray) -> np.ndarray:
     area2 = float(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
     return poly if area2 > 0 else poly[::-1]
+
+
+def centroid(poly: np.ndarray) -> np.ndarray:
+    """Area centroid of a polygon (k, 2) [m]."""
+    mo = cv2.moments(poly.astype(np.float32).reshape(-1, 1, 2))
+    if mo["m00"] == 0.0:
+        return poly.mean(axis=0)
+    return np.array([mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]])
 
 
 @dataclass
@@ -71,7 +95,7 @@ class Track:
 
     def moved_polygon(self) -> np.ndarray:
         """The polygon where the filter puts the centroid now."""
-        return self.polygon - self.polygon.mean(axis=0) + self.x[:2]
+        return self.polygon - centroid(self.polygon) + self.x[:2]
 
 
 @dataclass
@@ -89,7 +113,7 @@ class Tracker:
         """Predict every track to ``t`` [s], give the blobs to tracks, start and end tracks; the live tracks."""
         for tr in self.tracks:
             self._predict(tr, t)
-        cents = [p.mean(axis=0) for p in polygons]
+        cents = [centroid(p) for p in polygons]
         pairs = sorted((float(np.hypot(*(c - tr.x[:2]))), i, j) for i, tr in enumerate(self.tracks) for j, c in enumerate(cents))
         used_t, used_b = set(), set()
         for d, i, j in pairs:
