@@ -12,11 +12,15 @@ import numpy as np
 import pytest
 
 from drivers.camera_overhead import tracking as tk
-from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration
+from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration, Lens, Marker
 from drivers.camera_overhead.device import CameraError, VideoSource
 from sim_twin import model as tm
 from sim_twin import overhead_camera as oc
 from sim_twin import scenarios as sc
+
+
+LENS = Lens(**vars(oc.default_camera().lens))  # the driver's model of the twin's camera
+MARKERS = [Marker(**vars(mk)) for mk in oc.default_markers()]
 
 
 def _scene(name: str, seed: int):
@@ -36,7 +40,7 @@ def test_calibration_on_the_twins_frames_has_sub_pixel_error(renderer: oc.Overhe
     for seed in range(3):
         scn, _, _ = _scene("kicked", seed)
         frame = renderer.render(scn, (0.0, 0.0))
-        cal = FloorCalibration.from_frame(frame, renderer.markers, renderer.camera.lens)
+        cal = FloorCalibration.from_frame(frame, MARKERS, LENS)
         assert cal.markers_used == tuple(range(len(renderer.markers)))
         assert cal.rms_px < 1.0 and cal.rms_m < 0.01
         # the floor under the camera maps where it is
@@ -49,7 +53,7 @@ def test_calibration_refuses_a_frame_without_markers() -> None:
     bare = oc.OverheadRenderer(oc.default_camera(), [], seed=1)
     scn, _, _ = _scene("forest", 0)
     with pytest.raises(CalibrationError):
-        FloorCalibration.from_frame(bare.render(scn), oc.default_markers(), bare.camera.lens)
+        FloorCalibration.from_frame(bare.render(scn), MARKERS, LENS)
 
 
 def _matches(scn: sc.Scenario, polys: list[np.ndarray]) -> None:
@@ -69,7 +73,7 @@ def test_obstacles_segment_into_convex_floor_polygons_holding_their_footprints(r
     for seed in range(3):
         scn, _, _ = _scene("forest", seed)
         frame = renderer.render(scn, (0.0, 0.0))
-        cal = FloorCalibration.from_frame(frame, renderer.markers, renderer.camera.lens)
+        cal = FloorCalibration.from_frame(frame, MARKERS, LENS)
         polys = [tk.floor_polygon(b, cal, height=sc.OBSTACLE_HEIGHT) for b in tk.segment(frame, tk.ColourRange())]
         _matches(scn, polys)
         for p in polys:  # convex, counter-clockwise
@@ -87,7 +91,7 @@ def test_tracks_give_the_sliding_obstacles_velocity_and_covariance(renderer: oc.
         t = i / rate
         scn.before_step(t, model, data)
         frame = renderer.render(scn)
-        cal = cal or FloorCalibration.from_frame(frame, renderer.markers, renderer.camera.lens)
+        cal = cal or FloorCalibration.from_frame(frame, MARKERS, LENS)
         tracks = tracker.update(t, [tk.floor_polygon(b, cal, height=sc.OBSTACLE_HEIGHT) for b in tk.segment(frame, tk.ColourRange())])
     assert len(tracks) == len(scn.obstacles)
     errors = []
@@ -119,7 +123,7 @@ def test_a_recorded_video_goes_through_the_same_capture_path(renderer: oc.Overhe
         while (f := src.read()) is not None:
             frames.append(f)
     assert len(frames) == len(raw) and frames[0].shape == raw[0].shape
-    cal = FloorCalibration.from_frame(frames[0], renderer.markers, cam.lens)
+    cal = FloorCalibration.from_frame(frames[0], MARKERS, LENS)
     assert cal.rms_px < 1.5  # JPEG-compressed frames
     polys = [tk.floor_polygon(b, cal, height=sc.OBSTACLE_HEIGHT) for b in tk.segment(frames[-1], tk.ColourRange())]
     _matches(scn, polys)

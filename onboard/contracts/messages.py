@@ -154,9 +154,9 @@ class MidLevelSetpoint(Message):
 class Polytope(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     """Convex set ``{x : A x <= b}`` with its vertices (2D, world frame, metres).
 
-    An obstacle may move: ``velocity`` [m/s] of the set (the planner sweeps it over the time the
-    robot commits to), ``covariance`` the 2x2 covariance of its position [m^2] row-major (empty:
-    not estimated). Both have defaults, so a publisher that knows neither stays valid (static).
+    An obstacle may move: ``velocity`` [m/s] of the set (the planner cuts it in time), ``covariance``
+    the 2x2 covariance of its position [m^2] row-major (empty: not estimated), ``name`` the
+    operator's. All have defaults, so a publisher that knows none stays valid (a static world).
     """
 
     A: list[list[float]]
@@ -164,6 +164,7 @@ class Polytope(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     vertices: list[list[float]]
     velocity: tuple[float, float] = (0.0, 0.0)
     covariance: list[float] = []
+    name: str = ""  # what the operator called it (`archer obstacles init`), if anything
 
 
 class PolytopeSet(Message):
