@@ -129,3 +129,89 @@ def test_a_recorded_video_goes_through_the_same_capture_path(renderer: oc.Overhe
     _matches(scn, polys)
     with pytest.raises(CameraError):
         VideoSource(str(tmp_path / "missing.avi"))
+
+
+def _record(path: str, renderer: oc.OverheadRenderer, name: str, seed: int, frames: int, rate: float) -> sc.Scenario:
+    scn, model, data = _scene(name, seed)
+    cam = renderer.camera
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), rate, (cam.width, cam.height))
+    for i in range(frames):
+        scn.before_step(i / rate, model, data)
+        writer.write(renderer.render(scn))
+    writer.release()
+    return scn
+
+
+def test_obstacles_init_lists_and_names_what_it_sees(renderer: oc.OverheadRenderer, tmp_path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    video = str(tmp_path / "floor.avi")
+    scn = _record(video, renderer, "forest", 1, 2, 4.0)
+    archer = [sys.executable, "-m", "services.cli.main", "obstacles"]
+    cal = subprocess.run([*archer, "calibrate", "--source", video, "--json"], capture_output=True, text=True, timeout=120)
+    assert cal.returncode == 0, cal.stderr
+    assert json.loads(cal.stdout)["rms_px"] < 1.5
+    names = tmp_path / "names.json"
+    got = subprocess.run([*archer, "init", "--source", video, "--name", "0=chair", "--name", "2=box", "--out", str(names), "--json"],
+                         capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr
+    listed = json.loads(got.stdout)
+    assert len(listed["obstacles"]) == len(scn.obstacles)
+    assert [o["name"] for o in json.loads(names.read_text())["obstacles"]] == ["chair", "box"]
+    bad = subprocess.run([*archer, "init", "--source", video, "--name", "99=ghost", "--json"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "no obstacle" in bad.stderr
+    missing = subprocess.run([*archer, "calibrate", "--source", str(tmp_path / "none.avi")], capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and "cannot open" in missing.stderr
+
+
+def test_camera_service_publishes_tracked_obstacles_from_a_video_file(renderer: oc.OverheadRenderer, zenoh_router, tmp_path) -> None:
+    import asyncio
+    import json
+    import time
+
+    from onboard.contracts import messages as m
+    from onboard.contracts.params import CameraOverheadParams
+    from onboard.contracts.topics import TOPICS
+    from services.camera_overhead import CameraOverheadService
+    from services.runtime.zenoh_session import open_session
+
+    ns = "archer/test-camera"
+    video = str(tmp_path / "sliding.avi")
+    rate = 8.0
+    scn = _record(video, renderer, "sliding", 2, 24, rate)
+    first = tk.floor_polygon(tk.segment(cv2.VideoCapture(video).read()[1], tk.ColourRange())[0],
+                             FloorCalibration.from_frame(renderer.render(scn), MARKERS, LENS), height=sc.OBSTACLE_HEIGHT)
+    names = tmp_path / "names.json"
+    names.write_text(json.dumps({"obstacles": [{"name": "crate", "polygon": first.tolist()}]}))
+    params = CameraOverheadParams(source=video, rate_hz=rate, names_file=str(names))
+    got: list[m.PolytopeSet] = []
+
+    async def scenario() -> dict:
+        service = CameraOverheadService(ns=ns, endpoint=zenoh_router, params={"camera_overhead": params})
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        sub = client.declare_subscriber(TOPICS["polytopes"].key(ns),
+                                        lambda s: got.append(m.decode(s.payload.to_bytes(), m.PolytopeSet)))
+        try:
+            end = time.monotonic() + 60.0
+            while not getattr(service, "source_ended", False) and time.monotonic() < end:
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(0.5)
+            return {"status": service.status_extra(), "counters": service.counters.snapshot()}
+        finally:
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    out = asyncio.run(asyncio.wait_for(scenario(), 120))
+    assert out["status"]["source_ended"] == 1.0 and 0 < out["status"]["calibration_rms_px"] < 1.5
+    assert len(got) >= 20  # every frame of the file, at the rate
+    last = got[-1]
+    assert last.source == "camera_overhead" and last.mode == "obstacles"
+    assert len(last.polytopes) == len(scn.obstacles)
+    assert all(len(p.covariance) == 4 for p in last.polytopes)
+    assert sum(math.hypot(*p.velocity) > 0.05 for p in last.polytopes) >= len(scn.movers) - 1  # they slide
+    assert [p.name for p in last.polytopes].count("crate") == 1
