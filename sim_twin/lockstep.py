@@ -70,6 +70,9 @@ class RunConfig:
     record: bool = False  # keep every message for --record
     sink: Callable[[str, int, object], None] | None = None  # also hand every message to this as it happens (a live view)
     sensor_outages: tuple[SensorOutage, ...] = ()  # windows in which a sensor's samples are lost
+    # the world the planner is told, in place of the ground truth: given the scenario, a function of the
+    # time [ns] and the robot's estimate giving a new PolytopeSet or None (e.g. the overhead camera's)
+    world: Callable[[sc.Scenario], Callable[[int, m.StateEstimate], m.PolytopeSet | None]] | None = None
 
 
 @dataclass
@@ -127,6 +130,10 @@ class LockstepRunner:
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
+        if cfg.world is not None:
+            if not isinstance(self.planner, st.GraphPlannerPlug) or isinstance(self.planner, perception_plug.PerceivedGraphPlannerPlug):
+                raise ValueError("a world source feeds the graph planner on ground truth (--planner graph, --perception truth)")
+            self.planner.use_world(cfg.world(self.scenario))
         self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 

@@ -215,3 +215,18 @@ def test_camera_service_publishes_tracked_obstacles_from_a_video_file(renderer: 
     assert all(len(p.covariance) == 4 for p in last.polytopes)
     assert sum(math.hypot(*p.velocity) > 0.05 for p in last.polytopes) >= len(scn.movers) - 1  # they slide
     assert [p.name for p in last.polytopes].count("crate") == 1
+
+
+def test_lockstep_planner_on_the_overhead_camera_world() -> None:
+    from onboard.contracts.params import CameraOverheadParams
+    from services.cli.overhead_world import overhead_world
+    from sim_twin.lockstep import RunConfig, run
+
+    res = run(RunConfig(scenario="crossing", seed=3, duration_s=3.0, estimator="truth", planner="graph", record=True,
+                        world=overhead_world(CameraOverheadParams())))
+    worlds = [msg for topic, _, msg in res.messages if topic == "polytopes" and msg.source == "camera_overhead"]
+    assert len(worlds) >= 10  # 4 Hz over 3 s
+    assert all(len(w.polytopes) == 1 for w in worlds)  # the walker, seen
+    walker = np.array(res.scenario.obstacles[0].vertices).mean(axis=0) + res.scenario.offsets[0]
+    assert math.dist(tk.centroid(np.array(worlds[-1].polytopes[0].vertices)), walker) < 0.15
+    assert res.metrics["planner_plans"] >= 1 and res.metrics["collisions"] == 0

@@ -44,6 +44,8 @@ def swept(poly: np.ndarray, displacement: np.ndarray) -> np.ndarray:
 def check_velocities(velocities: object, count: int) -> np.ndarray:
     """``(count, 2)`` finite velocities [m/s], or ValueError."""
     vel = np.asarray(velocities, dtype=float)
+    if vel.size == 0:
+        vel = vel.reshape(0, 2)
     if vel.shape != (count, 2) or not np.all(np.isfinite(vel)):
         raise ValueError(f"velocities must be {count} finite [vx, vy], got shape {vel.shape}")
     return vel
