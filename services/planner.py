@@ -361,7 +361,9 @@ class PlannerService(Service):
                 if msg.mode == "free":
                     self.planner.set_free_cells(polys)
                 else:
-                    self.planner.set_obstacles(polys)
+                    # obstacles that move carry their velocities (a static world's default to zero)
+                    vel = [p.velocity for p in msg.polytopes]
+                    self.planner.set_obstacles(polys, vel if any(v[0] or v[1] for v in vel) else None)
                 # perceived obstacles leave the unseen free: commit only to what the grid saw;
                 # free cells are seen free, and a world given whole has nothing unseen
                 required = self.prm.require_seen and msg.mode == "obstacles" and msg.source != "ground_truth"

@@ -61,6 +61,7 @@ SERVICES: dict[str, ServiceRow] = {row.process: row for row in (
     ServiceRow("view", "services.view:ViewService", "archer-view.service", True),
     ServiceRow("twin", "services.twin:TwinService", "archer-twin.service", False),
     ServiceRow("scenario_reference", "services.twin:ScenarioReferenceService", None, False),
+    ServiceRow("camera_overhead", "services.camera_overhead:CameraOverheadService", "archer-camera-overhead.service", True),
 )}
 
 

@@ -41,6 +41,7 @@ import mujoco
 from onboard.contracts import messages as msgs
 from onboard.contracts.binary_messages import DepthImage, encode_depth
 from onboard.contracts.params import TwinParams, as_dict
+from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from services.runtime.realtime import DeadlineLoop
 from services.runtime.service import Service
@@ -194,7 +195,8 @@ class TwinService(Service):
         if self.goal_pub is not None and goal is not None:
             self.goal_pub.put(goal)
         if self.poly_pub is not None:
-            self.poly_pub.put(self.scenario.polytopes())
+            # obstacles that move: where they are now, stamped now (the scenario moves them on the twin loop)
+            self.poly_pub.put(self.scenario.polytopes(self.clock.now_ns() if self.scenario.movers else 0))
 
     # --- lifecycle --------------------------------------------------------------------------------------
 
@@ -204,12 +206,14 @@ class TwinService(Service):
         self._wall0 = time.perf_counter()
         self.loop.start()
         next_world = 0.0
+        # obstacles that move are published at the world topic's rate, not only for late joiners
+        world_period = min(tp.world_period_s, 1.0 / TOPICS["polytopes"].rate_hz) if self.scenario.movers else tp.world_period_s
         try:
             while not self.stopping.is_set():
                 now = time.perf_counter()
                 if now >= next_world:
                     self._publish_world()
-                    next_world = now + tp.world_period_s
+                    next_world = now + world_period
                 await asyncio.sleep(STATUS_POLL_S)
                 if self.loop.error is not None:
                     self.fail(f"twin loop crashed: {self.loop.error!r}")

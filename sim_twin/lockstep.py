@@ -70,6 +70,9 @@ class RunConfig:
     record: bool = False  # keep every message for --record
     sink: Callable[[str, int, object], None] | None = None  # also hand every message to this as it happens (a live view)
     sensor_outages: tuple[SensorOutage, ...] = ()  # windows in which a sensor's samples are lost
+    # the world the planner is told, in place of the ground truth: given the scenario, a function of the
+    # time [ns] and the robot's estimate giving a new PolytopeSet or None (e.g. the overhead camera's)
+    world: Callable[[sc.Scenario], Callable[[int, m.StateEstimate], m.PolytopeSet | None]] | None = None
 
 
 @dataclass
@@ -127,6 +130,10 @@ class LockstepRunner:
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
+        if cfg.world is not None:
+            if not isinstance(self.planner, st.GraphPlannerPlug) or isinstance(self.planner, perception_plug.PerceivedGraphPlannerPlug):
+                raise ValueError("a world source feeds the graph planner on ground truth (--planner graph, --perception truth)")
+            self.planner.use_world(cfg.world(self.scenario))
         self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
@@ -177,6 +184,7 @@ class LockstepRunner:
         joints: m.JointSensors | None = None
         reference: m.ComReference | None = None
         last_ref_seen: m.ComReference | None = None
+        last_world: object = None  # moving obstacles: the last world the planner was handed (recorded when new)
         safety_events = phase_events = contract_violations = 0
         progress_ticks = max(1, int(PROGRESS_EVERY_S * NS / tick_ns))
         mj_step = mujoco.mj_step
@@ -235,6 +243,10 @@ class LockstepRunner:
                 messages.append(("torque_cmd", now_ns, cmd))
                 if reference is not last_ref_seen and reference is not None:
                     messages.append(("reference", now_ns, reference))
+                world = getattr(planner, "world", None)
+                if world is not last_world and world is not None:
+                    messages.append(("polytopes", now_ns, world))
+                    last_world = world
                 messages.extend(("phase", now_ns, ev) for ev in phase)
                 messages.extend(("safety", now_ns, ev) for ev in trips)
             last_ref_seen = reference
@@ -289,6 +301,9 @@ class LockstepRunner:
             out["planner_plans"] = planner.plans
             out["planner_no_path"] = planner.no_path
             out["planner_unseen_holds"] = planner.planner.stats.unseen_holds  # refined references held back: not yet seen
+            if scenario.movers:  # obstacles that move: how often the planner planned anew, and around shorter sweeps
+                out["planner_replans_per_s"] = round(planner.plans / t, 3) if t > 0 else 0.0
+                out["planner_sweep_relaxed"] = planner.planner.stats.sweep_relaxed
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
 
 

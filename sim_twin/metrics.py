@@ -16,7 +16,10 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   turned, and every flight's turn past ``TURN_REPORTED`` (so each flip's angle can be read),
   from the true body rate;
 - ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
-- ``collisions``: contact episodes between the robot and an obstacle;
+- ``collisions``: contact episodes between the robot and an obstacle, whoever moved; each is put down at
+  its first contact to the one that moved into the other (``collisions_by_robot``: the robot's CoM velocity
+  toward the obstacle along the contact normal exceeds the obstacle's toward the robot;
+  ``collisions_by_obstacle`` otherwise: a mover of the scenario, ``Scenario.velocities``, came at it);
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
   the same time, at every touchdown (``rms_/max_tracking_error_m``, the issue-4 definition) and over
   the whole run sampled every ``TRACE_EVERY`` ticks (``*_continuous_m``);
@@ -72,6 +75,7 @@ class ContactClassifier:
         foot = model.body(rd.FOOT).id
         n = model.ngeom
         robot, feet, ground, obstacle = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        index = [-1] * n  # the obstacle's index in the scenario, from its name obstacle_<k>
         for g in range(n):
             chain = [int(model.geom_bodyid[g])]
             while chain[-1] != 0:
@@ -84,7 +88,10 @@ class ContactClassifier:
                 ground[g] = True
             elif name.startswith(sc.OBSTACLE_PREFIX):
                 obstacle[g] = True
+                tail = name[len(sc.OBSTACLE_PREFIX):]
+                index[g] = int(tail) if tail.isdigit() else -1
         self.robot, self.foot, self.ground, self.obstacle = robot.tolist(), feet.tolist(), ground.tolist(), obstacle.tolist()
+        self.obstacle_index = index
 
     def classify(self, data: mujoco.MjData) -> tuple[bool, bool, bool]:
         """(foot on ground, other robot part on ground, robot touching an obstacle)."""
@@ -105,6 +112,28 @@ class ContactClassifier:
             elif ob[b]:
                 obstacle = True
         return foot_ground, body_ground, obstacle
+
+    def obstacle_contacts(self, data: mujoco.MjData) -> list[tuple[float, float, int]]:
+        """Each robot-obstacle contact: its horizontal normal from the robot toward the obstacle (unit;
+        zero for a vertical one) and the obstacle's index in the scenario."""
+        out = []
+        geoms = data.contact.geom
+        frames = data.contact.frame
+        for k in range(data.ncon):
+            a, b = int(geoms[k, 0]), int(geoms[k, 1])
+            sign = 1.0  # the frame's normal points from geom 1 to geom 2
+            if self.robot[b] and not self.robot[a]:
+                a, b, sign = b, a, -1.0
+            if not (self.robot[a] and self.obstacle[b]):
+                continue
+            nx, ny = sign * float(frames[k, 0]), sign * float(frames[k, 1])
+            norm = math.hypot(nx, ny)
+            if norm > 1e-9:
+                nx, ny = nx / norm, ny / norm
+            else:
+                nx = ny = 0.0
+            out.append((nx, ny, self.obstacle_index[b]))
+        return out
 
 
 def reference_at(ref: m.ComReference, now_ns: int) -> tuple[float, float]:
@@ -136,6 +165,10 @@ class PhysicsMetrics:
         self.trace = Trace()
         self.ticks = 0
         self.hops = self.falls = self.recoveries = self.collisions = 0
+        self.collisions_by_robot = self.collisions_by_obstacle = 0
+        goal = scenario.goal()
+        self._goal_tol = goal.tolerance if goal is not None else sc.GOAL_TOLERANCE
+        self.goal_time = math.nan  # [s] when the CoM first came within the goal's tolerance (trace samples)
         self.fell = False  # at least once: what stops a run and fails its goal
         self.down = False  # in a fall episode now
         self._up_since = math.nan  # when a fallen robot was last seen up again
@@ -199,6 +232,10 @@ class PhysicsMetrics:
             self._airborne_since = t  # the initial drop: a flight start for timing
         if obstacle and not self._in_collision:
             self.collisions += 1
+            if self._obstacle_came(data):
+                self.collisions_by_obstacle += 1
+            else:
+                self.collisions_by_robot += 1
         self._in_collision = obstacle
         qpos = data.qpos.tolist()
         qvel = data.qvel.tolist()
@@ -241,6 +278,8 @@ class PhysicsMetrics:
             rx, ry = reference_at(reference, now_ns) if reference is not None else self.target
             err = math.hypot(px - rx, py - ry)
             self._cont_err.append(err)
+            if math.isnan(self.goal_time) and math.hypot(px - self.target[0], py - self.target[1]) <= self._goal_tol:
+                self.goal_time = t
             tr.t.append(t)
             tr.com.append((px, py, pz))
             if estimate is not None:
@@ -251,6 +290,17 @@ class PhysicsMetrics:
             tr.wheel_vel.append(tuple(qvel[d] for d in self.wheel_dof))
             tr.torque.append(applied)
             tr.tracking_error.append(err)
+
+    def _obstacle_came(self, data: mujoco.MjData) -> bool:
+        """Whether the obstacle moved into the robot (faster along a contact normal than the robot moved into it)."""
+        _, (vx, vy, _) = self.truth.com(data)
+        vel = self.scenario.velocities
+        robot_in = obstacle_in = 0.0
+        for nx, ny, k in self.contacts.obstacle_contacts(data):
+            robot_in = max(robot_in, vx * nx + vy * ny)
+            if 0 <= k < len(vel):
+                obstacle_in = max(obstacle_in, -(float(vel[k, 0]) * nx + float(vel[k, 1]) * ny))
+        return obstacle_in > robot_in
 
     def _horizontal_rate(self, qpos: list[float], qvel: list[float]) -> float:
         """The true body rate about world-horizontal axes [rad/s] (the free joint's rate is in the body frame)."""
@@ -274,6 +324,10 @@ class PhysicsMetrics:
             "fall_time_s": None if math.isnan(self.fall_time) else round(self.fall_time, 4),
             "fall_reason": self.fall_reason,
             "collisions": self.collisions,
+            # who moved: only where obstacles move (a static world's collisions are all the robot's)
+            **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle,
+                "time_to_goal_s": None if math.isnan(self.goal_time) else round(self.goal_time, 3)}
+               if self.scenario.movers else {}),
             "goal_reached": bool(final_err <= tol and not self.fell),
             "final_goal_error_m": round(final_err, 4),
             "rms_tracking_error_m": _rms(impact),

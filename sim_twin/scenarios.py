@@ -41,8 +41,10 @@ class Obstacle:
     vertices: tuple[tuple[float, float], ...]
     height: float = OBSTACLE_HEIGHT
 
-    def polytope(self) -> m.Polytope:
-        vs = self.vertices
+    def polytope(self, offset: tuple[float, float] = (0.0, 0.0), velocity: tuple[float, float] = (0.0, 0.0)) -> m.Polytope:
+        """Its H- and V-form, shifted by ``offset`` [m] (a moving obstacle's displacement), moving at ``velocity`` [m/s]."""
+        ox, oy = offset
+        vs = tuple((x + ox, y + oy) for x, y in self.vertices) if (ox or oy) else self.vertices
         a, b = [], []
         for i in range(len(vs)):
             (x0, y0), (x1, y1) = vs[i], vs[(i + 1) % len(vs)]
@@ -50,6 +52,8 @@ class Obstacle:
             n = math.hypot(nx, ny)
             a.append([nx / n, ny / n])
             b.append((nx * x0 + ny * y0) / n)
+        if velocity[0] or velocity[1]:
+            return m.Polytope(A=a, b=b, vertices=[list(v) for v in vs], velocity=(float(velocity[0]), float(velocity[1])))
         return m.Polytope(A=a, b=b, vertices=[list(v) for v in vs])
 
 
@@ -145,7 +149,13 @@ class Scenario:
         # [s] when the operator asks the low level for a flip; in a scenario that asks, the body turns
         # over in flight on purpose, so a tilt counts as a fall only on the ground (sim_twin.metrics)
         self.flip_requests_s: list[float] = []
+        # obstacles that move during the run (indices into ``obstacles``): MuJoCo mocap bodies, displaced
+        # by ``offsets`` [m] at ``velocities`` [m/s], both set by the scenario's before_step
+        self.movers: list[int] = []
         self.setup(obstacles)
+        self.offsets = np.zeros((len(self.obstacles), 2))
+        self.velocities = np.zeros((len(self.obstacles), 2))
+        self._mocap: list[int] | None = None  # mocap ids of the movers, once the model is known
 
     # --- to override ------------------------------------------------------------
 
@@ -167,7 +177,9 @@ class Scenario:
             verts = [[x, y, z] for x, y in ob.vertices for z in (0.0, ob.height)]
             mesh_name = f"{OBSTACLE_PREFIX}{k}_mesh"
             spec.add_mesh(name=mesh_name, uservert=np.array(verts, dtype=float).reshape(-1).tolist())
-            spec.worldbody.add_geom(name=f"{OBSTACLE_PREFIX}{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
+            # a mover hangs from a mocap body at the origin: moving that body moves it, with contacts
+            parent = spec.worldbody.add_body(name=f"{OBSTACLE_PREFIX}{k}_body", mocap=True) if k in self.movers else spec.worldbody
+            parent.add_geom(name=f"{OBSTACLE_PREFIX}{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
                                     contype=1, conaffinity=2, group=0, rgba=WORLD_RGBA)
 
     def initialize(self, model: mujoco.MjModel, data: mujoco.MjData, robot: rd.RobotParams) -> None:
@@ -196,8 +208,21 @@ class Scenario:
         return m.ComReference(t_ref_ns=t_ref_ns, segments=list(self.segments), hold=hold)
 
     def polytopes(self, stamp_ns: int = 0) -> m.PolytopeSet:
-        return m.PolytopeSet(stamp_ns=stamp_ns, mode="obstacles", polytopes=[o.polytope() for o in self.obstacles],
-                             source="ground_truth")
+        """The ground-truth obstacles where they are now (movers displaced, with their velocity)."""
+        if not self.movers:
+            polys = [o.polytope() for o in self.obstacles]
+        else:
+            off, vel = self.offsets.tolist(), self.velocities.tolist()
+            polys = [o.polytope(tuple(off[k]), tuple(vel[k])) for k, o in enumerate(self.obstacles)]
+        return m.PolytopeSet(stamp_ns=stamp_ns, mode="obstacles", polytopes=polys, source="ground_truth")
+
+    def move_obstacles(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        """Put the movers' mocap bodies where ``offsets`` says (the physics follows at the next step)."""
+        if self._mocap is None:
+            self._mocap = [int(model.body_mocapid[model.body(f"{OBSTACLE_PREFIX}{k}_body").id]) for k in self.movers]
+        for k, mid in zip(self.movers, self._mocap):
+            data.mocap_pos[mid, 0] = self.offsets[k, 0]
+            data.mocap_pos[mid, 1] = self.offsets[k, 1]
 
 
 SCENARIOS: dict[str, type[Scenario]] = {}
@@ -495,3 +520,228 @@ class Maze(Scenario):
         self.obstacles = walls
         self.goal_xy = (4.3, float(self.rng.uniform(-w + 0.5, w - 0.5)))
         self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
+
+
+# --- obstacles that move during the run (issue 28: thesis 7.2, people kick the obstacles around) ---------------
+
+
+def _centre_radius(ob: Obstacle) -> tuple[float, float, float]:
+    """Centroid of the vertices and the circumradius about it [m]."""
+    vs = np.array(ob.vertices)
+    c = vs.mean(axis=0)
+    return float(c[0]), float(c[1]), float(np.max(np.hypot(*(vs - c).T)))
+
+
+def _segment_distance(p: tuple[float, float], a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Distance from point ``p`` to the segment ``a``-``b`` [m]."""
+    ax, ay = a
+    dx, dy = b[0] - ax, b[1] - ay
+    L2 = dx * dx + dy * dy
+    s = 0.0 if L2 == 0.0 else min(1.0, max(0.0, ((p[0] - ax) * dx + (p[1] - ay) * dy) / L2))
+    return math.hypot(p[0] - ax - s * dx, p[1] - ay - s * dy)
+
+
+class _Movers:
+    """What the moving scenarios share: the robot's true horizontal position, read in before_step."""
+
+    def __init__(self) -> None:
+        self._root: int | None = None
+
+    def robot_xy(self, model: mujoco.MjModel, data: mujoco.MjData) -> tuple[float, float]:
+        if self._root is None:
+            self._root = int(model.joint(rd.ROOT_JOINT).qposadr[0])
+        return float(data.qpos[self._root]), float(data.qpos[self._root + 1])
+
+
+@register
+class Kicked(Forest):
+    """A forest whose obstacles people kick around: at random times (every ``KICK_EVERY`` s on
+    average) one is shoved up to ``KICK_MAX`` m in a random direction within ``KICK_S`` s (a
+    sudden jump, far faster than the robot hops). As a person would, the kicker never kicks an
+    obstacle into the robot (its sweep keeps ``KICK_CLEAR`` from the robot's true position at the
+    kick), onto the goal, out of the field or onto another obstacle; such a kick is skipped."""
+
+    name = "kicked"
+    description = "a forest whose obstacles are kicked at random times: sudden jumps of up to 0.5 m"
+    DEFAULT_COUNT = 8
+    KICK_FIRST = 2.0  # [s] no kick before
+    KICK_EVERY = 2.0  # [s] mean time between kicks (exponential)
+    KICK_MIN, KICK_MAX = 0.2, 0.5  # [m] displacement range
+    KICK_S = 0.2  # [s] a kick's displacement takes this long (up to 2.5 m/s)
+    KICK_CLEAR = 0.5  # [m] a kick's sweep keeps this far from the robot's centre, beyond the obstacle's circumradius
+    GOAL_CLEAR = 0.5  # [m] and from the goal
+    OBSTACLE_GAP = 0.1  # [m] a kicked obstacle lands at least this far from the others (circumcircles)
+    FIELD_SLACK = 0.5  # [m] a kicked obstacle's centre stays within the field grown by this
+    KICKS = 256  # drawn ahead (more than a run uses)
+    KICK_TRIES = 8  # (obstacle, direction, distance) drawn per kick; the first the kicker may make is made
+
+    def setup(self, obstacles: int | None) -> None:
+        super().setup(obstacles)
+        self.movers = list(range(len(self.obstacles)))
+        n = max(len(self.obstacles), 1)
+        rng = self.rng
+        self.kick_times = (self.KICK_FIRST + np.cumsum(rng.exponential(self.KICK_EVERY, self.KICKS))).tolist()
+        shape = (self.KICKS, self.KICK_TRIES)
+        self.kick_which = rng.integers(0, n, shape).tolist()
+        self.kick_angle = rng.uniform(-math.pi, math.pi, shape).tolist()
+        self.kick_dist = rng.uniform(self.KICK_MIN, self.KICK_MAX, shape).tolist()
+        self.geometry = [_centre_radius(o) for o in self.obstacles]
+        self.kicks_applied = self.kicks_skipped = 0
+        self._next = 0
+        self._active: dict[int, tuple[float, float, float, float, float]] = {}  # k -> (t0, from x, y, velocity x, y)
+        self._robot = _Movers()
+
+    def _admissible(self, k: int, dx: float, dy: float, robot: tuple[float, float]) -> bool:
+        cx, cy, r = self.geometry[k]
+        ox, oy = self.offsets[k]
+        a, b = (cx + ox, cy + oy), (cx + ox + dx, cy + oy + dy)
+        (x0, x1), (y0, y1) = self.region
+        e = self.FIELD_SLACK
+        if not (x0 - e <= b[0] <= x1 + e and y0 - e <= b[1] <= y1 + e):
+            return False
+        if _segment_distance(robot, a, b) < r + self.KICK_CLEAR:
+            return False
+        if self.goal_xy is not None and math.dist(b, self.goal_xy) < r + self.GOAL_CLEAR:
+            return False
+        for j, (qx, qy, rj) in enumerate(self.geometry):
+            if j != k and math.dist(b, (qx + self.offsets[j, 0], qy + self.offsets[j, 1])) < r + rj + self.OBSTACLE_GAP:
+                return False
+        return True
+
+    def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        if not self.obstacles:
+            return
+        while self._next < len(self.kick_times) and t_s >= self.kick_times[self._next]:
+            i = self._next
+            self._next += 1
+            robot = self._robot.robot_xy(model, data)
+            for k, d, ang in zip(self.kick_which[i], self.kick_dist[i], self.kick_angle[i]):
+                dx, dy = d * math.cos(ang), d * math.sin(ang)
+                if k not in self._active and self._admissible(k, dx, dy, robot):
+                    self.kicks_applied += 1
+                    self._active[k] = (t_s, float(self.offsets[k, 0]), float(self.offsets[k, 1]),
+                                       dx / self.KICK_S, dy / self.KICK_S)
+                    break
+            else:
+                self.kicks_skipped += 1
+        for k, (t0, fx, fy, vx, vy) in list(self._active.items()):
+            s = min(t_s - t0, self.KICK_S)
+            self.offsets[k] = (fx + vx * s, fy + vy * s)
+            if t_s - t0 >= self.KICK_S:
+                del self._active[k]
+                self.velocities[k] = (0.0, 0.0)
+            else:
+                self.velocities[k] = (vx, vy)
+        self.move_obstacles(model, data)
+
+    def world_summary(self) -> dict:
+        return {**super().world_summary(), "kicks": self.kicks_applied, "kicks_skipped": self.kicks_skipped}
+
+
+@register
+class Sliding(Forest):
+    """A forest whose obstacles slide back and forth, each along its own random line, ``AMPLITUDE``
+    m either side of where it was placed, at a constant speed of up to ``SPEED`` m/s (at least half
+    of it), turning at the ends; a line that would bring an obstacle within ``CLEAR`` of the start or
+    the goal is drawn again (or the obstacle stays put)."""
+
+    name = "sliding"
+    description = "a forest whose obstacles slide back and forth at up to 0.25 m/s (slower than the robot hops)"
+    DEFAULT_COUNT = 6
+    GAP = 0.6  # [m] wider gaps than the static forest's: the obstacles sweep across them
+    SPEED = 0.25  # [m/s] the fastest an obstacle slides
+    AMPLITUDE = (0.3, 0.7)  # [m] range of the slide either side of its centre
+    CLEAR = 0.6  # [m] a slide keeps this far from the start and the goal, beyond its circumradius
+    LINE_TRIES = 50
+
+    def setup(self, obstacles: int | None) -> None:
+        super().setup(obstacles)
+        rng = self.rng
+        self.slides: list[tuple[float, float, float, float, float]] = []  # (axis x, y, amplitude, speed, phase [m])
+        for ob in self.obstacles:
+            cx, cy, r = _centre_radius(ob)
+            speed = float(rng.uniform(0.5, 1.0)) * self.SPEED
+            slide = (1.0, 0.0, 0.0, 0.0, 0.0)
+            for _ in range(self.LINE_TRIES):
+                ang, amp = float(rng.uniform(-math.pi, math.pi)), float(rng.uniform(*self.AMPLITUDE))
+                ax, ay = math.cos(ang), math.sin(ang)
+                a, b = (cx - amp * ax, cy - amp * ay), (cx + amp * ax, cy + amp * ay)
+                if all(_segment_distance(p, a, b) >= r + self.CLEAR for p in (self.start, self.target())):
+                    slide = (ax, ay, amp, speed, float(rng.uniform(0.0, 4.0 * amp)))
+                    break
+            self.slides.append(slide)
+        self.movers = [k for k, s in enumerate(self.slides) if s[2] > 0.0]
+
+    def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        for k in self.movers:
+            ax, ay, amp, speed, phase = self.slides[k]
+            # a triangle wave over one period 4 amp: from -amp up to +amp and back
+            u = (speed * t_s + phase) % (4.0 * amp)
+            s, ds = (u - amp, speed) if u < 2.0 * amp else (3.0 * amp - u, -speed)
+            self.offsets[k] = (ax * s, ay * s)
+            self.velocities[k] = (ax * ds, ay * ds)
+        self.move_obstacles(model, data)
+
+    def world_summary(self) -> dict:
+        speeds = [s[3] for k, s in enumerate(self.slides) if k in self.movers]
+        return {**super().world_summary(), "sliding": len(self.movers), "slide_speed_max": round(max(speeds, default=0.0), 3)}
+
+
+@register
+class SlidingFast(Sliding):
+    name = "sliding-fast"
+    description = "the sliding forest at up to 0.5 m/s: faster than the robot hops (0.375 m/s indoors)"
+    SPEED = 0.5
+
+
+@register
+class Crossing(Scenario):
+    """Someone walks across the robot's way: the goal lies ``DISTANCE`` m ahead; a walker (a
+    hexagon ``WALKER_RADIUS`` m round) stands ``SIDE`` m to one side of the straight line and,
+    when the robot comes within a lead of where it will cross, walks across at ``SPEED`` m/s
+    (no faster than the robot hops), timed to reach the line as a robot going straight at cruise
+    speed would, and on until it is ``SIDE`` m beyond it, where it stops."""
+
+    name = "crossing"
+    description = "a person walks across the robot's straight way to a goal 5 m ahead, timed to meet it"
+    default_duration_s = 40.0
+    DISTANCE = 5.0  # [m]
+    CROSS_X = (1.5, 3.5)  # [m] range of where the walker crosses the line
+    SIDE = 2.0  # [m] the walker starts (and ends) this far from the line
+    SLANT = math.radians(20.0)  # its way is at most this far from square to the line
+    SPEED = 0.3  # [m/s] walking speed
+    WALKER_RADIUS = 0.2  # [m]
+    TIMING = (0.8, 1.2)  # the robot's speed the walker times itself to, in cruise speeds
+
+    def setup(self, obstacles: int | None) -> None:
+        rng = self.rng
+        self.goal_xy = (self.DISTANCE, 0.0)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
+        xc = float(rng.uniform(*self.CROSS_X))
+        side = 1.0 if rng.uniform() < 0.5 else -1.0
+        slant = float(rng.uniform(-self.SLANT, self.SLANT))
+        dx, dy = math.sin(slant) * side, -math.cos(slant) * side  # walking direction, toward the line
+        half = self.SIDE / math.cos(slant)  # path length to the line
+        sx, sy = xc - dx * half, -dy * half
+        r = self.WALKER_RADIUS
+        ang = np.arange(6) * (math.pi / 3)
+        self.obstacles = [Obstacle(tuple((sx + r * math.cos(a), sy + r * math.sin(a)) for a in ang))]
+        self.movers = [0]
+        self.walk = (dx * self.SPEED, dy * self.SPEED, 2.0 * half / self.SPEED)  # velocity, walking time
+        lead = self.cruise_speed * float(rng.uniform(*self.TIMING)) * half / self.SPEED
+        self.trigger_x = xc - lead  # the walker sets off when the robot's x passes this
+        self.walk_start: float | None = None
+        self._robot = _Movers()
+
+    def before_step(self, t_s: float, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        if self.walk_start is None and self._robot.robot_xy(model, data)[0] >= self.trigger_x:
+            self.walk_start = t_s
+        if self.walk_start is not None:
+            vx, vy, dur = self.walk
+            s = min(t_s - self.walk_start, dur)
+            self.offsets[0] = (vx * s, vy * s)
+            self.velocities[0] = (vx, vy) if t_s - self.walk_start < dur else (0.0, 0.0)
+        self.move_obstacles(model, data)
+
+    def world_summary(self) -> dict:
+        return {**super().world_summary(), "walk_start_s": None if self.walk_start is None else round(self.walk_start, 3)}

@@ -28,6 +28,7 @@ import numpy as np
 
 from onboard.contracts import messages as m
 from onboard.contracts.params import SafetyLimits
+from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 
@@ -193,6 +194,12 @@ class GraphPlannerPlug:
         radius = p.robot_radius if p.robot_radius > 0 else robot.footprint_radius
         self.planner = GraphPlanner(p, robot_radius=radius)
         self.planner.set_obstacles([np.array(poly.vertices, dtype=float) for poly in scenario.polytopes().polytopes])
+        # obstacles that move: the ground truth where they are now, with their velocities, at the world topic's rate
+        self.scenario = scenario
+        self.world: m.PolytopeSet | None = None  # the last world handed to the planner (recorded by the runner)
+        self._world_ns = int(NS / TOPICS["polytopes"].rate_hz) if scenario.movers else 0
+        self._next_world = 0
+        self._world_fn = None  # a world source in place of the ground truth (use_world)
         goal = scenario.target()
         self.planner.set_goal(goal, tolerance=scenario.goal().tolerance if scenario.goal() else 0.1)
         self._replan_ns = int(NS / p.replan_hz)
@@ -205,6 +212,15 @@ class GraphPlannerPlug:
 
     def update(self, now_ns: int, state: m.StateEstimate) -> m.ComReference | None:
         pl = self.planner
+        if self._world_ns and now_ns >= self._next_world:
+            self._next_world = now_ns + self._world_ns
+            self.world = world = self.scenario.polytopes(now_ns)
+            pl.set_obstacles([np.array(p.vertices, dtype=float) for p in world.polytopes], [p.velocity for p in world.polytopes])
+        if self._world_fn is not None:
+            world = self._world_fn(now_ns, state)
+            if world is not None:
+                self.world = world
+                pl.set_obstacles([np.array(p.vertices, dtype=float) for p in world.polytopes], [p.velocity for p in world.polytopes])
         replan_due = now_ns >= self._next_replan
         refine_due = self._refine_ns and now_ns >= self._next_refine and pl.path is not None and hasattr(pl, "refine")
         if not (replan_due or refine_due):  # most ticks: the reference republished
@@ -235,6 +251,13 @@ class GraphPlannerPlug:
         if self.reference is not None:  # republished at the topic rate (see ScenarioReference)
             self.reference.stamp_ns = now_ns
         return self.reference
+
+    def use_world(self, world_fn) -> None:
+        """Take the world from ``world_fn(now_ns, state) -> PolytopeSet | None`` (None: nothing new)
+        instead of the scenario's ground truth; nothing is known before its first answer."""
+        self._world_fn = world_fn
+        self._world_ns = 0
+        self.planner.set_obstacles([], [])
 
     def feed(self, topic: str, msg: object) -> None:
         """The low level's measured tube: a broken promise is reported and planned around."""

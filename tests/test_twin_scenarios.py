@@ -12,7 +12,8 @@ from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 
-ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "flip", "shove", "step", "ramp", "blind-side", "forest", "maze"]
+ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "flip", "shove", "step", "ramp", "blind-side", "forest", "maze",
+       "kicked", "sliding", "sliding-fast", "crossing"]
 
 
 def _compiled(scn: sc.Scenario) -> tuple[mujoco.MjModel, mujoco.MjData]:

@@ -151,12 +151,20 @@ class MidLevelSetpoint(Message):
 # --- planning -------------------------------------------------------------------
 
 
-class Polytope(msgspec.Struct, forbid_unknown_fields=True):
-    """Convex set ``{x : A x <= b}`` with its vertices (2D, world frame, metres)."""
+class Polytope(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """Convex set ``{x : A x <= b}`` with its vertices (2D, world frame, metres).
+
+    An obstacle may move: ``velocity`` [m/s] of the set (the planner cuts it in time), ``covariance``
+    the 2x2 covariance of its position [m^2] row-major (empty: not estimated), ``name`` the
+    operator's. All have defaults, so a publisher that knows none stays valid (a static world).
+    """
 
     A: list[list[float]]
     b: list[float]
     vertices: list[list[float]]
+    velocity: tuple[float, float] = (0.0, 0.0)
+    covariance: list[float] = []
+    name: str = ""  # what the operator called it (`archer obstacles init`), if anything
 
 
 class PolytopeSet(Message):

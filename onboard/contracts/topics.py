@@ -78,7 +78,7 @@ _TABLE = [
     Topic("waypoints", "plan/waypoints", m.Waypoints, 10, ("planner",), reliability="reliable"),
     Topic("contract", "plan/contract", m.ContractReport, 0, ("planner", "control"), reliability="reliable", congestion="block"),
     # world model
-    Topic("polytopes", "world/polytopes", m.PolytopeSet, 10, ("perception", "twin"), reliability="reliable"),
+    Topic("polytopes", "world/polytopes", m.PolytopeSet, 10, ("perception", "twin", "camera_overhead"), reliability="reliable"),
     Topic("grid", "world/grid", None, 5, ("perception",), priority="data_low", binary="grid"),
 ]
 
@@ -86,7 +86,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in _TABLE}
 assert len(TOPICS) == len(_TABLE), "duplicate topic name"
 assert len({t.suffix for t in _TABLE}) == len(_TABLE), "duplicate topic key"
 
-SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder", "view")
+SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder", "view", "camera_overhead")
 
 
 def namespace(robot: str | None = None) -> str:

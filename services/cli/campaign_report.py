@@ -80,6 +80,12 @@ def summarize(records: list[dict]) -> dict:
             "falls": sum(r["falls"] for r in reports),
             "runs_with_collisions": sum(r["collisions"] > 0 for r in reports),
             "collisions": sum(r["collisions"] for r in reports),
+            # obstacles that move: who moved into whom, time to goal, replanning rate (where runs report them)
+            **({"collisions_by_robot": sum(r["collisions_by_robot"] for r in reports if "collisions_by_robot" in r),
+                "collisions_by_obstacle": sum(r["collisions_by_obstacle"] for r in reports if "collisions_by_obstacle" in r),
+                "time_to_goal_s": _spread(_reported(reports, "time_to_goal_s")),
+                "replans_per_s": _spread(_reported(reports, "planner_replans_per_s"))}
+               if any("collisions_by_robot" in r for r in reports) else {}),
             "final_goal_error_m": _spread(_reported(reports, "final_goal_error_m")),
             "rms_tracking_error_m": _spread(_reported(reports, "rms_tracking_error_m")),
             "realtime_factor_median": round(float(np.median(rtf)), 2) if rtf else None,

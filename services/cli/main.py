@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plot": ("services.cli.plot", "PNG plots of a recording (path, tracking, attitude, wheels, torques, loop timing)"),
     "deploy": ("services.cli.deploy", "install systemd units and configs; verify units; regenerate Zenoh access control"),
     "perceive": ("services.cli.perceive", "convex free cells or obstacles of an occupancy grid (.npy)"),
+    "obstacles": ("services.cli.obstacles", "overhead camera: calibrate the floor by its ArUco markers; list and name the obstacles it sees"),
     "plan": ("services.cli.plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
     "goal": ("services.cli.plan", "send the robot a goal position X Y [m]"),
     "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),

@@ -49,6 +49,7 @@ from services.runtime.service import EXIT_SIGINT
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.lockstep import RunConfig, run
+from services.cli.overhead_world import overhead_world
 
 log = logging.getLogger("archer.sim")
 
@@ -87,6 +88,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
                         help="the planner sees ground-truth obstacles, or what perception makes of the depth camera "
                              "(in real time: the perception service)")
+    parser.add_argument("--obstacles-from", choices=("truth", "overhead"), default="truth",
+                        help="lockstep: the planner's world from the ground truth, or from the twin's rendered overhead "
+                             "view through the camera_overhead pipeline at camera_overhead.rate_hz")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -162,6 +166,8 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
         record=bool(args.record),
+        world=overhead_world(load_params(args.config, ("camera_overhead",))["camera_overhead"])
+        if getattr(args, "obstacles_from", "truth") == "overhead" else None,
     )
 
 

@@ -25,6 +25,7 @@ from onboard.contracts.params.high_level import PerceptionParams, PlannerParams
 from onboard.contracts.params.low_level import ControlParams, GeometricMpcParams
 from onboard.contracts.params.platform import (ArcherFirmwareParams, HardwareParams, MessagingParams, MocapParams, RecorderParams,
                                                SafetyLimits, ViewParams)
+from onboard.contracts.params.platform import CameraOverheadParams
 from onboard.contracts.params.twin import TwinParams
 
 __all__ = [  # the one place for parameters: every layer's section, and what works on any of them
@@ -32,6 +33,7 @@ __all__ = [  # the one place for parameters: every layer's section, and what wor
     "CAN_NODES", "FOOT_TORQUE_PEAK", "LOOP_HZ_MAX", "WHEEL_NO_LOAD_SPEED", "WHEEL_TORQUE_PEAK",
     "SafetyLimits", "MessagingParams", "HardwareParams", "ArcherFirmwareParams", "RecorderParams", "ViewParams", "MocapParams",
     "EstimatorParams", "ControlParams", "GeometricMpcParams", "PlannerParams", "PerceptionParams", "TwinParams",
+    "CameraOverheadParams",
 ]
 
 # Fields a running control loop cannot take between two ticks: they shape the loop process

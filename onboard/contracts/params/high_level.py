@@ -73,6 +73,11 @@ class PlannerParams(_Section, section="planner"):
     frontier_approach_weight: Annotated[float, within(0.0, 1000.0)] = 4.0  # [-] only when the cells reach no frontier (a wall's gap whose cells overlap too thinly for the margin): any node at rest may end the path, at this cost per metre it falls short of that reach over free ground, so the robot goes as near one as they let it, where the cells fitted around it join up (0: it holds)
     frontier_hysteresis: Annotated[float, within(0.0, 100.0)] = 2.0  # [m of cost] the frontier the robot is heading for (nodes within rest_grid of it) is this much cheaper than others: each new view shifts the costs, and two about as good had it turning back and forth between them (maze seed 1 at 0: 50 s; forest 9, 14 and maze 5 at 1: short of the goal when the time ran out, all three reached at 2)
     nice: Annotated[int, within(0, 19)] = 10  # the planner process lowers its CPU priority by this much: it must never starve the 1 kHz loops
+    # obstacles that move (onboard.high_level.planning.moving_obstacles): the cut in time sweeps each along its
+    # velocity over when the robot may be near each curve, plus the part of the plan it commits to and the world's age
+    obstacle_sweep_s: Annotated[float, within(0.0, 10.0)] = 1.2  # [s] commit_s plus a world period and a replan period
+    obstacle_sweep_max_m: Annotated[float, within(0.0, 10.0)] = 1.0  # [m] a sweep is at most this long (a kick stops)
+    obstacle_band_m: Annotated[float, above(0.0, 100.0)] = 0.5  # [m] curves this wide a band of distance from the robot share one time window
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,8 @@ import math
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
+from msgspec import Meta
+
 
 
 from onboard.contracts.params.base import (Cpu, FOOT_TORQUE_PEAK, LOOP_HZ_MAX, Name, NodeId, PER_NODE, Port, Request,
@@ -178,3 +180,48 @@ class MocapParams(_Section, section="mocap"):
     quat_norm_tolerance: Annotated[float, above(0.0, 0.5)] = 1e-3  # |norm - 1| beyond which a pose is refused
     connect_timeout_s: Annotated[float, above(0.0, 60.0)] = 2.0  # [s] a NatNet server must answer NAT_CONNECT within this
     reconnect_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] wait before connecting again after a failure
+
+
+_Coeff = Annotated[float, within(-100.0, 100.0)]
+_Metres = Annotated[float, within(-1000.0, 1000.0)]
+_Byte = Annotated[int, within(0, 255)]
+
+
+@dataclass(frozen=True)
+class CameraOverheadParams(_Section, section="camera_overhead"):
+    """The ``camera_overhead`` service (drivers.camera_overhead): obstacles from a camera looking down at the
+    floor (thesis 7.2). Defaults: the twin's rendered camera (sim_twin.overhead_camera.default_camera and
+    default_markers); the lab's config sets its ZED 2's intrinsics and its markers' surveyed poses."""
+
+    source: Name = "0"  # cv2.VideoCapture source: a camera index ("0") or a video file's path
+    crop_left: bool = False  # a ZED 2 in UVC mode sends both eyes side by side: keep the left one
+    rate_hz: Annotated[float, above(0.0, 120.0)] = 4.0  # [Hz] frames processed and obstacles published (thesis: 4 Hz)
+    fx: Annotated[float, above(0.0, 1e5)] = 560.0  # [px] focal lengths and principal point
+    fy: Annotated[float, above(0.0, 1e5)] = 560.0
+    cx: Annotated[float, within(0.0, 1e5)] = 480.0
+    cy: Annotated[float, within(0.0, 1e5)] = 360.0
+    dist: Annotated[tuple[_Coeff, ...], Meta(min_length=5, max_length=5)] = (-0.08, 0.02, 0.0, 0.0, 0.0)  # OpenCV k1, k2, p1, p2, k3
+    # ArUco markers (DICT_4X4_50) on the floor, one entry each in every marker_* tuple: id, centre, yaw
+    marker_ids: tuple[Annotated[int, within(0, 49)], ...] = (0, 1, 2, 3, 4, 5)
+    marker_x: tuple[_Metres, ...] = (-0.4, 3.0, 6.4, -0.4, 3.0, 6.4)  # [m]
+    marker_y: tuple[_Metres, ...] = (2.4, 2.6, 2.4, -2.4, -2.6, -2.4)  # [m]
+    marker_yaw: tuple[Annotated[float, within(-7.0, 7.0)], ...] = (0.0, 0.3, 0.0, 1.2, 0.0, -0.5)  # [rad]
+    marker_size: Annotated[float, above(0.0, 10.0)] = 0.4  # [m] side of every marker's black square
+    min_markers: Annotated[int, within(2, 1000)] = 2  # markers a frame must show to calibrate the floor
+    hsv_low: Annotated[tuple[_Byte, ...], Meta(min_length=3, max_length=3)] = (5, 120, 120)  # the obstacles' colour (OpenCV HSV: H 0-179)
+    hsv_high: Annotated[tuple[_Byte, ...], Meta(min_length=3, max_length=3)] = (25, 255, 255)
+    min_area_px: Annotated[int, within(1, 10_000_000)] = 40  # smaller blobs are noise
+    obstacle_height_m: Annotated[float, within(0.0, 10.0)] = 1.0  # [m] the obstacles' height (their tops' plane: a tighter footprint)
+    accel_sigma: Annotated[float, above(0.0, 100.0)] = 1.0  # [m/s^2] how hard an obstacle may be pushed (the tracks' process noise)
+    measure_sigma: Annotated[float, above(0.0, 1.0)] = 0.02  # [m] centroid measurement noise
+    gate_m: Annotated[float, above(0.0, 10.0)] = 0.6  # [m] a blob farther from a track's prediction is another obstacle
+    max_missed: Annotated[int, within(0, 1000)] = 8  # frames a track may go unseen before it ends
+    names_file: str = ""  # JSON from `archer obstacles init`: named obstacles seed the tracks
+
+    def _relations(self) -> list[str]:
+        n = len(self.marker_ids)
+        if not len(self.marker_x) == len(self.marker_y) == len(self.marker_yaw) == n:
+            return [f"camera_overhead: marker_ids, marker_x, marker_y and marker_yaw need one entry per marker ({n})"]
+        if len(set(self.marker_ids)) != n:
+            return ["camera_overhead.marker_ids: a marker id twice"]
+        return []

@@ -68,6 +68,7 @@ from scipy.spatial import cKDTree
 from onboard.geometry import bezier as bz
 from onboard.high_level.tracking import collision as col
 from onboard.high_level.planning import densify as dn
+from onboard.high_level.planning import moving_obstacles as mo
 from onboard.geometry import polygons as pg
 from onboard.contracts import messages as msgs
 from onboard.high_level.planning.bezier_graph import (
@@ -118,6 +119,8 @@ class PlannerStats:
     densify_rounds: int = 0  # densification rounds that added nodes
     densify_nodes: int = 0  # nodes they added
     frontier_plans: int = 0  # free mode: plans that end at a frontier, the goal being beyond the known free cells
+    sweep_relaxed: int = 0  # searches with moving obstacles swept shorter, the longer sweep having left no path
+    evasions: int = 0  # no path, an obstacle coming: references stepping out of its way instead of holding
 
 
 class GraphPlanner(MpcRefinement):
@@ -146,6 +149,14 @@ class GraphPlanner(MpcRefinement):
         self.mode = "obstacles"
         self.obstacles = pg.pack_polygons([])
         self.cells = pg.pack_polygons([])
+        # moving obstacles (onboard.high_level.planning.moving_obstacles): as given, their velocities, and
+        # the sweep level they are cut at now (an index into SWEEP_LEVELS); None: no obstacle moves
+        self._moving: tuple[list[np.ndarray], np.ndarray] | None = None
+        self._sweep_level = 0
+        self._static = pg.pack_polygons([])  # with moving obstacles: the still ones
+        self._band_origin = np.zeros(2)  # where the robot is: the cut in time measures from here
+        self._bands: dict[int, pg.PolygonSet] = {}  # moving obstacles per distance band, at the current level
+        self._world_moves = False  # the obstacles come with velocities: a world that changes keeps a path still clear of it
         self._world_version = 0
         self._cut_key: tuple | None = None
         self.free: np.ndarray | None = None  # edge mask after the cut
@@ -208,10 +219,28 @@ class GraphPlanner(MpcRefinement):
             return f"goal {g.tolist()} is beyond any graph the planner can build from {np.asarray(start, float)[:2].tolist()}: {exc}"
         return None
 
-    def set_obstacles(self, polygons: list) -> None:
-        """Convex obstacles ``[(k, 2) vertices, ...]`` [m]; raises :class:`PlanningError` on a bad one."""
+    def set_obstacles(self, polygons: list, velocities: object | None = None) -> None:
+        """Convex obstacles ``[(k, 2) vertices, ...]`` [m], and optionally their velocities ``(M, 2)`` [m/s]:
+        a moving one is cut swept along its velocity over ``obstacle_sweep_s`` (at most
+        ``obstacle_sweep_max_m``); raises :class:`PlanningError` on a bad one."""
+        polygons = list(polygons)
+        self._moving = None
+        self._world_moves = velocities is not None
+        if velocities is not None:
+            try:
+                vel = mo.check_velocities(velocities, len(polygons))
+                polys = [pg.validate_polygon(p) for p in polygons]
+            except (ValueError, pg.PolygonError) as exc:
+                raise PlanningError(f"obstacle: {exc}") from None
+            if mo.moving(vel):
+                self._moving = (polys, vel)
+                self._sweep_level = 0
+                self._bands = {}
+                still = np.hypot(vel[:, 0], vel[:, 1]) < mo.STILL
+                self._static = pg.pack_polygons([p for p, s in zip(polys, still) if s])
+                polygons = self._swept()
         try:
-            packed = pg.pack_polygons(list(polygons))
+            packed = pg.pack_polygons(polygons)
         except pg.PolygonError as exc:
             raise PlanningError(f"obstacle: {exc}") from None
         if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
@@ -219,6 +248,59 @@ class GraphPlanner(MpcRefinement):
         self.mode = "obstacles"
         self.obstacles = packed
         self._world_version += 1
+
+    def _swept(self) -> list[np.ndarray]:
+        """The obstacles the robot may meet near where it is: still ones as given, moving ones over the
+        first band's window (what the refinement's halfspaces and the start's clearance see)."""
+        assert self._moving is not None
+        polys, vel = self._moving
+        still = [p for p, v in zip(polys, vel.tolist()) if math.hypot(*v) < mo.STILL]
+        return still + mo.band_polygons(polys, vel, 0.0, self._band_window(0)[1], self.params.obstacle_sweep_max_m)
+
+    def _band_window(self, band: int) -> tuple[float, float]:
+        """The time window [s] in which the robot may be on curves of distance band ``band`` and must
+        not meet a moving obstacle: from its earliest arrival to past the band plus the committed
+        horizon, shortened by the current level."""
+        prm = self.params
+        t0 = band * prm.obstacle_band_m / prm.v_max
+        return t0, t0 + mo.SWEEP_LEVELS[self._sweep_level] * (prm.obstacle_band_m / prm.v_max + prm.obstacle_sweep_s)
+
+    def _band_set(self, band: int) -> pg.PolygonSet:
+        got = self._bands.get(band)
+        if got is None:
+            assert self._moving is not None
+            polys, vel = self._moving
+            got = self._bands[band] = pg.pack_polygons(mo.band_polygons(polys, vel, *self._band_window(band),
+                                                                        self.params.obstacle_sweep_max_m))
+        return got
+
+    def _blocked_in_time(self, hulls: col.HullSet, margin: float, active: np.ndarray) -> np.ndarray:
+        """Blocked mask of curves against the still obstacles and, band by band of distance from the
+        robot, the moving ones over that band's window (the cut in time)."""
+        blocked = col.cut_obstacles(hulls, self._static, margin, active=active)
+        free = active & ~blocked
+        bands = (mo.curve_distances(hulls.aabb, self._band_origin) / self.params.obstacle_band_m).astype(np.int64)
+        for b in np.unique(bands[free]).tolist():
+            sel = free & (bands == b)
+            blocked |= col.cut_obstacles(hulls, self._band_set(b), margin, active=sel) & sel
+        return blocked
+
+    def _set_band_origin(self, position: np.ndarray) -> None:
+        """Measure the cut in time from ``position`` (a changed origin is a changed world for the cut)."""
+        p = np.asarray(position, dtype=float)[:2]
+        if self._moving is not None and not np.array_equal(p, self._band_origin):
+            self._band_origin = p.copy()
+            self._world_version += 1
+
+    def _set_sweep_level(self, level: int) -> bool:
+        """Cut the moving obstacles at sweep ``level`` from now on; whether that changed the world."""
+        if self._moving is None or level == self._sweep_level or not 0 <= level < len(mo.SWEEP_LEVELS):
+            return False
+        self._sweep_level = level
+        self._bands = {}
+        self.obstacles = pg.pack_polygons(self._swept())
+        self._world_version += 1
+        return True
 
     def set_free_cells(self, polygons: list) -> None:
         """Convex free cells: a curve is free iff its control points lie in one cell."""
@@ -327,6 +409,8 @@ class GraphPlanner(MpcRefinement):
         if self.mode == "free":
             cell = col.free_cell_of(hulls, self.cells, margin, active=~outside)
             return outside | (cell < 0), cell
+        if self._moving is not None:
+            return outside | self._blocked_in_time(hulls, margin, ~outside), np.full(len(hulls), -1)
         return outside | col.cut_obstacles(hulls, self.obstacles, margin, active=~outside), np.full(len(hulls), -1)
 
     def cut(self) -> np.ndarray:
@@ -418,7 +502,15 @@ class GraphPlanner(MpcRefinement):
         # replan, at the perception rate, has new cells fitted around the robot; densifying every
         # time was most of a maze run's time)
         approach = self.mode == "free" and self.params.frontier_approach_weight > 0
+        if self.mode == "obstacles" and self._moving is not None:  # moving obstacles: the full windows, from here
+            self._set_sweep_level(0)
+            self._set_band_origin(x0[:2])
+            self.cut()
         result, start_seeds, goal_seeds = self._search(x0, approach)
+        while result is None and self.mode == "obstacles" and self._set_sweep_level(self._sweep_level + 1):
+            self.cut()  # no way past the sweeps: shorter ones, down to where the obstacles are now
+            self.stats.sweep_relaxed += 1
+            result, start_seeds, goal_seeds = self._search(x0, approach)
         if result is not None or self.params.densify_budget_s <= 0:
             self.last_densify = None
         elif not self._settled():
@@ -429,8 +521,31 @@ class GraphPlanner(MpcRefinement):
         self._last_solution = None
         if result is None:
             self.stats.no_path += 1
-            return None
+            return self.evade_reference(x0, stamp_ns) if self._moving is not None else None
         return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
+
+    def evade_reference(self, x0: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
+        """No path, and a moving obstacle comes at the robot: a reference stepping ``EVADE_M`` out of its
+        way (a cubic from the state to rest there, at the planner's speed), in the first direction whose
+        step keeps the robot radius from every obstacle where it is now; None (hold) when no obstacle
+        comes within ``obstacle_sweep_max_m`` plus the margin or no step is clear. :attr:`path` stays None:
+        the next replan searches again."""
+        assert self._moving is not None
+        polys, vel = self._moving
+        k = mo.threat(x0[:2], polys, vel, self.params.obstacle_sweep_max_m + self.margin)
+        if k is None or self.graph is None:
+            return None
+        self._set_sweep_level(len(mo.SWEEP_LEVELS) - 1)  # where the obstacles are now
+        p0, v0 = x0[:2], x0[2:]
+        duration = 1.5 * mo.EVADE_M / self.params.v_max  # a cubic's peak speed is 1.5 times its mean
+        for d in mo.evasion_directions(p0, polys[k].mean(axis=0), vel[k]):
+            end = p0 + mo.EVADE_M * d
+            ctrl = np.array([p0, p0 + v0 * duration / 3.0, end, end])
+            if not self._blocked(col.hull_set(ctrl[None]), self.robot_radius)[0][0]:
+                self.stats.evasions += 1
+                seg = msgs.BezierSegment(t0=0.0, duration=float(duration), control_points=ctrl.tolist())
+                return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=False)
+        return None
 
     def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
         """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
@@ -580,11 +695,28 @@ class GraphPlanner(MpcRefinement):
     def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
         """True when there is no path, the world changed since it was planned, or the
         state is more than ``deviation`` [m] from where the path says it should be."""
-        if self.path is None or self.path_world_version != self._world_version:
+        if self.path is None:
             return True
+        if self.path_world_version != self._world_version:
+            # obstacles that move change the world at its rate; a path still clear of them (swept) is kept
+            if not (self._world_moves and self.mode == "obstacles" and self._path_clear(position, stamp_ns)):
+                return True
+            self.path_world_version = self._world_version
         t = (stamp_ns - self.path_t0_ns) * 1e-9
         expected = path_states(self.path.control_points, self.path.tau, np.array([t]))[0, :2]
         return float(np.hypot(*(np.asarray(position, float)[:2] - expected))) > deviation
+
+    def _path_clear(self, position: np.ndarray, stamp_ns: int) -> bool:
+        """Whether what is left of the path (from the segment under way) keeps its clearance from the
+        obstacles now (swept in full; the segment under way at least what the robot has now)."""
+        assert self.path is not None
+        if self._moving is not None:
+            self._set_sweep_level(0)
+            self._set_band_origin(position)
+        ctrl = self.path.control_points
+        k0 = min(max(int((stamp_ns - self.path_t0_ns) * 1e-9 / self.path.tau), 0), len(ctrl) - 1)
+        margin = min(self.margin, self.start_margin(position))
+        return not bool(np.any(self._blocked(col.hull_set(ctrl[k0:]), margin)[0]))
 
     # --- contract with the low level ------------------------------------------------------
 

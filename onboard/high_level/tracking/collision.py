@@ -39,11 +39,10 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from onboard.high_level.tracking.collision_kernels import (best_axis, bin_boxes, bin_grown, cut_obstacles_kernel, free_cell_kernel,
+from onboard.high_level.tracking.collision_kernels import (PARALLEL_MIN, best_axis, bin_boxes, bin_grown, cut_obstacles_kernel, free_cell_kernel,
                                                            halfspaces_kernel, hull_axes_kernel, hull_clear_of_polygon_py, pick,
                                                            samples_clearance_kernel)
 from onboard.geometry.polygons import PolygonError, PolygonSet, clip_polygon, pack_polygons, validate_polygon
-from onboard.high_level.tracking.collision_kernels import PARALLEL_MIN as PARALLEL_MIN  # callers size their batches by it
 
 QP_TOL = 1e-7  # OSQP absolute/relative tolerance for the distance QP
 QP_MARGIN_SLACK = 1e-4  # [m] the QP answer is trusted only this far from the margin

@@ -1,0 +1,128 @@
+"""Obstacles that move (issue 28; thesis 7.2: people kick the obstacles around the lab).
+
+An obstacle comes with its velocity (``Polytope.velocity``). The planner cuts its graph in time:
+a curve ``d`` metres from the robot cannot be reached before ``d / v_max``, so it is cut against each
+moving obstacle swept along its velocity over the window from then until the robot has crossed the
+band of curves that far out (``obstacle_band_m``) plus the part of the plan it commits to
+(``obstacle_sweep_s``): where the obstacle can be while the robot can be there. Travel is capped at
+``obstacle_sweep_max_m`` (a kick stops). When that leaves no way (the robot stands in an
+obstacle's way, or the sweeps close a gap), it plans again with shorter windows, down to the
+obstacles where they will be at the earliest time (``SWEEP_LEVELS``); when even that fails and one
+comes at the robot, it steps out of its way (:func:`evasion_directions`) rather than hop in place
+until it arrives. Static obstacles are cut exactly as given.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SWEEP_LEVELS = (1.0, 0.5, 0.0)  # shares of the horizon tried in turn when the longer sweep leaves no path
+STILL = 1e-6  # [m/s] slower than this an obstacle is static
+
+
+def swept(poly: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """The convex hull of ``poly`` ((k, 2), convex) and ``poly`` shifted by ``displacement`` [m], counter-clockwise."""
+    pts = np.concatenate([poly, poly + displacement])
+    order = np.lexsort((pts[:, 1], pts[:, 0]))
+    pts = pts[order].tolist()
+
+    def half(seq: list) -> list:
+        out: list = []
+        for p in seq:
+            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                                     - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])) <= 1e-12:
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=float)
+
+
+def check_velocities(velocities: object, count: int) -> np.ndarray:
+    """``(count, 2)`` finite velocities [m/s], or ValueError."""
+    vel = np.asarray(velocities, dtype=float)
+    if vel.size == 0:
+        vel = vel.reshape(0, 2)
+    if vel.shape != (count, 2) or not np.all(np.isfinite(vel)):
+        raise ValueError(f"velocities must be {count} finite [vx, vy], got shape {vel.shape}")
+    return vel
+
+
+def sweep_obstacles(polygons: list[np.ndarray], velocities: np.ndarray, horizon_s: float, max_m: float) -> list[np.ndarray]:
+    """Each polygon swept along its velocity over ``horizon_s`` [s], at most ``max_m`` [m]; static ones as given."""
+    out = []
+    for poly, (vx, vy) in zip(polygons, velocities.tolist()):
+        speed = math.hypot(vx, vy)
+        if speed < STILL or horizon_s <= 0.0:
+            out.append(poly)
+            continue
+        t = min(horizon_s, max_m / speed)
+        out.append(swept(np.asarray(poly, dtype=float), np.array([vx * t, vy * t])))
+    return out
+
+
+def band_polygons(polygons: list[np.ndarray], velocities: np.ndarray, t0: float, t1: float, max_m: float) -> list[np.ndarray]:
+    """Each moving polygon over the time window ``[t0, t1]`` [s]: the hull of where it is at both ends,
+    its travel capped at ``max_m`` [m] (a kick stops); still ones are left out."""
+    out = []
+    for poly, (vx, vy) in zip(polygons, velocities.tolist()):
+        speed = math.hypot(vx, vy)
+        if speed < STILL:
+            continue
+        a, b = min(t0, max_m / speed), min(t1, max_m / speed)
+        p0 = poly + np.array([vx * a, vy * a])
+        out.append(p0 if b <= a else swept(p0, np.array([vx * (b - a), vy * (b - a)])))
+    return out
+
+
+def curve_distances(aabb: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Distance [m] from ``origin`` to each curve's box ``(E, 4)``: no point of the curve is nearer."""
+    dx = np.maximum(np.maximum(aabb[:, 0] - origin[0], origin[0] - aabb[:, 2]), 0.0)
+    dy = np.maximum(np.maximum(aabb[:, 1] - origin[1], origin[1] - aabb[:, 3]), 0.0)
+    return np.hypot(dx, dy)
+
+
+def moving(velocities: np.ndarray | None) -> bool:
+    """Whether any obstacle moves."""
+    return velocities is not None and bool(np.any(np.hypot(velocities[:, 0], velocities[:, 1]) >= STILL))
+
+
+EVADE_M = 0.6  # [m] how far an evasion steps out of an oncoming obstacle's way
+EVADE_TURNS = (0.0, math.pi / 4, -math.pi / 4, math.pi / 2, -math.pi / 2, math.pi)  # tried in turn, from across its way
+
+
+def threat(position: np.ndarray, polygons: list[np.ndarray], velocities: np.ndarray, reach: float) -> int | None:
+    """The moving obstacle nearest ``position`` among those coming toward it within ``reach`` [m] of its
+    centre (vertex distance: a bound for convex polygons); None when none comes."""
+    best, best_d = None, math.inf
+    p = np.asarray(position, dtype=float)[:2]
+    for k, (poly, (vx, vy)) in enumerate(zip(polygons, velocities.tolist())):
+        if math.hypot(vx, vy) < STILL:
+            continue
+        c = poly.mean(axis=0)
+        if vx * (p[0] - c[0]) + vy * (p[1] - c[1]) <= 0.0:  # moving away
+            continue
+        d = float(np.min(np.hypot(*(poly - p).T)))
+        if d <= reach and d < best_d:
+            best, best_d = k, d
+    return best
+
+
+def evasion_directions(position: np.ndarray, centre: np.ndarray, velocity: np.ndarray) -> list[np.ndarray]:
+    """Unit directions to step out of an obstacle's way, best first: across its way on the side the
+    robot is on, then turned from that (never first toward where it goes)."""
+    v = np.asarray(velocity, dtype=float) / math.hypot(*velocity)
+    across = np.array([-v[1], v[0]])
+    if float(across @ (np.asarray(position, dtype=float)[:2] - centre)) < 0.0:
+        across = -across
+    # turned away from the obstacle's motion first (positive turns toward +v are tried after)
+    sign = 1.0 if float(np.cross(across, v)) > 0 else -1.0
+    out = []
+    for turn in EVADE_TURNS:
+        a = sign * turn
+        c, s = math.cos(a), math.sin(a)
+        out.append(np.array([c * across[0] - s * across[1], s * across[0] + c * across[1]]))
+    return out

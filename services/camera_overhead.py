@@ -1,0 +1,174 @@
+"""The ``camera_overhead`` service: obstacles from a camera looking down at the floor (issue 28;
+thesis 7.2, Fig. 7.7: the lab's overhead ZED 2, 20 obstacles tracked at 4 Hz).
+
+Subscribes: nothing. Reads: frames from ``camera_overhead.source`` through ``cv2.VideoCapture`` (any
+UVC camera by index, or a video file, read at the service's rate) on a reader thread
+(:mod:`drivers.camera_overhead`). Computes: the floor homography from the ArUco markers at their
+known poses (on the first frame that shows ``min_markers`` of them; frames before that are counted
+``rejected.not_calibrated``), then per frame the obstacles' blobs as convex floor polygons, tracked
+(constant-velocity Kalman filters) for velocity and covariance; tracks seeded from ``names_file``
+(``archer obstacles init``) carry the operator's names. Publishes: ``polytopes`` (PolytopeSet,
+``mode = "obstacles"``, ``source = "camera_overhead"``) at ``rate_hz``, stamped with the frame's
+receive time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from typing import ClassVar
+
+import numpy as np
+
+from drivers.camera_overhead import tracking as tk
+from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration, Lens, Marker
+from drivers.camera_overhead.device import CameraError, VideoSource
+from onboard.contracts import messages as m
+from onboard.contracts.params import CameraOverheadParams
+from services.runtime.service import Service
+
+
+def lens_of(p: CameraOverheadParams) -> Lens:
+    return Lens(p.fx, p.fy, p.cx, p.cy, tuple(p.dist))  # type: ignore[arg-type]
+
+
+def markers_of(p: CameraOverheadParams) -> list[Marker]:
+    return [Marker(int(i), x, y, p.marker_size, yaw) for i, x, y, yaw in zip(p.marker_ids, p.marker_x, p.marker_y, p.marker_yaw)]
+
+
+def source_of(p: CameraOverheadParams) -> int | str:
+    return int(p.source) if p.source.isdigit() else p.source
+
+
+def tracker_of(p: CameraOverheadParams) -> tk.Tracker:
+    return tk.Tracker(accel_sigma=p.accel_sigma, measure_sigma=p.measure_sigma, gate_m=p.gate_m, max_missed=p.max_missed)
+
+
+class ObstacleCamera:
+    """Frame -> published obstacles, everything but the I/O (the service and `archer obstacles` share it)."""
+
+    def __init__(self, p: CameraOverheadParams) -> None:
+        self.p = p
+        self.lens = lens_of(p)
+        self.markers = markers_of(p)
+        self.colour = tk.ColourRange(tuple(p.hsv_low), tuple(p.hsv_high))  # type: ignore[arg-type]
+        self.tracker = tracker_of(p)
+        self.calibration: FloorCalibration | None = None
+        self.names: dict[int, str] = {}
+
+    def calibrate(self, frame: np.ndarray) -> FloorCalibration:
+        self.calibration = FloorCalibration.from_frame(frame, self.markers, self.lens, min_markers=self.p.min_markers)
+        return self.calibration
+
+    def blobs(self, frame: np.ndarray) -> list[np.ndarray]:
+        """Convex floor polygons of the obstacles in ``frame`` (calibrating on it first if need be)."""
+        if self.calibration is None:
+            self.calibrate(frame)
+        assert self.calibration is not None
+        return [tk.floor_polygon(b, self.calibration, height=self.p.obstacle_height_m)
+                for b in tk.segment(frame, self.colour, self.p.min_area_px)]
+
+    def seed(self, named: list[dict]) -> None:
+        """Start tracks at the operator's named obstacles (``archer obstacles init``'s file)."""
+        polys = [np.array(o["polygon"], dtype=float) for o in named]
+        t0 = self.tracker.tracks[-1].t if self.tracker.tracks else 0.0
+        for o, tr in zip(named, self.tracker.update(t0, polys)):
+            tr.name = str(o["name"])
+
+    def step(self, frame: np.ndarray, t_s: float, stamp_ns: int) -> m.PolytopeSet:
+        tracks = self.tracker.update(t_s, self.blobs(frame))
+        polys = []
+        for tr in tracks:
+            poly = tr.polygon
+            A, b = _halfspaces(poly)
+            polys.append(m.Polytope(A=A, b=b, vertices=poly.tolist(), velocity=tr.velocity, covariance=tr.position_cov,
+                                    name=tr.name))
+        return m.PolytopeSet(stamp_ns=stamp_ns, mode="obstacles", polytopes=polys, source="camera_overhead")
+
+
+def _halfspaces(poly: np.ndarray) -> tuple[list[list[float]], list[float]]:
+    e = np.roll(poly, -1, axis=0) - poly
+    n = np.stack([e[:, 1], -e[:, 0]], axis=1)
+    n /= np.hypot(n[:, 0], n[:, 1])[:, None]
+    return n.tolist(), np.einsum("ij,ij->i", n, poly).tolist()
+
+
+class CameraOverheadService(Service):
+    name: ClassVar[str] = "camera_overhead"
+    params_sections: ClassVar[tuple[str, ...]] = ("camera_overhead",)
+
+    async def setup(self) -> None:
+        p: CameraOverheadParams = self.params["camera_overhead"]
+        self.camera = ObstacleCamera(p)
+        if p.names_file:
+            with open(p.names_file, encoding="utf-8") as f:
+                self.camera.seed(json.load(f)["obstacles"])
+        self._pub = self.publisher("polytopes")
+        self._published = self.rate("polytopes")
+        self._stop = threading.Event()
+        self.reader_error: BaseException | None = None
+        self.source_ended = False
+        self._frames = 0
+        self._latency_ms = 0.0
+        self._reader = threading.Thread(target=self._read, name="camera-reader", daemon=True)
+
+    def _read(self) -> None:
+        p: CameraOverheadParams = self.params["camera_overhead"]
+        period = 1.0 / p.rate_hz
+        try:
+            with VideoSource(source_of(p), p.crop_left) as src:
+                t0 = time.monotonic()
+                next_t = t0
+                while not self._stop.is_set():
+                    frame = src.read()
+                    if frame is None:
+                        self.source_ended = True
+                        return
+                    now = time.monotonic()
+                    if now < next_t:  # a camera faster than the rate: this frame is skipped
+                        if not isinstance(source_of(p), int):  # a file is read at the rate, not skipped through
+                            self._stop.wait(next_t - now)
+                        else:
+                            continue
+                    next_t = max(next_t + period, time.monotonic())
+                    self._frames += 1
+                    stamp = self.clock.now_ns()
+                    tic = time.perf_counter()
+                    try:
+                        msg = self.camera.step(frame, time.monotonic() - t0, stamp)
+                    except CalibrationError:
+                        self.count("rejected.not_calibrated")
+                        continue
+                    self._latency_ms = (time.perf_counter() - tic) * 1e3
+                    self._pub.put(msg)
+                    self._published.tick()
+        except CameraError as exc:
+            self.reader_error = exc
+        except BaseException as exc:  # reported by main(); the service goes to error
+            self.reader_error = exc
+
+    async def main(self) -> None:
+        self._reader.start()
+        self.state = "degraded"  # until obstacles flow
+        while not self.stopping.is_set():
+            try:
+                await asyncio.wait_for(self.stopping.wait(), 0.25)
+            except asyncio.TimeoutError:
+                pass
+            if self.reader_error is not None:
+                self.state = "error"
+                self.fail(f"camera reader: {self.reader_error!r}")
+                return
+            self.state = "running" if self.rates_hz().get("polytopes", 0.0) > 0 and not self.source_ended else "degraded"
+
+    async def teardown(self) -> None:
+        self._stop.set()
+        self._reader.join(timeout=2.0)
+
+    def status_extra(self) -> dict[str, float]:
+        cal = self.camera.calibration
+        return {"frames": float(self._frames), "tracks": float(len(self.camera.tracker.tracks)),
+                "calibration_rms_px": cal.rms_px if cal is not None else -1.0, "frame_ms": self._latency_ms,
+                "source_ended": float(self.source_ended)}
