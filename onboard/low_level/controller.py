@@ -61,6 +61,7 @@ import numpy as np
 from onboard.low_level.tracking import attitude_control as ac
 from onboard.geometry import quaternion as qt
 from onboard.low_level.planning import zdp, zdp_policy
+from onboard.low_level.planning.balance import BalancePoint
 from onboard.low_level.tracking.flip import FlipLimits, FlipManoeuvre
 from onboard.low_level.tracking.foot_control import FootPhysics, HopRegulator
 from onboard.contracts.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
@@ -166,6 +167,9 @@ class LowLevelController:
                 raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
         safety = safety or SafetyLimits()
         self.flip = FlipManoeuvre(self._flip_limits(safety), params)
+        s_eta = self.design.linear.s_eta  # the ZDP's position gain, whatever policy flies: the integral's scale
+        self.balance = BalancePoint(0.5 * float(s_eta[0, 0] + s_eta[1, 1]), hopper.com_to_pivot(self.design.preload_nominal),
+                                    params.balance_ki, params.balance_tilt_max)
         self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)
@@ -211,6 +215,8 @@ class LowLevelController:
         self._wheel_max = min(safety.wheel_torque_max, self.robot.wheel_torque_peak)
         self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
         self.flip.configure(self._flip_limits(safety), params)
+        if hasattr(self, "balance"):  # built after the first _tune
+            self.balance.configure(params.balance_ki, params.balance_tilt_max)
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
@@ -314,6 +320,7 @@ class LowLevelController:
             self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
             self._flown = False
             self.phase.reset()
+            self.balance.reset()
         return True
 
     def _phase_update(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> None:
@@ -334,6 +341,10 @@ class LowLevelController:
         g = self._g
         px, py, pz = state.position
         vx, vy, vz = state.velocity
+        yaw = qt.yaw_of(state.quat)
+        dx, dy = self.balance.offset(yaw)  # the CoM where the learnt balance point puts it
+        px += dx
+        py += dy
         z_td = self.phase.touchdown_height
         disc = vz * vz + 2.0 * g * (pz - z_td)
         t_imp = (vz + math.sqrt(disc)) / g if disc > 0.0 else max(vz / g, 0.0)
@@ -343,6 +354,8 @@ class LowLevelController:
         self.predicted_impact = (t_imp, xi, yi)
         self.reference_at_impact = (rx, ry, rvx, rvy)
         ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
+        bx, by = self.balance.lean(yaw)
+        ax, ay = zdp_policy.clip_norm(ax + bx, ay + by, math.sin(self.p.tilt_cmd_max) if self.p.tilt_cmd_max > 0.0 else 0.999)
         self.eta = (ax, ay)
         az = math.sqrt(max(1e-6, 1.0 - ax * ax - ay * ay))
         self.q_des = qt.from_axis_yaw((ax, ay, az), self._yaw_ref)
@@ -488,7 +501,12 @@ class LowLevelController:
         if ev.event == "touchdown":
             if com_valid:
                 rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
-                err = math.hypot(s.position[0] - rx, s.position[1] - ry)
+                yaw = qt.yaw_of(s.quat)
+                dx, dy = self.balance.offset(yaw)
+                ex, ey = s.position[0] + dx - rx, s.position[1] + dy - ry
+                err = math.hypot(ex, ey)
+                if self.flip.state == "idle":
+                    self.balance.update(ex, ey, yaw)
                 self.last_impact_error = err
                 self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
             self.foot.on_touchdown(s.foot_pos)

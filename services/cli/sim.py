@@ -86,6 +86,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
+    parser.add_argument("--model-error", default=None, metavar="PROFILE",
+                        help="the twin's physics drawn per seed around the MJCF, the stack nominal: nominal, calibrated, "
+                             "datasheet (sim_twin/model_errors/), a TOML file, or name=value;... (sim_twin.model_error)")
     parser.add_argument("--keep-going", action="store_true", help="do not stop at the first fall")
     parser.add_argument("--json", action="store_true", help="print the metrics as one JSON object (last stdout line)")
     parser.add_argument("--record", default=None, metavar="FILE.mcap", help="write every message to an MCAP file")
@@ -158,6 +161,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
         record=bool(args.record),
+        model_error=getattr(args, "model_error", None),
     )
 
 
