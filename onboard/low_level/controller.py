@@ -203,6 +203,7 @@ class LowLevelController:
         self._mid_checked: MidLevelSetpoint | None = None  # the last setpoint checked, and its verdict
         self._mid_ok = False
         self._lifted_off = False  # a lift-off this tick: the flip decides once the flight is predicted
+        self._standing_hops = 0  # touchdowns in a row at rest on a reference at rest (the balance point learns)
 
     def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """What the gains and limits set directly: cheap enough for between two ticks."""
@@ -321,6 +322,7 @@ class LowLevelController:
             self._flown = False
             self.phase.reset()
             self.balance.reset()
+            self._standing_hops = 0
         return True
 
     def _phase_update(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> None:
@@ -500,12 +502,15 @@ class LowLevelController:
         com_valid = not self.supervisor.attitude_only  # else no impact error, no hop-energy learning from the CoM
         if ev.event == "touchdown":
             if com_valid:
-                rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
+                rx, ry, rvx, rvy = self._target(now_ns, s, ref, 0.0)
                 yaw = qt.yaw_of(s.quat)
                 dx, dy = self.balance.offset(yaw)
                 ex, ey = s.position[0] + dx - rx, s.position[1] + dy - ry
                 err = math.hypot(ex, ey)
-                if self.flip.state == "idle":
+                standing = (math.hypot(rvx, rvy) <= self.p.balance_ref_speed_max
+                            and math.hypot(s.velocity[0], s.velocity[1]) <= self.p.balance_speed_max)
+                self._standing_hops = self._standing_hops + 1 if standing else 0
+                if self._standing_hops >= self.p.balance_settle_hops and self.flip.state == "idle":
                     self.balance.update(ex, ey, yaw)
                 self.last_impact_error = err
                 self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))

@@ -340,6 +340,9 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
     mid_level = getattr(args, "mid_level", None)
     if mid_level:
         user["control"] = {**user["control"], "mid_level": mid_level}
+    model_error = getattr(args, "model_error", None)
+    if model_error:
+        user["twin"] = {**user.get("twin", {}), "model_error": model_error}
     return user
 
 
