@@ -76,6 +76,7 @@ from onboard.contracts.reference import sample_reference
 NS = 1_000_000_000
 POLICIES = ("zdp", "lqr", "raibert", "mlp")
 SPOOL_VEL_FILTER = 0.3  # first-order filter weight of the differenced spool speed (1 kHz)
+BALANCE_CLIPPED = 0.9  # share of ControlParams.pos_err_max past which the policy's position action counts as clipped
 
 
 class RobotLike(Protocol):
@@ -507,8 +508,12 @@ class LowLevelController:
                 dx, dy = self.balance.offset(yaw)
                 ex, ey = s.position[0] + dx - rx, s.position[1] + dy - ry
                 err = math.hypot(ex, ey)
+                vx, vy = s.velocity[0], s.velocity[1]
+                # at rest off the reference, or walking away from it with the ZDP's position error clipped
+                # (a CoM so far off that the clipped proportional lean cannot hold it: the robot walks off)
+                walking_off = err >= BALANCE_CLIPPED * self.p.pos_err_max and ex * vx + ey * vy > 0.0
                 standing = (math.hypot(rvx, rvy) <= self.p.balance_ref_speed_max
-                            and math.hypot(s.velocity[0], s.velocity[1]) <= self.p.balance_speed_max)
+                            and (math.hypot(vx, vy) <= self.p.balance_speed_max or walking_off))
                 self._standing_hops = self._standing_hops + 1 if standing else 0
                 if self._standing_hops >= self.p.balance_settle_hops and self.flip.state == "idle":
                     self.balance.update(ex, ey, yaw)
