@@ -107,3 +107,34 @@ def test_a_com_off_the_spine_is_found_online() -> None:
     assert on.metrics["final_goal_error_m"] < 0.01
     assert off.metrics["final_goal_error_m"] > 0.10
     assert on.metrics["model_error"]["com_x"] == pytest.approx(0.0106)
+
+
+def test_the_real_time_twin_takes_the_same_model_error_and_reports_the_draw(zenoh_router) -> None:
+    import asyncio
+
+    from onboard.contracts.params import SafetyLimits
+    from services.runtime.peers import query_status
+    from services.runtime.zenoh_session import open_session
+    from services.twin import TwinService
+    from helpers import wait_for
+
+    ns = "archer/twinmodelerror"
+
+    async def scenario() -> None:
+        twin = TwinService(ns=ns, endpoint=zenoh_router, params={
+            "twin": TwinParams(scenario="hop-in-place", seed=1, model_error="com_x=0.01;wheel_coulomb=0.002"), "safety": SafetyLimits()})
+        task = asyncio.create_task(twin.run())
+        client = open_session(zenoh_router, "peer")
+        try:
+            await wait_for(lambda: twin.state == "running")
+            status = await asyncio.to_thread(query_status, client, ns, "twin")
+            assert status.extra["model_error.com_x"] == pytest.approx(0.01)
+            assert status.extra["model_error.wheel_coulomb.2"] == pytest.approx(0.002)
+            wheel = int(twin.model.joint(rd.WHEEL_JOINTS[2]).dofadr[0])
+            assert twin.model.dof_frictionloss[wheel] == pytest.approx(0.002)
+        finally:
+            client.close()
+            twin.request_stop()
+            await asyncio.wait_for(task, 10.0)
+
+    asyncio.run(scenario())
