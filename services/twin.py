@@ -49,6 +49,7 @@ from sim_twin import model as tm
 from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
 from sim_twin.metrics import PhysicsMetrics
+from sim_twin import model_error as me
 from sim_twin.sensors import SensorSuite
 from sim_twin.stack import TruthEstimator
 
@@ -87,7 +88,11 @@ class TwinService(Service):
         spec = tm.load_spec(tp.variant)
         self.scenario.build(spec)
         self.model = spec.compile()
+        self.model_error = me.draw(me.load_profile(tp.model_error), tp.seed)  # the stack keeps the nominal robot
+        self.model_error.apply_model(self.model)
         self.data = mujoco.MjData(self.model)
+        if self.model_error.values:
+            me.finish_model(self.model, self.data)
         self.scenario.initialize(self.model, self.data, self.robot)
         period_s = 1.0 / tp.control_rate_hz
         substeps = period_s / self.model.opt.timestep
@@ -95,9 +100,9 @@ class TwinService(Service):
             raise ValueError(f"control period {period_s} s is not a whole number of physics steps")
         self.substeps = int(round(substeps))
         self.tick_ns = int(round(period_s * NS))
-        self.sensors = SensorSuite(self.model, tp, tp.seed)
-        self.actuation = Actuation(self.model, self.robot, self.safety)
-        self.truth = TruthEstimator(self.model, self.robot)
+        self.sensors = self._sensor_suite(tp)
+        self.actuation = Actuation(self.model, self.model_error.actuation_robot(self.robot), self.safety)
+        self.truth = TruthEstimator(self.model, me.truth_robot(self.model, self.robot) if self.model_error.values else self.robot)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
         self.torque_slot = self.commands("torque_cmd")  # from the live commander only
@@ -157,11 +162,17 @@ class TwinService(Service):
     def _after_step(self, now_ns: int) -> None:
         """After the physics and the sensors of a tick (the devices a subclass runs)."""
 
+    def _sensor_suite(self, tp: TwinParams) -> SensorSuite:
+        suite = SensorSuite(self.model, self.model_error.twin_params(tp), tp.seed)
+        if (mount := self.model_error.imu_misalignment) is not None:
+            suite.set_imu_misalignment(*mount)
+        return suite
+
     def _put_back(self) -> None:
         """On the loop thread, between ticks: the scenario's initial state, new sensor noise."""
         tp: TwinParams = self.params["twin"]
         self.scenario.initialize(self.model, self.data, self.robot)
-        self.sensors = SensorSuite(self.model, tp, tp.seed)
+        self.sensors = self._sensor_suite(tp)
         self.count("put_back")
         self.log.warning("robot put back", extra={"fields": {"seed": tp.seed, "falls": self.metrics.falls}})
 
@@ -252,6 +263,9 @@ class TwinService(Service):
                     "max_wheel_speed_rad_s": mt.max_wheel, "torque_saturation_fraction": self.actuation.saturation_fraction})
         for key, value in self.actuation.counters.items():
             out[f"commands.{key}"] = float(value)
+        for name, vals in self.model_error.values.items():  # what was drawn
+            for i, v in enumerate(vals):
+                out[f"model_error.{name}" + (f".{i}" if len(vals) > 1 else "")] = v
         return out
 
 

@@ -24,6 +24,7 @@ import dataclasses
 import gc
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -36,6 +37,7 @@ from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
 from sim_twin import model as tm
+from sim_twin import model_error as me
 from sim_twin import perception_plug
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
@@ -73,6 +75,7 @@ class RunConfig:
     # the world the planner is told, in place of the ground truth: given the scenario, a function of the
     # time [ns] and the robot's estimate giving a new PolytopeSet or None (e.g. the overhead camera's)
     world: Callable[[sc.Scenario], Callable[[int, m.StateEstimate], m.PolytopeSet | None]] | None = None
+    model_error: str | None = None  # the twin's physics drawn per seed around the MJCF (sim_twin.model_error profile)
 
 
 @dataclass
@@ -113,7 +116,12 @@ class LockstepRunner:
         spec = tm.load_spec(cfg.variant)
         self.scenario.build(spec)
         self.model = spec.compile()
+        # the twin's physics drawn around the MJCF; the stack keeps self.robot, the nominal description
+        self.model_error = me.draw(me.load_profile(cfg.model_error), cfg.seed)
+        self.model_error.apply_model(self.model)
         self.data = mujoco.MjData(self.model)
+        if self.model_error.values:
+            me.finish_model(self.model, self.data)
         self.scenario.initialize(self.model, self.data, self.robot)
         control_dt = 1.0 / cfg.twin.control_rate_hz
         substeps = control_dt / self.model.opt.timestep
@@ -124,9 +132,13 @@ class LockstepRunner:
         self.duration_s = cfg.duration_s if cfg.duration_s is not None else self.scenario.default_duration_s
         if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
             raise ValueError(f"duration must be positive, got {self.duration_s}")
-        self.sensors = SensorSuite(self.model, cfg.twin, cfg.seed, cfg.sensor_outages)
-        self.actuation = Actuation(self.model, self.robot, self.safety)
-        self.truth = st.TruthEstimator(self.model, self.robot)
+        self.sensors = SensorSuite(self.model, self.model_error.twin_params(cfg.twin), cfg.seed, cfg.sensor_outages)
+        if (mount := self.model_error.imu_misalignment) is not None:
+            self.sensors.set_imu_misalignment(*mount)
+        self.actuation = Actuation(self.model, self.model_error.actuation_robot(self.robot), self.safety)
+        self.delay_ticks = int(round(self.model_error.actuator_delay_s / control_dt))
+        # the metrics measure the twin's own CoM, not where the stack believes it is
+        self.truth = st.TruthEstimator(self.model, me.truth_robot(self.model, self.robot) if self.model_error.values else self.robot)
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
@@ -206,6 +218,7 @@ class LockstepRunner:
             disturb = None
         flip_requests = list(scenario.flip_requests_s)  # the operator's flip requests, as the param would carry them
         request_flip = getattr(controller, "request_flip", None)
+        delayed: deque[m.TorqueCommand | None] = deque([None] * self.delay_ticks)  # commands still on their way (model error)
         for k in range(1, n_ticks + 1):
             if disturb is not None:
                 disturb(t, model, data)
@@ -213,7 +226,11 @@ class LockstepRunner:
                 flip_requests.pop(0)
                 if request_flip is not None:
                     request_flip()
-            actuation.apply(cmd, now_ns, data)
+            if delayed:
+                delayed.append(cmd)
+                actuation.apply(delayed.popleft(), now_ns, data)
+            else:
+                actuation.apply(cmd, now_ns, data)
             for _ in range(substeps):
                 mj_step(model, data)
             now_ns += tick_ns
@@ -279,6 +296,8 @@ class LockstepRunner:
             "tick_us_mean": round(wall / max(k, 1) * 1e6, 2),
         }
         out.update(metrics.summary(data, actuation))
+        if cfg.model_error is not None:
+            out["model_error"] = self.model_error.report()
         out.update({
             "contract_violations": contract_violations,
             "safety_events": safety_events,

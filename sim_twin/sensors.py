@@ -95,6 +95,14 @@ def _qmul_small(q: list[float], dx: float, dy: float, dz: float) -> list[float]:
     return [rw * n, rx * n, ry * n, rz * n]
 
 
+def _qmul(p: list[float], q: list[float]) -> list[float]:
+    """The quaternion product ``p * q`` (w, x, y, z)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return [pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw]
+
+
 @dataclass(frozen=True)
 class SensorOutage:
     """Every sample ``sensor`` captures in ``[start_s, end_s)`` of sim time is lost."""
@@ -210,6 +218,10 @@ class SensorSuite:
         # False: depth images are not made at all (a lockstep run whose depth nobody reads;
         # the depth stream draws from its own generator, so the other sensors are unchanged)
         self.capture_depth = True
+        # IMU mount misalignment (a model error): the IMU's axes are the body's turned by this
+        # rotation; None: mounted as the MJCF says (the per-tick path skips it)
+        self._imu_mount_q: list[float] | None = None
+        self._imu_mount_rt: list[float] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
 
         # Addresses into qpos / qvel / sensordata / actuator_force.
         root = model.joint(rd.ROOT_JOINT)
@@ -267,19 +279,44 @@ class SensorSuite:
             depth.pop_ready(now_ns, out, "depth")
         return out
 
+    def set_imu_misalignment(self, rx: float, ry: float, rz: float) -> None:
+        """Mount the IMU turned by the rotation vector ``(rx, ry, rz)`` [rad] from the body's axes:
+        it reports the orientation of its own axes and the rate and specific force in them."""
+        angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if angle == 0.0:
+            self._imu_mount_q = None
+            return
+        s = math.sin(0.5 * angle) / angle
+        q = [math.cos(0.5 * angle), rx * s, ry * s, rz * s]
+        self._imu_mount_q = q
+        w, x, y, z = q  # R (body <- imu); the IMU reads R^T v
+        r = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+             2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+        self._imu_mount_rt = [r[0], r[3], r[6], r[1], r[4], r[7], r[2], r[5], r[8]]
+
     def _imu(self, sd: list[float], qpos: list[float], qvel: list[float], now_ns: int) -> m.ImuSample:
         n = self._imu_noise.row()
         a, g, b = self._imu_att_std, self._gyro_std, self._accel_std
         gb, ab = self.gyro_bias, self.accel_bias
         i, j, k = self._qp + 3, self._qv + 3, self._accel_adr
-        quat = _qmul_small(qpos[i:i + 4], a * n[0], a * n[1], a * n[2]) if a > 0 else qpos[i:i + 4]
+        q_body = qpos[i:i + 4]
+        wx, wy, wz = qvel[j], qvel[j + 1], qvel[j + 2]
+        fx, fy, fz = sd[k], sd[k + 1], sd[k + 2]
+        mq = self._imu_mount_q
+        if mq is not None:
+            q_body = _qmul(q_body, mq)
+            rt = self._imu_mount_rt
+            wx, wy, wz = rt[0] * wx + rt[1] * wy + rt[2] * wz, rt[3] * wx + rt[4] * wy + rt[5] * wz, rt[6] * wx + rt[7] * wy + rt[8] * wz
+            fx, fy, fz = rt[0] * fx + rt[1] * fy + rt[2] * fz, rt[3] * fx + rt[4] * fy + rt[5] * fz, rt[6] * fx + rt[7] * fy + rt[8] * fz
+        quat = _qmul_small(q_body, a * n[0], a * n[1], a * n[2]) if a > 0 else q_body
         self.imu.seq += 1
         return m.ImuSample(
             stamp_ns=now_ns,
             seq=self.imu.seq,
             quat=quat,
-            gyro=[qvel[j] + gb[0] + g * n[3], qvel[j + 1] + gb[1] + g * n[4], qvel[j + 2] + gb[2] + g * n[5]],
-            accel=[sd[k] + ab[0] + b * n[6], sd[k + 1] + ab[1] + b * n[7], sd[k + 2] + ab[2] + b * n[8]],
+            gyro=[wx + gb[0] + g * n[3], wy + gb[1] + g * n[4], wz + gb[2] + g * n[5]],
+            accel=[fx + ab[0] + b * n[6], fy + ab[1] + b * n[7], fz + ab[2] + b * n[8]],
         )
 
     def _joints(self, data: mujoco.MjData, sd: list[float], qpos: list[float], qvel: list[float], now_ns: int) -> m.JointSensors:

@@ -94,6 +94,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
+    parser.add_argument("--model-error", default=None, metavar="PROFILE",
+                        help="the twin's physics drawn per seed around the MJCF, the stack nominal: nominal, calibrated, "
+                             "datasheet (sim_twin/model_errors/), a TOML file, or name=value;... (sim_twin.model_error)")
     parser.add_argument("--keep-going", action="store_true", help="do not stop at the first fall")
     parser.add_argument("--json", action="store_true", help="print the metrics as one JSON object (last stdout line)")
     parser.add_argument("--record", default=None, metavar="FILE.mcap", help="write every message to an MCAP file")
@@ -168,6 +171,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         record=bool(args.record),
         world=overhead_world(load_params(args.config, ("camera_overhead",))["camera_overhead"])
         if getattr(args, "obstacles_from", "truth") == "overhead" else None,
+        model_error=getattr(args, "model_error", None),
     )
 
 
@@ -346,6 +350,9 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
     mid_level = getattr(args, "mid_level", None)
     if mid_level:
         user["control"] = {**user["control"], "mid_level": mid_level}
+    model_error = getattr(args, "model_error", None)
+    if model_error:
+        user["twin"] = {**user.get("twin", {}), "model_error": model_error}
     return user
 
 

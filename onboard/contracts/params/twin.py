@@ -65,3 +65,7 @@ class TwinParams(_Section, section="twin"):
     publish_world: bool = True  # publish the scenario's goal and ground-truth obstacle polytopes
     publish_obstacles: bool = True  # ...and, of the world, its obstacles (false: the perception service makes them from the depth camera)
     world_period_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] goal and polytopes are re-published this often (late joiners)
+    # the twin's physics drawn with ``seed`` around the MJCF, the stack nominal (sim_twin.model_error): "nominal",
+    # a profile of sim_twin/model_errors/, a TOML file or name=value;... (the real-time twin adds no actuator delay:
+    # its commands already cross the network)
+    model_error: Name = "nominal"

@@ -39,7 +39,8 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from onboard.high_level.tracking.collision_kernels import (PARALLEL_MIN, best_axis, bin_boxes, bin_grown, cut_obstacles_kernel, free_cell_kernel,
+from onboard.high_level.tracking.collision_kernels import (PARALLEL_MIN as PARALLEL_MIN, best_axis,  # re-exported: callers size batches by it
+                                                           bin_boxes, bin_grown, cut_obstacles_kernel, free_cell_kernel,
                                                            halfspaces_kernel, hull_axes_kernel, hull_clear_of_polygon_py, pick,
                                                            samples_clearance_kernel)
 from onboard.geometry.polygons import PolygonError, PolygonSet, clip_polygon, pack_polygons, validate_polygon
