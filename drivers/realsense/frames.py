@@ -1,0 +1,155 @@
+"""The D435's frames as numbers: its modes, z16 <-> metres, its clock on the stack's, the apex frame.
+
+Nothing here imports librealsense: the device (:mod:`drivers.realsense.device`) hands over
+arrays and timestamps, and these functions and classes are tested alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import numpy as np
+
+# The D435's streams (Intel RealSense D400 datasheet, rev. 2023, tables 4-2 and 4-4): width,
+# height -> frame rates [Hz]. Depth is Z16 from the stereo module; colour RGB8 from the RGB
+# camera (OV2740).
+DEPTH_MODES: dict[tuple[int, int], tuple[int, ...]] = {
+    (1280, 720): (6, 15, 30),
+    (848, 480): (6, 15, 30, 60, 90),
+    (640, 480): (6, 15, 30, 60, 90),
+    (640, 360): (6, 15, 30, 60, 90),
+    (480, 270): (6, 15, 30, 60, 90),
+    (424, 240): (6, 15, 30, 60, 90),
+}
+COLOR_MODES: dict[tuple[int, int], tuple[int, ...]] = {
+    (1920, 1080): (6, 15, 30),
+    (1280, 720): (6, 15, 30),
+    (960, 540): (6, 15, 30, 60),
+    (848, 480): (6, 15, 30, 60),
+    (640, 480): (6, 15, 30, 60),
+    (640, 360): (6, 15, 30, 60),
+    (424, 240): (6, 15, 30, 60),
+}
+DEPTH_HFOV_DEG = 87.0  # stereo module field of view (datasheet: 87 x 58 deg)
+DEPTH_VFOV_DEG = 58.0
+COLOR_HFOV_DEG = 69.0  # RGB camera (datasheet: 69 x 42 deg)
+COLOR_VFOV_DEG = 42.0
+BASELINE_M = 0.050  # stereo baseline
+DEPTH_UNITS_M = 0.001  # the D400's default depth unit: one z16 count is 1 mm
+SUBPIXEL_RMS = 0.08  # typical subpixel disparity error of the D435 (Intel's depth-quality guide)
+MAX_DECIMATION = 8  # the SDK's decimation filter: magnitude 1..8
+
+
+def check_mode(kind: str, width: int, height: int, fps: int) -> None:
+    """ValueError unless the D435 streams ``kind`` ("depth" or "color") at that size and rate."""
+    modes = DEPTH_MODES if kind == "depth" else COLOR_MODES
+    rates = modes.get((width, height))
+    if rates is None or fps not in rates:
+        known = ", ".join(f"{w}x{h}@{'/'.join(map(str, r))}" for (w, h), r in modes.items())
+        raise ValueError(f"the D435 has no {kind} mode {width}x{height} @ {fps} Hz (it has {known})")
+
+
+def nominal_focal_px(width: int, height: int, hfov_deg: float, vfov_deg: float) -> tuple[float, float]:
+    """Focal lengths [px] of a pinhole with the datasheet's field of view at that size."""
+    return (0.5 * width / math.tan(math.radians(hfov_deg) / 2), 0.5 * height / math.tan(math.radians(vfov_deg) / 2))
+
+
+def depth_rms_m(z_m: np.ndarray | float, focal_px: float) -> np.ndarray | float:
+    """The D435's depth RMS error at range ``z`` [m]: z^2 * subpixel / (focal * baseline).
+
+    Grows with range squared (Intel, "Tuning depth cameras for best performance", eq. 1).
+    """
+    return np.square(z_m) * SUBPIXEL_RMS / (focal_px * BASELINE_M)
+
+
+def z16_to_metres(z16: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Depth [m] (float32) of z16 counts; 0 stays 0 (no return)."""
+    return z16.astype(np.float32) * np.float32(depth_scale)
+
+
+def metres_to_z16(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """z16 counts of depth [m]: rounded; 0, negative, non-finite or beyond the z16 range -> 0 (no return)."""
+    counts = np.rint(np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0) / depth_scale)
+    return np.where((counts > 0) & (counts <= np.iinfo(np.uint16).max), counts, 0).astype(np.uint16)
+
+
+class ClockMap:
+    """A sensor's clock mapped onto the stack's monotonic clock.
+
+    The offset is the smallest ``receive - sensor`` over the last ``window`` frames (the
+    least-delayed frame bounds the transport delay from below; a sliding window follows the
+    two clocks' drift), less ``min_latency_ns``, the delay no frame beats (exposure to the
+    host, measured once). A frame's capture time is then ``sensor + offset``.
+    """
+
+    def __init__(self, window: int, min_latency_ns: int) -> None:
+        if window < 1 or min_latency_ns < 0:
+            raise ValueError("ClockMap needs window >= 1 and min_latency_ns >= 0")
+        self._gaps: deque[int] = deque(maxlen=window)
+        self._min_latency_ns = min_latency_ns
+        self._last_sensor_ns: int | None = None
+
+    def stamp(self, sensor_ns: int, receive_ns: int) -> int:
+        """The capture time on the stack's clock of a frame stamped ``sensor_ns``, received at ``receive_ns``.
+
+        A sensor clock that goes back (a camera reset, a recording played again) restarts the map.
+        """
+        if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
+            self._gaps.clear()
+        self._last_sensor_ns = sensor_ns
+        self._gaps.append(receive_ns - sensor_ns)
+        return sensor_ns + min(self._gaps) - self._min_latency_ns
+
+
+F = TypeVar("F")
+
+
+@dataclass
+class Picked(Generic[F]):
+    frame: F
+    stamp_ns: int  # the frame's capture time on the stack's clock
+    apex_ns: int  # the apex it stands for
+    offset_ns: int  # stamp - apex
+
+
+class ApexPicker(Generic[F]):
+    """The frame captured nearest each apex.
+
+    Frames (stamped on the stack's clock) go in as they arrive; apex events as the estimator
+    sends them. An apex is answered once a frame captured at or after it has arrived (the
+    nearest is then that one or the one before), with the nearer of the two if it lies within
+    ``tolerance_ns``; otherwise the apex is counted as missed (``missed``). A newer apex
+    replaces one still waiting.
+    """
+
+    def __init__(self, tolerance_ns: int, keep: int) -> None:
+        if tolerance_ns <= 0 or keep < 2:
+            raise ValueError("ApexPicker needs tolerance_ns > 0 and keep >= 2")
+        self._frames: deque[tuple[int, F]] = deque(maxlen=keep)
+        self._apex_ns: int | None = None
+        self.tolerance_ns = tolerance_ns
+        self.missed = 0
+
+    def add_frame(self, stamp_ns: int, frame: F) -> Picked[F] | None:
+        self._frames.append((stamp_ns, frame))
+        return self._try()
+
+    def add_apex(self, apex_ns: int) -> Picked[F] | None:
+        if self._apex_ns is not None:
+            self.missed += 1  # no frame came after the previous apex before this one
+        self._apex_ns = apex_ns
+        return self._try()
+
+    def _try(self) -> Picked[F] | None:
+        apex = self._apex_ns
+        if apex is None or not self._frames or self._frames[-1][0] < apex:
+            return None
+        self._apex_ns = None
+        stamp, frame = min(self._frames, key=lambda sf: abs(sf[0] - apex))
+        if abs(stamp - apex) > self.tolerance_ns:
+            self.missed += 1
+            return None
+        return Picked(frame, stamp, apex, stamp - apex)
