@@ -15,8 +15,8 @@ import pytest
 from drivers.realsense import load
 from drivers.realsense.device import D435, PipelineSource, StreamConfig
 from drivers.realsense.emulator import Intrinsics, SoftwareD435
-from drivers.realsense.frames import (DEPTH_HFOV_DEG, DEPTH_VFOV_DEG, ApexPicker, ClockMap, check_mode, depth_rms_m,
-                                      metres_to_z16, nominal_focal_px, z16_to_metres)
+from drivers.realsense.frames import ApexPicker, ClockMap, metres_to_z16, z16_to_metres
+from robot_description.d435 import DEPTH_HFOV_DEG, DEPTH_VFOV_DEG, check_mode, depth_rms_m, nominal_focal_px
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import decode_color, decode_depth
 from onboard.contracts.params import CameraParams

@@ -25,7 +25,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.realsense.frames import MAX_DECIMATION, check_mode, z16_to_metres
+from drivers.realsense.frames import z16_to_metres
+from robot_description.d435 import MAX_DECIMATION, check_mode
 
 WAIT_SLICE_MS = 200  # a reader's wait returns this often, so that it can notice a stop
 

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from drivers.realsense.device import StreamConfig
-from drivers.realsense.frames import DEPTH_UNITS_M, metres_to_z16
+from drivers.realsense.frames import metres_to_z16
+from robot_description.d435 import DEPTH_UNITS_M
 
 SERIAL = "EMULATED-D435"
 QUEUE = 16  # framesets the syncer holds for a slow reader
