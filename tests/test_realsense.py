@@ -164,6 +164,8 @@ def test_software_device_frames_come_out_filtered_and_aligned() -> None:
         frame = cam.process(cam.wait(5000))
         assert frame.depth.shape == (H // 2, W // 2) and frame.color.shape == (H // 2, W // 2, 3)
         assert frame.fx == pytest.approx(K.fx / 2) and frame.fy == pytest.approx(K.fy / 2)
+        # the same pixel grid, halved (librealsense rounds the principal point to a quarter pixel)
+        assert (frame.cx, frame.cy) == pytest.approx((K.cx / 2, K.cy / 2), abs=0.3)
         assert frame.depth[100, 50] == pytest.approx(2.0) and frame.depth[100, 350] == pytest.approx(3.0)
         assert tuple(frame.color[100, 350]) == (0, 200, 0) and tuple(frame.color[100, 50]) == (0, 0, 0)
     finally:

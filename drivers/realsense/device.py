@@ -73,8 +73,8 @@ class RawFrame:
 class CameraFrame:
     depth: np.ndarray  # (h, w) float32 [m]; 0 = no return
     color: np.ndarray | None  # (h, w, 3) uint8 RGB aligned to ``depth``'s pixels; black where depth has no return
-    fx: float  # depth intrinsics after processing [px]
-    fy: float
+    fx: float  # depth intrinsics after processing [px]; principal point as the stack's images have it
+    fy: float  # (pixel (i, j) centred at (i + 0.5, j + 0.5); librealsense centres it at (i, j))
     cx: float
     cy: float
     sensor_ns: int
@@ -182,7 +182,7 @@ class D435:
         intr = depth.get_profile().as_video_stream_profile().get_intrinsics()
         return CameraFrame(
             depth=z16_to_metres(np.asanyarray(depth.get_data()), self.depth_scale),
-            color=color, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.ppx), cy=float(intr.ppy),
+            color=color, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.ppx) + 0.5, cy=float(intr.ppy) + 0.5,
             sensor_ns=raw.sensor_ns, number=raw.number)
 
     def stop(self) -> None:

@@ -26,6 +26,8 @@ QUEUE = 16  # framesets the syncer holds for a slow reader
 
 @dataclass(frozen=True)
 class Intrinsics:
+    """A pinhole as the stack's images have it: pixel (i, j) centred at (i + 0.5, j + 0.5)."""
+
     fx: float  # [px]
     fy: float
     cx: float
@@ -81,7 +83,7 @@ class SoftwareD435:
         rs = self.rs
         intr = rs.intrinsics()
         intr.width, intr.height = w, h
-        intr.fx, intr.fy, intr.ppx, intr.ppy = k.fx, k.fy, k.cx, k.cy
+        intr.fx, intr.fy, intr.ppx, intr.ppy = k.fx, k.fy, k.cx - 0.5, k.cy - 0.5  # librealsense: pixel centres at (i, j)
         intr.model = rs.distortion.none  # the D435's depth stream is rectified; the twin renders a pinhole
         intr.coeffs = [0.0] * 5
         vs = rs.video_stream()
