@@ -31,7 +31,7 @@ import mujoco
 from threadpoolctl import threadpool_limits
 
 from onboard.contracts import messages as m
-from onboard.contracts.params import SafetyLimits, TwinParams
+from onboard.contracts.params import EstimatorParams, SafetyLimits, TwinParams, with_overrides
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
@@ -70,6 +70,9 @@ class RunConfig:
     record: bool = False  # keep every message for --record
     sink: Callable[[str, int, object], None] | None = None  # also hand every message to this as it happens (a live view)
     sensor_outages: tuple[SensorOutage, ...] = ()  # windows in which a sensor's samples are lost
+    # "onboard": no motion capture (outdoors): the estimator gets no pose and keeps an odometry frame
+    # (estimator.position_source = "odometry"); the run reports its drift per metre travelled
+    sensing: str = "mocap"
 
 
 @dataclass
@@ -124,7 +127,14 @@ class LockstepRunner:
         self.sensors = SensorSuite(self.model, cfg.twin, cfg.seed, cfg.sensor_outages)
         self.actuation = Actuation(self.model, self.robot, self.safety)
         self.truth = st.TruthEstimator(self.model, self.robot)
-        self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
+        if cfg.sensing not in SENSING:
+            raise ValueError(f"sensing must be one of {SENSING}, got {cfg.sensing!r}")
+        estimator_params = cfg.estimator_params
+        if cfg.sensing == "onboard":
+            if cfg.estimator == "truth":
+                raise ValueError("--sensing onboard is the onboard estimator's (--estimator kalman)")
+            estimator_params = with_overrides(estimator_params or EstimatorParams(), {"position_source": "odometry"})
+        self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
         self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
@@ -183,6 +193,8 @@ class LockstepRunner:
         now_ns = 0
         t = 0.0
         k = 0
+        no_pose = cfg.sensing == "onboard"
+        drift = _Drift(self.truth) if no_pose else None
         planner_feed = getattr(planner, "feed", None)
         perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
         sensor_feed = planner_feed if perceives else None  # a perceiving planner eats the depth images
@@ -213,6 +225,8 @@ class LockstepRunner:
 
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
+                if topic == "pose" and no_pose:
+                    continue  # no motion capture on the robot
                 estimator.feed(topic, msg, now_ns)
                 if sensor_feed is not None:
                     sensor_feed(topic, msg)
@@ -240,6 +254,8 @@ class LockstepRunner:
             last_ref_seen = reference
 
             metrics.update(t, now_ns, data, reference, state, actuation.last_applied)
+            if drift is not None and k % DRIFT_EVERY_TICKS == 0:
+                drift.update(now_ns, data, state)
             if progress is not None and k % progress_ticks == 0:
                 progress(t, self.duration_s)
             if metrics.fell and cfg.stop_on_fall:
@@ -267,6 +283,10 @@ class LockstepRunner:
             "tick_us_mean": round(wall / max(k, 1) * 1e6, 2),
         }
         out.update(metrics.summary(data, actuation))
+        if drift is not None:
+            drift.update(now_ns, data, state)
+            out["sensing"] = "onboard"
+            out.update(drift.summary())
         out.update({
             "contract_violations": contract_violations,
             "safety_events": safety_events,
@@ -290,6 +310,42 @@ class LockstepRunner:
             out["planner_no_path"] = planner.no_path
             out["planner_unseen_holds"] = planner.planner.stats.unseen_holds  # refined references held back: not yet seen
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
+
+
+SENSING = ("mocap", "onboard")
+DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
+
+
+class _Drift:
+    """How far the estimate's position wanders from the truth, per metre the robot travels."""
+
+    def __init__(self, truth: st.TruthEstimator) -> None:
+        self.truth = truth
+        self.distance_m = 0.0
+        self.last_xy: tuple[float, float] | None = None
+        self.max_drift_m = 0.0
+        self.final_drift_m = 0.0
+        self.final_drift_z_m = 0.0
+        self.final_pos_std_m = 0.0
+
+    def update(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate) -> None:
+        true = self.truth.estimate(now_ns, data).position
+        xy = (true[0], true[1])
+        if self.last_xy is not None:
+            self.distance_m += math.dist(xy, self.last_xy)
+        self.last_xy = xy
+        est = state.position
+        self.final_drift_m = math.dist((est[0], est[1]), xy)
+        self.final_drift_z_m = est[2] - true[2]
+        self.final_pos_std_m = math.sqrt(max(state.pos_vel_cov[0], 0.0))
+        self.max_drift_m = max(self.max_drift_m, self.final_drift_m)
+
+    def summary(self) -> dict:
+        d = self.distance_m
+        return {"distance_travelled_m": round(d, 3), "final_drift_m": round(self.final_drift_m, 4),
+                "final_drift_z_m": round(self.final_drift_z_m, 4), "max_drift_m": round(self.max_drift_m, 4),
+                "drift_per_m": round(self.final_drift_m / d, 5) if d > 0.1 else None,
+                "final_pos_std_m": round(self.final_pos_std_m, 4)}
 
 
 class SimulationError(RuntimeError):

@@ -83,6 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--perception", choices=("truth", "depth"), default="truth",
                         help="the planner sees ground-truth obstacles, or what perception makes of the depth camera "
                              "(in real time: the perception service)")
+    parser.add_argument("--sensing", choices=("mocap", "onboard"), default="mocap",
+                        help="onboard: no motion capture (outdoors); the estimator keeps an odometry frame from the IMU "
+                             "and leg kinematics, and the run reports its drift per metre (lockstep)")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -158,6 +161,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         perception_params=params.get("perception"),
         stop_on_fall=not args.keep_going,
         record=bool(args.record),
+        sensing=getattr(args, "sensing", "mocap"),
     )
 
 
@@ -342,6 +346,8 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
 def run_realtime(args: argparse.Namespace) -> dict:
     """The services read their parameters from the config file: :func:`run_config`, in a
     temporary file for the run."""
+    if getattr(args, "sensing", "mocap") != "mocap":
+        raise ValueError("--sensing onboard runs in lockstep only (the twin service still publishes the pose)")
     user = run_config(args)
     fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
     with os.fdopen(fd, "w") as f:
