@@ -25,6 +25,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "estimator": ("services.bench.estimator", "state estimator on the twin (20 ms pose latency, 10 percent pose dropouts): update time, CoM and attitude errors"),
     "mocap": ("services.bench.mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),
     "twin": ("services.bench.twin", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
+    "camera": ("services.bench.camera", "the D435 chain at 848x480/30 Hz through librealsense to polytopes: latency p50/p99 and CPU"),
 }
 
 
