@@ -1,6 +1,8 @@
 """The ``perception`` service: depth images to convex sets for the planner.
 
-Subscribes: ``depth`` (binary DepthImage, captured at apex; every image is fused),
+Subscribes: ``depth`` (binary DepthImage, captured at apex; every image is fused), with
+``perception.segmenter = "color"`` also ``color`` (the D435's colour aligned to the depth image of
+the same stamp: a depth image waits for its colour until the next depth image comes),
 ``state`` (robot position: the grid follows the robot, its footprint counts as free,
 and ``free`` mode decomposes the robot's free region), ``goal`` (kept inside a free
 cell in ``free`` mode).
@@ -18,11 +20,12 @@ import math
 import time
 
 from onboard.contracts import messages as m
-from onboard.contracts.binary_messages import DepthImage, encode_grid
+from onboard.contracts.binary_messages import ColorImage, DepthImage, encode_grid
 from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.pipeline import MODES, Perception, polytopes_of_grid
 from services.runtime.service import Service
 
+COLOR_KEEP = 4  # colour images kept for depth images still to come
 RATE_MIN_HZ = 4.0  # the issue's band for the publication rate
 RATE_MAX_HZ = 20.0
 
@@ -34,7 +37,7 @@ def to_message(poly: ConvexPolygon) -> m.Polytope:
 class PerceptionService(Service):
     name = "perception"
     params_sections = ("perception",)
-    subscribes = ("depth", "state", "goal")
+    subscribes = ("depth", "state", "goal", "color")
 
     async def setup(self) -> None:
         self.view = self._new_view()
@@ -47,7 +50,11 @@ class PerceptionService(Service):
         self.grid_seq = 0
         self.compute_ms = 0.0
         self.polygons = 0
+        self._parked: DepthImage | None = None  # a depth image waiting for its colour
+        self._colors: dict[int, ColorImage] = {}  # colour images by stamp, not yet paired
         self.subscribe("depth", self.on_depth)
+        if self.params["perception"].segmenter == "color":
+            self.subscribe("color", self.on_color)
 
     def _new_view(self) -> Perception:
         p = self.params["perception"]
@@ -73,18 +80,43 @@ class PerceptionService(Service):
             return None
         return (x, y)
 
+    async def on_color(self, rgb: ColorImage) -> None:
+        parked = self._parked
+        if parked is not None and parked.stamp_ns == rgb.stamp_ns:
+            self._parked = None
+            await self._fuse(parked, rgb)
+            return
+        self._colors[rgb.stamp_ns] = rgb
+        while len(self._colors) > COLOR_KEEP:
+            del self._colors[min(self._colors)]
+
     async def on_depth(self, img: DepthImage) -> None:
+        if self.params["perception"].segmenter != "color":
+            await self._fuse(img, None)
+            return
+        rgb = self._colors.pop(img.stamp_ns, None)
+        if rgb is not None:
+            await self._fuse(img, rgb)
+            return
+        if self._parked is not None:  # its colour never came
+            self.count("depth_without_color")
+            await self._fuse(self._parked, None)
+        self._parked = img
+
+    async def _fuse(self, img: DepthImage, rgb: ColorImage | None) -> None:
         if img.stamp_ns <= self.last_depth_stamp:
             self.count("rejected.depth_out_of_order")
             return
         try:
-            self.view.integrate(img, self._robot_xy())
+            self.view.integrate(img, self._robot_xy(), rgb.rgb if rgb is not None else None)
         except ValueError as exc:
             self.count("rejected.depth")
             self.fail(f"depth image: {exc}")
             return
         self.last_depth_stamp = img.stamp_ns
         self.count("views")
+        if rgb is not None:
+            self.count("views_with_color")
 
     async def main(self) -> None:
         period = 1.0 / self.params["perception"].rate_hz

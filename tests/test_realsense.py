@@ -252,3 +252,82 @@ def test_camera_service_publishes_the_recorded_frames_placed_by_the_estimate(zen
     stamps = [img.stamp_ns for img in depths]
     assert stamps == sorted(stamps) and abs(stamps[-1] - time.monotonic_ns()) < 60e9  # on the stack's clock
     assert got["counters"].get("rejected.no_state", 0) == 0 and got["status"]["published"] == n
+
+
+def test_recorded_twin_views_through_the_camera_and_perception_services(zenoh_router, tmp_path) -> None:
+    """The chain as on the robot: a recording of the twin's sidewalk (depth and colour at a D435 mode)
+    played by the camera service, perception segmenting it by colour and depth: the verges beside the
+    paving come out as obstacles, the paving ahead as free."""
+    from onboard.contracts.params import PerceptionParams
+    from services.perception import PerceptionService
+    from sim_twin import scenarios as sc
+    from sim_twin.camera import CameraModel, RgbdCamera
+    from sim_twin.model import load_spec
+
+    scenario = sc.make("sidewalk", seed=0, obstacles=0)
+    spec = load_spec("outdoor")
+    scenario.build(spec)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    robot = rd.robot_params("outdoor")
+    scenario.initialize(model, data, robot)
+    data.qpos[2] += 0.12  # at apex
+    mujoco.mj_forward(model, data)
+    cam = CameraModel.d435(424, 240, 30)
+    frame = RgbdCamera(model, cam, scenario.traversable, seed=0).render(data)
+    cfg = StreamConfig(width=424, height=240, fps=30, color_width=424, color_height=240, decimation=1, spatial=False)
+    path = str(tmp_path / "sidewalk.db3")
+    emu = SoftwareD435(rs, cfg, Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy), record_to=path)
+    try:
+        for i in range(3):
+            emu.push(frame.depth, frame.rgb, 100.0 + i * 1000.0 / 30)
+            assert emu.wait(5000) is not None
+    finally:
+        emu.stop()
+    com = data.subtree_com[model.body(rd.TORSO).id].tolist()
+    quat = data.qpos[3:7].tolist()
+    camera_params = CameraParams(source="file", file=path, file_real_time=False, capture="every", width=424, height=240,
+                                 color_width=424, color_height=240, decimation=1, spatial=False, state_max_age_s=1.0)
+    perception_params = PerceptionParams(segmenter="color", pixel_stride=4, mode="obstacles")
+    polys: list[m.PolytopeSet] = []
+
+    async def scenario_run() -> dict:
+        camera = CameraService(ns=NS_KEY, endpoint=zenoh_router, params={"camera": camera_params})
+        perception = PerceptionService(ns=NS_KEY, endpoint=zenoh_router, params={"perception": perception_params})
+        ptask = asyncio.create_task(perception.run())
+        client = open_session(zenoh_router, "peer")
+        sub = client.declare_subscriber(TOPICS["polytopes"].key(NS_KEY), lambda s: polys.append(m.decode(s.payload.to_bytes(), m.PolytopeSet)))
+        pub = client.declare_publisher(TOPICS["state"].key(NS_KEY))
+        ctask = None
+        try:
+            end = time.monotonic() + 60.0
+            while time.monotonic() < end and not ptask.done():
+                pub.put(m.encode(state_at(time.monotonic_ns(), com, quat)))
+                if ctask is None and perception.state == "running":
+                    await asyncio.sleep(0.3)  # its subscriptions reach the router
+                    ctask = asyncio.create_task(camera.run())
+                if perception.counters.get("views_with_color") >= 3 and polys:
+                    break
+                await asyncio.sleep(0.01)
+            return perception.counters.snapshot()
+        finally:
+            sub.undeclare()
+            camera.stopping.set()
+            perception.stopping.set()
+            if ctask is not None:
+                await asyncio.wait_for(ctask, 15.0)
+            await asyncio.wait_for(ptask, 15.0)
+            client.close()
+
+    counters = asyncio.run(asyncio.wait_for(scenario_run(), 120))
+    assert counters.get("views_with_color", 0) >= 3 and polys, counters
+    latest = polys[-1]
+    assert latest.source != "ground_truth" and latest.polytopes
+    # obstacles beside the paving (the grass verges past the kerbs), none on the paving ahead of the robot
+    xs = np.concatenate([np.array(p.vertices)[:, 0] for p in latest.polytopes])
+    ys = np.concatenate([np.array(p.vertices)[:, 1] for p in latest.polytopes])
+    assert (np.abs(ys) > sc.Sidewalk.HALF_WIDTH - 0.1).any()
+    ahead = [p for p in latest.polytopes if np.all(np.abs(np.array(p.vertices)[:, 1]) < sc.Sidewalk.HALF_WIDTH - 0.2)
+             and np.all(np.array(p.vertices)[:, 0] > 0.3)]
+    assert not ahead, ahead
+    assert xs.max() > 0.5

@@ -20,6 +20,7 @@ from onboard.perception.obstacles import obstacles_from_mask
 from onboard.perception.occupancy import OccupancyMap
 from onboard.perception.pointcloud import depth_to_points
 from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, Cloud, GeometricSegmenter, Segmenter
+from onboard.perception.terrain import ColorTerrainSegmenter
 
 MODES = ("free", "obstacles")
 NS = 1_000_000_000
@@ -43,7 +44,9 @@ class Perception:
         if params.mode not in MODES:
             raise ValueError(f"perception mode must be one of {MODES}, got {params.mode!r}")
         self.params = params
-        self.segmenter: Segmenter = segmenter if segmenter is not None else GeometricSegmenter(params)
+        if segmenter is None:
+            segmenter = ColorTerrainSegmenter(params) if params.segmenter == "color" else GeometricSegmenter(params)
+        self.segmenter: Segmenter = segmenter
         self.map = OccupancyMap(params, centre)
 
     def integrate(self, img: DepthImage, robot_xy: tuple[float, float] | None = None,

@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--fps", type=int, default=30)
     parser.add_argument("--decimation", type=int, default=2, help="the SDK's decimation filter (1: off)")
-    parser.add_argument("--stride", type=int, default=2, help="perception.pixel_stride on the decimated image")
+    parser.add_argument("--stride", type=int, default=4, help="perception.pixel_stride on the decimated image")
     parser.add_argument("--every", type=int, default=1, help="process one frame in N (10: one a hop at ~3 hops/s)")
     parser.add_argument("--frames", type=int, default=150, help="frames pushed")
     parser.add_argument("--views", type=int, default=10, help="distinct views rendered (cycled)")
