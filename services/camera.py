@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from drivers.realsense import load
-from drivers.realsense.device import D435, WAIT_SLICE_MS, PipelineSource, RawFrame, StreamConfig
+from drivers.realsense.device import D435, WAIT_SLICE_MS, FrameSource, PipelineSource, RawFrame, StreamConfig
 from drivers.realsense.frames import ApexPicker, ClockMap
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import ColorImage, DepthImage, encode_color, encode_depth
@@ -79,22 +79,29 @@ class CameraService(Service):
         self._stop = threading.Event()
         self.reader_error: BaseException | None = None
         self._seq = 0
+        self.frames = 0  # new frames read
+        self.apexes = 0  # apex events received
         self.last_offset_ms = 0.0
         self._reader = threading.Thread(target=self._read, name="camera-reader", daemon=True)
 
     def _on_phase(self, event: m.PhaseEvent) -> None:
         if event.event == "apex":
+            self.apexes += 1
             self._apexes.append(event.stamp_ns)
+
+    def open_source(self, p: CameraParams) -> FrameSource:
+        """The frames: a camera or a recording through ``rs.pipeline`` (an emulation hands its own)."""
+        return PipelineSource(self.rs, self.stream, serial=p.serial, file=p.file if p.source == "file" else "",
+                              real_time=p.file_real_time)
 
     def _open(self, p: CameraParams) -> D435 | None:
         try:
-            source = PipelineSource(self.rs, self.stream, serial=p.serial, file=p.file if p.source == "file" else "",
-                                    real_time=p.file_real_time)
+            source = self.open_source(p)
         except RuntimeError as exc:  # no camera, busy, or an unreadable file
             self.count("open_failed")
             self.log.warning("camera: cannot open %s: %s", p.file or p.serial or "the first D435", exc)
             return None
-        self.log.info("camera: %s open, depth scale %.6f m", source.name, source.depth_scale)
+        self.log.info("camera: %s open, depth scale %.6f m", getattr(source, "name", "?"), source.depth_scale)
         return D435(self.rs, self.stream, source)
 
     def _read(self) -> None:
@@ -122,6 +129,7 @@ class CameraService(Service):
             if raw is None:
                 continue
             self._received.tick()
+            self.frames += 1
             stamp_ns = self.clock_map.stamp(raw.sensor_ns, self.clock.now_ns())
             if p.capture == "every":
                 self._publish(cam, raw, stamp_ns)
@@ -182,6 +190,7 @@ class CameraService(Service):
 
     def status_extra(self) -> dict[str, float]:
         cam: Any = self.camera
-        return {"published": float(self._seq), "apex_missed": float(self.picker.missed),
+        return {"published": float(self._seq), "apex_missed": float(self.picker.missed), "frames": float(self.frames),
+                "apexes": float(self.apexes),
                 "apex_offset_ms": self.last_offset_ms,
                 "repeats": float(cam.repeats if cam else 0), "unpaired": float(cam.unpaired if cam else 0)}
