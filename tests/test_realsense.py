@@ -401,12 +401,15 @@ def test_camera_service_publishes_the_frame_nearest_each_apex(zenoh_router) -> N
         feeder.join(5.0)
         emu.stop()
     assert len(apexes) == 5, got
-    # one frame an apex (a loaded machine may miss one), the nearest one captured: within half a frame
-    # period of the apex when the stream kept its pace, and never beyond the tolerance
+    # one frame an apex (a loaded machine may miss one), within the tolerance of it; its stamp is its
+    # capture on the stack's clock (the map's offset is the least delay: a few ms), and no frame was
+    # captured nearer the apex than it beyond that offset and a loaded machine's jitter
     assert len(depths) >= 3 and got["status"]["apex_missed"] + len(depths) == 5, got
     for img in depths:
         apex = min(apexes, key=lambda a: abs(a - img.stamp_ns))
-        nearest_capture = min(captured, key=lambda c: abs(c - apex))
         assert abs(img.stamp_ns - apex) <= 0.05e9, (img.stamp_ns - apex) / 1e6
-        assert abs(img.stamp_ns - nearest_capture) <= 0.005e9  # that capture, on the stack's clock
+        own = min(captured, key=lambda c: abs(c - img.stamp_ns))
+        assert 0 <= img.stamp_ns - own <= 0.005e9, (img.stamp_ns - own) / 1e6
+        nearest = min(captured, key=lambda c: abs(c - apex))
+        assert abs(own - apex) - abs(nearest - apex) <= 0.015e9, (own - nearest) / 1e6
     assert got["status"]["frames"] > 5 * len(depths)  # the others were read, not published
