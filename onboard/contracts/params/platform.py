@@ -192,7 +192,7 @@ class CameraParams(_Section, section="camera"):
 
     source: Literal["device", "file"] = "device"  # a camera over USB, or a recording played back
     serial: str = ""  # the camera's serial number ("": the first D435 found)
-    file: str = ""  # source = "file": a librealsense recording (.bag, or .db3 as 2.59 writes)
+    file: str = ""  # source = "file": a librealsense recording (.db3, as librealsense 2.59 records)
     file_real_time: bool = True  # play a recording at its own pace (False: every frame, as fast as read)
     width: Annotated[int, within(1, 4096)] = 848  # depth mode [px]
     height: Annotated[int, within(1, 4096)] = 480
