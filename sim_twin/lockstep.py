@@ -28,9 +28,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import mujoco
+import numpy as np
 from threadpoolctl import threadpool_limits
 
 from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import DepthImage
+from onboard.geometry import quaternion as quat
 from onboard.contracts.params import EstimatorParams, SafetyLimits, TwinParams, with_overrides
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
@@ -185,6 +188,7 @@ class LockstepRunner:
 
         cmd: m.TorqueCommand | None = None
         joints: m.JointSensors | None = None
+        state: m.StateEstimate | None = None
         reference: m.ComReference | None = None
         last_ref_seen: m.ComReference | None = None
         safety_events = phase_events = contract_violations = 0
@@ -225,8 +229,15 @@ class LockstepRunner:
 
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
-                if topic == "pose" and no_pose:
-                    continue  # no motion capture on the robot
+                if no_pose:
+                    if topic == "pose":
+                        continue  # no motion capture on the robot
+                    if topic == "depth":
+                        if state is None or not state.valid:
+                            continue  # no estimate can place it (the camera service refuses it too)
+                        # placed by the estimate, as the camera service places a frame: the map and the
+                        # plan live in the drifting odometry frame, obstacles seen relative to the robot
+                        msg = _as_estimated(msg, self.truth.estimate(now_ns, data), state)
                 estimator.feed(topic, msg, now_ns)
                 if sensor_feed is not None:
                     sensor_feed(topic, msg)
@@ -313,6 +324,16 @@ class LockstepRunner:
 
 
 SENSING = ("mocap", "onboard")
+
+
+def _as_estimated(img: DepthImage, truth: m.StateEstimate, est: m.StateEstimate) -> DepthImage:
+    """The depth image with the camera placed by the estimate instead of the truth: the camera's pose
+    relative to the body is kept, the body's is the estimate's (CoM and attitude)."""
+    rel_q = quat.mul(est.quat, quat.conj(truth.quat))  # true world -> estimated world, about the CoM
+    offset = quat.rotate(rel_q, [c - t for c, t in zip(img.cam_pos, truth.position)])
+    cam_pos = np.array([e + o for e, o in zip(est.position, offset)])
+    cam_quat = np.array(quat.normalize(quat.mul(rel_q, list(img.cam_quat))))
+    return DepthImage(img.depth, img.fx, img.fy, img.cx, img.cy, cam_pos, cam_quat, img.stamp_ns, img.seq)
 DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
 
 
