@@ -406,7 +406,7 @@ def run(args: argparse.Namespace) -> int:
     if args.device == "realsense":
         from services.cli import emulate_realsense
 
-        return emulate_realsense.run(args)
+        return emulate_realsense.run(args, lambda: TwinPlant(args.twin, args.seed, (1.0,) * len(_gear_ratios())))
     try:
         params = load_params(args.config, ("hardware", "safety"))["hardware"]
         if args.node_ids:

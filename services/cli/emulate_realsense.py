@@ -56,11 +56,11 @@ class EmulatedCamera(CameraService):
             self._states.append(self._truth(self.clock.now_ns()))
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, make_plant) -> int:
+    """``make_plant()``: the twin behind the camera (:class:`services.cli.emulate.TwinPlant`)."""
     import mujoco
 
     from robot_description import params as rd
-    from services.cli.emulate import TwinPlant, _gear_ratios
     from sim_twin.camera import CameraModel, RgbdCamera
 
     try:
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         print("archer emulate realsense: --twin SCENARIO is needed (the frames are the twin's)", file=sys.stderr)
         return 2
     rs = load()
-    plant = TwinPlant(args.twin, args.seed, (1.0,) * len(_gear_ratios()))
+    plant = make_plant()
     # the camera's mount is the twin's robot's (TwinParams.variant)
     p = with_overrides(p, {"robot_variant": TwinParams().variant})
     model = CameraModel.d435(p.width, p.height, p.fps)
