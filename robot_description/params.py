@@ -589,3 +589,34 @@ def body_shapes(variant: str = DEFAULT_VARIANT) -> BodyGeometry:
     foot_body_rot = (torso_inv * r.data.oMi[foot]).rotation
     foot_axis = foot_body_rot @ (axis / np.linalg.norm(axis))
     return BodyGeometry(shapes=tuple(shapes), foot_axis=_vec3(foot_axis))
+
+
+DEPTH_CAMERA_SITE = "depth_camera"
+# The camera's optical frame (x right, y down, z forward) in its MJCF site frame (x forward, y left, z up).
+SITE_FROM_OPTICAL = ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """The depth camera's optical frame on the torso: the extrinsic of the robot's camera."""
+
+    pos_from_com: Vec3  # optical centre from the whole robot's CoM, body frame [m] (the estimate's position is the CoM)
+    quat: tuple[float, float, float, float]  # optical -> body [w, x, y, z]
+
+
+@functools.lru_cache(maxsize=None)
+def camera_mount(variant: str = DEFAULT_VARIANT) -> CameraMount:
+    """The MJCF site ``depth_camera`` (a child of the torso) as the camera's extrinsic."""
+    xml = load_xml(variant)
+    defaults = _Defaults(xml)
+    for body, cls in _walk_bodies(xml.find("worldbody")):
+        for site in body.findall("site"):
+            if site.get("name") != DEPTH_CAMERA_SITE:
+                continue
+            if body.get("name") != TORSO:
+                raise ValueError(f"site {DEPTH_CAMERA_SITE!r} must be on the torso, not on {body.get('name')!r}")
+            attrs = defaults.attrs(site, cls)
+            rot = _euler_xyz(_floats(attrs["euler"])) if "euler" in attrs else _geom_pose(attrs)[1]
+            pos = _floats(attrs.get("pos", "0 0 0")) - np.array(robot_params(variant).com_offset_body)
+            return CameraMount(pos_from_com=_vec3(pos), quat=_mat_quat(rot @ np.array(SITE_FROM_OPTICAL)))
+    raise ValueError(f"robot variant {variant!r} has no site {DEPTH_CAMERA_SITE!r}")

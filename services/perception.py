@@ -1,6 +1,9 @@
 """The ``perception`` service: depth images to convex sets for the planner.
 
-Subscribes: ``depth`` (binary DepthImage, captured at apex; every image is fused),
+Subscribes: ``depth`` (binary DepthImage, captured at apex; every image is fused), with
+``perception.segmenter = "color"`` also ``color`` (the D435's colour aligned to the depth image of
+the same stamp: a depth image waits for its colour, at most ``COLOR_WAIT_S`` or until a later
+colour image shows that its own is not coming),
 ``state`` (robot position: the grid follows the robot, its footprint counts as free,
 and ``free`` mode decomposes the robot's free region), ``goal`` (kept inside a free
 cell in ``free`` mode).
@@ -18,11 +21,13 @@ import math
 import time
 
 from onboard.contracts import messages as m
-from onboard.contracts.binary_messages import DepthImage, encode_grid
+from onboard.contracts.binary_messages import ColorImage, DepthImage, encode_grid
 from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.pipeline import MODES, Perception, polytopes_of_grid
 from services.runtime.service import Service
 
+COLOR_KEEP = 4  # colour images kept for depth images still to come, and depth images for their colour
+COLOR_WAIT_S = 1.0  # [s] a depth image waits this long for its colour at most
 RATE_MIN_HZ = 4.0  # the issue's band for the publication rate
 RATE_MAX_HZ = 20.0
 
@@ -34,7 +39,7 @@ def to_message(poly: ConvexPolygon) -> m.Polytope:
 class PerceptionService(Service):
     name = "perception"
     params_sections = ("perception",)
-    subscribes = ("depth", "state", "goal")
+    subscribes = ("depth", "state", "goal", "color")
 
     async def setup(self) -> None:
         self.view = self._new_view()
@@ -47,7 +52,11 @@ class PerceptionService(Service):
         self.grid_seq = 0
         self.compute_ms = 0.0
         self.polygons = 0
+        self._parked: dict[int, tuple[DepthImage, float]] = {}  # depth images waiting for their colour, by stamp
+        self._colors: dict[int, ColorImage] = {}  # colour images by stamp, not yet paired
         self.subscribe("depth", self.on_depth)
+        if self.params["perception"].segmenter == "color":
+            self.subscribe("color", self.on_color)
 
     def _new_view(self) -> Perception:
         p = self.params["perception"]
@@ -73,18 +82,53 @@ class PerceptionService(Service):
             return None
         return (x, y)
 
+    async def on_color(self, rgb: ColorImage) -> None:
+        if rgb.stamp_ns in self._parked:
+            await self._flush_before(rgb.stamp_ns)
+            await self._fuse(self._parked.pop(rgb.stamp_ns)[0], rgb)
+            return
+        self._colors[rgb.stamp_ns] = rgb
+        while len(self._colors) > COLOR_KEEP:
+            del self._colors[min(self._colors)]
+
     async def on_depth(self, img: DepthImage) -> None:
+        if self.params["perception"].segmenter != "color":
+            await self._fuse(img, None)
+            return
+        rgb = self._colors.pop(img.stamp_ns, None)
+        if rgb is not None:
+            await self._flush_before(img.stamp_ns)
+            await self._fuse(img, rgb)
+            return
+        self._parked[img.stamp_ns] = (img, time.monotonic())
+        while len(self._parked) > COLOR_KEEP:
+            await self._flush_before(min(self._parked) + 1)
+
+    async def _flush_before(self, stamp_ns: int, older_than_s: float = 0.0) -> None:
+        """Fuse without colour the parked depth images stamped before ``stamp_ns`` (their colour is
+        not coming: the camera sends colour in order) or waiting longer than ``older_than_s``."""
+        now = time.monotonic()
+        for stamp in sorted(self._parked):
+            img, since = self._parked[stamp]
+            if stamp < stamp_ns or (older_than_s > 0.0 and now - since > older_than_s):
+                del self._parked[stamp]
+                self.count("depth_without_color")
+                await self._fuse(img, None)
+
+    async def _fuse(self, img: DepthImage, rgb: ColorImage | None) -> None:
         if img.stamp_ns <= self.last_depth_stamp:
             self.count("rejected.depth_out_of_order")
             return
         try:
-            self.view.integrate(img, self._robot_xy())
+            self.view.integrate(img, self._robot_xy(), rgb.rgb if rgb is not None else None)
         except ValueError as exc:
             self.count("rejected.depth")
             self.fail(f"depth image: {exc}")
             return
         self.last_depth_stamp = img.stamp_ns
         self.count("views")
+        if rgb is not None:
+            self.count("views_with_color")
 
     async def main(self) -> None:
         period = 1.0 / self.params["perception"].rate_hz
@@ -97,6 +141,8 @@ class PerceptionService(Service):
                     period = 1.0 / self.params["perception"].rate_hz
                 except ValueError as exc:
                     self.fail(str(exc))
+            if self._parked:
+                await self._flush_before(0, COLOR_WAIT_S)
             if self.view.map.views > 0:
                 await self._publish()
             next_t += period

@@ -53,6 +53,7 @@ SERVICES: dict[str, ServiceRow] = {row.process: row for row in (
     ServiceRow("router", "services.runtime.router:RouterService", "archer-router.service", True),
     ServiceRow("hardware", "services.hardware:HardwareService", "archer-hardware.service", True),
     ServiceRow("mocap", "services.mocap:MocapService", "archer-mocap.service", True, needs=(("motioncapture", "mocap"),)),
+    ServiceRow("camera", "services.camera:CameraService", "archer-camera.service", True, needs=(("pyrealsense2", "realsense"),)),
     ServiceRow("estimator", "services.estimator:EstimatorService", "archer-estimator.service", True),
     ServiceRow("control", "services.control:ControlService", "archer-control.service", True),
     ServiceRow("planner", "services.planner:PlannerService", "archer-planner.service", True),

@@ -29,10 +29,13 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import mujoco
+import numpy as np
 from threadpoolctl import threadpool_limits
 
 from onboard.contracts import messages as m
-from onboard.contracts.params import SafetyLimits, TwinParams
+from onboard.contracts.binary_messages import DepthImage
+from onboard.geometry import quaternion as quat
+from onboard.contracts.params import EstimatorParams, SafetyLimits, TwinParams, with_overrides
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
@@ -76,6 +79,9 @@ class RunConfig:
     # time [ns] and the robot's estimate giving a new PolytopeSet or None (e.g. the overhead camera's)
     world: Callable[[sc.Scenario], Callable[[int, m.StateEstimate], m.PolytopeSet | None]] | None = None
     model_error: str | None = None  # the twin's physics drawn per seed around the MJCF (sim_twin.model_error profile)
+    # "onboard": no motion capture (outdoors): the estimator gets no pose and keeps an odometry frame
+    # (estimator.position_source = "odometry"); the run reports its drift per metre travelled
+    sensing: str = "mocap"
 
 
 @dataclass
@@ -139,7 +145,14 @@ class LockstepRunner:
         self.delay_ticks = int(round(self.model_error.actuator_delay_s / control_dt))
         # the metrics measure the twin's own CoM, not where the stack believes it is
         self.truth = st.TruthEstimator(self.model, me.truth_robot(self.model, self.robot) if self.model_error.values else self.robot)
-        self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, cfg.estimator_params)
+        if cfg.sensing not in SENSING:
+            raise ValueError(f"sensing must be one of {SENSING}, got {cfg.sensing!r}")
+        estimator_params = cfg.estimator_params
+        if cfg.sensing == "onboard":
+            if cfg.estimator == "truth":
+                raise ValueError("--sensing onboard is the onboard estimator's (--estimator kalman)")
+            estimator_params = with_overrides(estimator_params or EstimatorParams(), {"position_source": "odometry"})
+        self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, estimator_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
         if cfg.world is not None:
@@ -194,6 +207,7 @@ class LockstepRunner:
 
         cmd: m.TorqueCommand | None = None
         joints: m.JointSensors | None = None
+        state: m.StateEstimate | None = None
         reference: m.ComReference | None = None
         last_ref_seen: m.ComReference | None = None
         last_world: object = None  # moving obstacles: the last world the planner was handed (recorded when new)
@@ -203,6 +217,8 @@ class LockstepRunner:
         now_ns = 0
         t = 0.0
         k = 0
+        no_pose = cfg.sensing == "onboard"
+        drift = _Drift(self.truth) if no_pose else None
         planner_feed = getattr(planner, "feed", None)
         perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
         sensor_feed = planner_feed if perceives else None  # a perceiving planner eats the depth images
@@ -238,6 +254,15 @@ class LockstepRunner:
 
             # sensors -> estimator -> planner -> controller
             for topic, msg in sensors.tick(data, now_ns):
+                if no_pose:
+                    if topic == "pose":
+                        continue  # no motion capture on the robot
+                    if topic == "depth":
+                        if state is None or not state.valid:
+                            continue  # no estimate can place it (the camera service refuses it too)
+                        # placed by the estimate, as the camera service places a frame: the map and the
+                        # plan live in the drifting odometry frame, obstacles seen relative to the robot
+                        msg = _as_estimated(msg, self.truth.estimate(now_ns, data), state)
                 estimator.feed(topic, msg, now_ns)
                 if sensor_feed is not None:
                     sensor_feed(topic, msg)
@@ -269,6 +294,8 @@ class LockstepRunner:
             last_ref_seen = reference
 
             metrics.update(t, now_ns, data, reference, state, actuation.last_applied)
+            if drift is not None and k % DRIFT_EVERY_TICKS == 0:
+                drift.update(now_ns, data, state)
             if progress is not None and k % progress_ticks == 0:
                 progress(t, self.duration_s)
             if metrics.fell and cfg.stop_on_fall:
@@ -298,6 +325,10 @@ class LockstepRunner:
         out.update(metrics.summary(data, actuation))
         if cfg.model_error is not None:
             out["model_error"] = self.model_error.report()
+        if drift is not None:
+            drift.update(now_ns, data, state)
+            out["sensing"] = "onboard"
+            out.update(drift.summary())
         out.update({
             "contract_violations": contract_violations,
             "safety_events": safety_events,
@@ -324,6 +355,52 @@ class LockstepRunner:
                 out["planner_replans_per_s"] = round(planner.plans / t, 3) if t > 0 else 0.0
                 out["planner_sweep_relaxed"] = planner.planner.stats.sweep_relaxed
         return RunResult(metrics=out, trace=metrics.trace, scenario=scenario, messages=messages)
+
+
+SENSING = ("mocap", "onboard")
+
+
+def _as_estimated(img: DepthImage, truth: m.StateEstimate, est: m.StateEstimate) -> DepthImage:
+    """The depth image with the camera placed by the estimate instead of the truth: the camera's pose
+    relative to the body is kept, the body's is the estimate's (CoM and attitude)."""
+    rel_q = quat.mul(est.quat, quat.conj(truth.quat))  # true world -> estimated world, about the CoM
+    offset = quat.rotate(rel_q, [c - t for c, t in zip(img.cam_pos, truth.position)])
+    cam_pos = np.array([e + o for e, o in zip(est.position, offset)])
+    cam_quat = np.array(quat.normalize(quat.mul(rel_q, list(img.cam_quat))))
+    return DepthImage(img.depth, img.fx, img.fy, img.cx, img.cy, cam_pos, cam_quat, img.stamp_ns, img.seq)
+DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
+
+
+class _Drift:
+    """How far the estimate's position wanders from the truth, per metre the robot travels."""
+
+    def __init__(self, truth: st.TruthEstimator) -> None:
+        self.truth = truth
+        self.distance_m = 0.0
+        self.last_xy: tuple[float, float] | None = None
+        self.max_drift_m = 0.0
+        self.final_drift_m = 0.0
+        self.final_drift_z_m = 0.0
+        self.final_pos_std_m = 0.0
+
+    def update(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate) -> None:
+        true = self.truth.estimate(now_ns, data).position
+        xy = (true[0], true[1])
+        if self.last_xy is not None:
+            self.distance_m += math.dist(xy, self.last_xy)
+        self.last_xy = xy
+        est = state.position
+        self.final_drift_m = math.dist((est[0], est[1]), xy)
+        self.final_drift_z_m = est[2] - true[2]
+        self.final_pos_std_m = math.sqrt(max(state.pos_vel_cov[0], 0.0))
+        self.max_drift_m = max(self.max_drift_m, self.final_drift_m)
+
+    def summary(self) -> dict:
+        d = self.distance_m
+        return {"distance_travelled_m": round(d, 3), "final_drift_m": round(self.final_drift_m, 4),
+                "final_drift_z_m": round(self.final_drift_z_m, 4), "max_drift_m": round(self.max_drift_m, 4),
+                "drift_per_m": round(self.final_drift_m / d, 5) if d > 0.1 else None,
+                "final_pos_std_m": round(self.final_pos_std_m, 4)}
 
 
 class SimulationError(RuntimeError):

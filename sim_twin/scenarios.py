@@ -131,6 +131,8 @@ class Scenario:
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     default_duration_s: ClassVar[float] = 20.0
+    # geoms the camera's ground truth calls traversable: a name, or a prefix ending in "_"
+    traversable: ClassVar[tuple[str, ...]] = ("floor", TERRAIN_PREFIX)
 
     def __init__(self, seed: int = 0, obstacles: int | None = None, cruise_speed: float = REF_SPEED) -> None:
         if not 0.0 < cruise_speed <= REF_SPEED:
@@ -144,6 +146,7 @@ class Scenario:
         self.start_ground: float = 0.0  # ground height under the start [m]
         self.goal_xy: tuple[float, float] | None = None
         self.obstacles: list[Obstacle] = []
+        self.keep_out: list[Obstacle] = []  # ground the robot must not hop on: in the ground-truth polytopes, no geom
         self.terrain: list[tuple[str, dict]] = []  # (name, MjsGeom keyword arguments)
         self.segments: list[m.BezierSegment] = []
         # [s] when the operator asks the low level for a flip; in a scenario that asks, the body turns
@@ -214,6 +217,7 @@ class Scenario:
         else:
             off, vel = self.offsets.tolist(), self.velocities.tolist()
             polys = [o.polytope(tuple(off[k]), tuple(vel[k])) for k, o in enumerate(self.obstacles)]
+        polys += [o.polytope() for o in self.keep_out]  # still: the verges a robot must keep off
         return m.PolytopeSet(stamp_ns=stamp_ns, mode="obstacles", polytopes=polys, source="ground_truth")
 
     def move_obstacles(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
@@ -745,3 +749,75 @@ class Crossing(Scenario):
 
     def world_summary(self) -> dict:
         return {**super().world_summary(), "walk_start_s": None if self.walk_start is None else round(self.walk_start, 3)}
+
+
+@register
+class Sidewalk(Scenario):
+    """Outdoors (thesis 8.2): a paved sidewalk between kerbs and grass, obstacles standing on it."""
+
+    name = "sidewalk"
+    description = ("a sidewalk with kerbs between grass verges to a goal at its end, random posts and bins on it "
+                   "(--obstacles N); the grass is not to be hopped on")
+    default_duration_s = 60.0
+    traversable = (TERRAIN_PREFIX + "sidewalk",)
+    LENGTH = 7.0  # [m] of sidewalk ahead of the start
+    HALF_WIDTH = 0.9  # [m] paved half width
+    SLAB = 0.01  # [m] the paving's thickness above the grass
+    KERB = (0.08, 0.06)  # [m] kerb height above the paving, width
+    GRASS_RGBA = [0.30, 0.52, 0.18, 1.0]
+    PAVING_RGBA = [0.66, 0.64, 0.60, 1.0]
+    KERB_RGBA = [0.80, 0.79, 0.76, 1.0]
+    DEFAULT_COUNT = 3
+    RADIUS = (0.12, 0.22)  # [m] circumradius of a post or bin
+    X_RANGE = (1.2, 5.5)  # [m] obstacle centres along the sidewalk
+    GAP = 0.45  # [m] free gap kept beside every obstacle (the robot is 0.26 m wide)
+    GOAL_BEFORE_END = 0.5  # [m]
+
+    def setup(self, obstacles: int | None) -> None:
+        count = self.DEFAULT_COUNT if obstacles is None else obstacles
+        if not 0 <= count <= 10:
+            raise ValueError(f"sidewalk obstacle count must be within 0..10, got {count}")
+        w, length, slab = self.HALF_WIDTH, self.LENGTH, self.SLAB
+        x0, x1 = -1.0, length
+        kh, kw = self.KERB
+        self.start_ground = slab
+        self.terrain = [("sidewalk", {"type": mujoco.mjtGeom.mjGEOM_BOX, "size": [(x1 - x0) / 2, w, slab / 2],
+                                      "pos": [(x0 + x1) / 2, 0.0, slab / 2]})]
+        self.colors = {"sidewalk": self.PAVING_RGBA}
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            self.terrain.append((f"kerb_{side}", {"type": mujoco.mjtGeom.mjGEOM_BOX, "size": [(x1 - x0) / 2, kw / 2, (slab + kh) / 2],
+                                                  "pos": [(x0 + x1) / 2, sign * (w + kw / 2), (slab + kh) / 2]}))
+            self.colors[f"kerb_{side}"] = self.KERB_RGBA
+            # the verge beyond the kerb: keep out (as far as the planner is concerned, a wall)
+            y_in, y_out = sign * w, sign * (w + 3.0)
+            self.keep_out.append(Obstacle(_ccw_hull(np.array([[x0 - 1.0, y_in], [x1 + 1.0, y_in], [x1 + 1.0, y_out],
+                                                              [x0 - 1.0, y_out]]))))
+        placed: list[tuple[float, float, float]] = []
+        tries = 0
+        while len(placed) < count:
+            tries += 1
+            if tries > 20000:
+                raise ValueError(f"cannot place {count} obstacles on the sidewalk")
+            r = float(self.rng.uniform(*self.RADIUS))
+            cx = float(self.rng.uniform(*self.X_RANGE))
+            cy = float(self.rng.uniform(-w + r, w - r))
+            # a way past on one side at least, and room between obstacles
+            if w - (cy + r) < self.GAP and (cy - r) + w < self.GAP:
+                continue
+            if any(math.dist((cx, cy), (px, py)) < r + pr + self.GAP for px, py, pr in placed):
+                continue
+            placed.append((cx, cy, r))
+            nv = int(self.rng.integers(4, 9))
+            ang = np.arange(nv) * (2 * math.pi / nv) + self.rng.uniform(0, 2 * math.pi)
+            self.obstacles.append(Obstacle(_ccw_hull(np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1))))
+        self.goal_xy = (length - self.GOAL_BEFORE_END, 0.0)
+        self.segments = straight_reference(self.start, self.goal_xy, speed=self.cruise_speed)
+
+    def build(self, spec: mujoco.MjSpec) -> None:
+        spec.geom("floor").rgba = self.GRASS_RGBA
+        super().build(spec)
+        for name, rgba in self.colors.items():  # the base gives terrain one colour; paving and kerbs have their own
+            spec.geom(TERRAIN_PREFIX + name).rgba = rgba
+
+    def world_summary(self) -> dict:
+        return {**super().world_summary(), "sidewalk_half_width_m": self.HALF_WIDTH, "kerb_m": list(self.KERB)}

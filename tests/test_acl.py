@@ -50,9 +50,10 @@ def test_rules_follow_the_publishers_column():
     # the two promises the deployment makes, spelled out
     for command in ("torque_cmd", "attitude_cmd"):
         assert policies[f"{command}-publishers"]["subjects"] == ["control"]
-    for sensor in ("imu", "joints", "depth"):
+    for sensor in ("imu", "joints"):
         assert policies[f"{sensor}-publishers"]["subjects"] == ["hardware", "twin"]
     assert policies["pose-publishers"]["subjects"] == ["hardware", "mocap", "twin"]  # motion capture too
+    assert policies["depth-publishers"]["subjects"] == ["camera", "hardware", "twin"]  # the D435 too
     rules = {r["id"]: r for r in acl["rules"]}
     put_rules = [r for r in rules.values() if "put" in r["messages"] and "ingress" in r["flows"]]
     assert all(r["id"].startswith("publish-") for r in put_rules)  # nothing else lets anyone publish

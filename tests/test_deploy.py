@@ -315,3 +315,17 @@ def test_archer_firmware_profile_installs_the_robot_lan_config(tmp_path):
     assert (fw.kd_tilt, fw.kd_yaw) == (control.kd_tilt, control.kd_yaw)
     with pytest.raises(ValueError):
         plan_install(tmp_path, FAKE_ARCHER, profile="nonesuch")
+
+
+def test_archer_outdoor_profile_runs_the_d435_in_place_of_motion_capture(tmp_path):
+    apply(plan_install(tmp_path, FAKE_ARCHER, profile="archer-outdoor"), dry_run=False)
+    params = load_params(tmp_path / "etc/archer/archer.toml")
+    assert params["hardware"].backend == "archer-firmware" and params["estimator"].position_source == "odometry"
+    assert params["perception"].segmenter == "color" and params["camera"].source == "device"
+    parsed = units()
+    wants = one(parsed["archer-outdoor.target"], "Unit", "Wants").split()
+    assert "archer-camera.service" in wants and "archer-mocap.service" not in wants
+    for name in wants:  # stopping the target stops its units
+        assert "archer-outdoor.target" in one(parsed[name], "Unit", "PartOf").split(), name
+    conflicts = set(one(parsed["archer-outdoor.target"], "Unit", "Conflicts").split())
+    assert conflicts == {"archer.target", "archer-sil.target", "archer-firmware.target"}

@@ -58,7 +58,7 @@ LAYERS: dict[str, set[str]] = {
     "services.bench": _ROBOT | {"services", "services.twin", "sim_twin"},
     "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy", "offline"},
 }
-ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap", "view")
+ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap", "camera", "view")
 
 
 def layer_of(module: str) -> str:

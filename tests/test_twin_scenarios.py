@@ -13,7 +13,7 @@ from sim_twin import model as tm
 from sim_twin import scenarios as sc
 
 ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "flip", "shove", "step", "ramp", "blind-side", "forest", "maze",
-       "kicked", "sliding", "sliding-fast", "crossing"]
+       "kicked", "sliding", "sliding-fast", "crossing", "sidewalk"]
 
 
 def _compiled(scn: sc.Scenario) -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -54,8 +54,10 @@ def test_scenario_builds_and_starts_clear(name: str) -> None:
     assert foot_z == pytest.approx(_ground_height(model, data, *scn.start) + sc.START_DROP, abs=1e-6)
     # obstacles: geoms named obstacle_k whose footprint is the ground-truth polygon
     poly = scn.polytopes()
-    assert poly.source == "ground_truth" and len(poly.polytopes) == len(scn.obstacles)
-    for k, p in enumerate(poly.polytopes):
+    # ...and after them the keep-out ground (the sidewalk's verges), polytopes with no geom
+    assert poly.source == "ground_truth" and len(poly.polytopes) == len(scn.obstacles) + len(scn.keep_out)
+    solid = poly.polytopes[:len(scn.obstacles)]
+    for k, p in enumerate(solid):
         a, b, verts = np.array(p.A), np.array(p.b), np.array(p.vertices)
         assert np.all(a @ verts.T <= b[:, None] + 1e-9)
         centre = verts.mean(axis=0)
@@ -64,7 +66,7 @@ def test_scenario_builds_and_starts_clear(name: str) -> None:
         assert model.geom_contype[gid] == 1
         assert _ground_height(model, data, *centre) == pytest.approx(sc.OBSTACLE_HEIGHT, abs=1e-6)
         outside = centre + 1.02 * (verts[0] - centre) + 0.01 * (verts[0] - centre) / np.linalg.norm(verts[0] - centre)
-        inside_any = any(np.all(np.array(q.A) @ outside <= np.array(q.b)) for q in poly.polytopes)
+        inside_any = any(np.all(np.array(q.A) @ outside <= np.array(q.b)) for q in solid)
         assert (_ground_height(model, data, *outside) > sc.OBSTACLE_HEIGHT - 0.1) == inside_any
 
 

@@ -5,6 +5,8 @@ Layout (little endian), documented so any client can parse it:
     header  : magic b"ARCB", version u16, kind u16, stamp_ns i64, seq u64   (24 bytes)
     depth   : width u32, height u32, fx fy cx cy f64, cam_pos f64[3], cam_quat f64[4]
               then float32 depth [m] row-major (height x width); 0 or inf = no return
+    color   : as depth (width, height, intrinsics, camera pose), then uint8 RGB row-major
+              (height x width x 3), registered to a depth image of the same stamp pixel for pixel
     grid    : width u32 (columns, along x), height u32 (rows, along y), resolution f64 [m],
               origin_x f64, origin_y f64 [m, world position of the lower-left corner of
               cell [0, 0]], then uint8 cells row-major: 0 free, 100 occupied, 255 unknown
@@ -26,6 +28,7 @@ BINARY_VERSION = 1
 ENCODING = "application/octet-stream;archer-binary-v1"
 KIND_DEPTH = 1
 KIND_GRID = 2
+KIND_COLOR = 3
 
 CELL_FREE = 0
 CELL_OCCUPIED = 100
@@ -45,6 +48,19 @@ class DepthImage:
     cy: float
     cam_pos: np.ndarray  # camera optical centre in world [m]
     cam_quat: np.ndarray  # camera->world [w, x, y, z]; camera frame: x right, y down, z forward
+    stamp_ns: int = 0
+    seq: int = 0
+
+
+@dataclass
+class ColorImage:
+    rgb: np.ndarray  # (height, width, 3) uint8, RGB
+    fx: float  # intrinsics of the pixels [px] (those of the depth image it is aligned to)
+    fy: float
+    cx: float
+    cy: float
+    cam_pos: np.ndarray  # as DepthImage
+    cam_quat: np.ndarray
     stamp_ns: int = 0
     seq: int = 0
 
@@ -96,6 +112,30 @@ def decode_depth(payload: bytes | bytearray | memoryview) -> DepthImage:
     if np.isnan(depth).any():
         raise MessageError("depth image with NaN pixels")
     return DepthImage(depth, fx, fy, cx, cy, np.array(pose[:3]), np.array(pose[3:]), stamp_ns, seq)
+
+
+def encode_color(img: ColorImage) -> bytes:
+    h, w, channels = img.rgb.shape
+    if channels != 3:
+        raise ValueError(f"colour image with {channels} channels, expected 3 (RGB)")
+    meta = _DEPTH.pack(w, h, img.fx, img.fy, img.cx, img.cy, *map(float, img.cam_pos), *map(float, img.cam_quat))
+    return _header(KIND_COLOR, img.stamp_ns, img.seq) + meta + np.ascontiguousarray(img.rgb, dtype=np.uint8).tobytes()
+
+
+def decode_color(payload: bytes | bytearray | memoryview) -> ColorImage:
+    buf = bytes(payload)
+    stamp_ns, seq = _parse_header(buf, KIND_COLOR)
+    off = _HEADER.size
+    if len(buf) < off + _DEPTH.size:
+        raise MessageError("colour image truncated")
+    w, h, fx, fy, cx, cy, *pose = _DEPTH.unpack_from(buf, off)
+    off += _DEPTH.size
+    if w == 0 or h == 0 or len(buf) - off != 3 * w * h:
+        raise MessageError(f"colour image {w}x{h} does not match its {len(buf) - off} data bytes")
+    if not np.all(np.isfinite([fx, fy, cx, cy, *pose])):
+        raise MessageError("colour image with non-finite intrinsics or pose")
+    rgb = np.frombuffer(buf, dtype=np.uint8, offset=off).reshape(h, w, 3)
+    return ColorImage(rgb, fx, fy, cx, cy, np.array(pose[:3]), np.array(pose[3:]), stamp_ns, seq)
 
 
 def encode_grid(grid: OccupancyGrid) -> bytes:

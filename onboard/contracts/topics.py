@@ -39,7 +39,7 @@ class Topic:
     priority: Priority = "data"
     express: bool = False  # send at once, do not batch
     log: bool = True  # recorded by the flight recorder
-    binary: str = ""  # binary kind ("depth", "grid") when msg_type is None
+    binary: str = ""  # binary kind ("depth", "grid", "color") when msg_type is None
 
     def key(self, ns: str) -> str:
         return f"{ns}/{self.suffix}"
@@ -62,7 +62,8 @@ _TABLE = [
     Topic("imu", "sensors/imu", m.ImuSample, 1000, _SENSOR_PUBLISHERS, priority="real_time", express=True),
     Topic("joints", "sensors/joints", m.JointSensors, 1000, _SENSOR_PUBLISHERS, priority="real_time", express=True),
     Topic("pose", "sensors/pose", m.PoseMeasurement, 100, (*_SENSOR_PUBLISHERS, "mocap"), priority="interactive_high", express=True),
-    Topic("depth", "sensors/depth", None, 5, _SENSOR_PUBLISHERS, priority="data_low", binary="depth"),
+    Topic("depth", "sensors/depth", None, 5, (*_SENSOR_PUBLISHERS, "camera"), priority="data_low", binary="depth"),
+    Topic("color", "sensors/color", None, 5, ("camera", "twin"), priority="data_low", binary="color"),
     # estimation
     Topic("state", "state/estimate", m.StateEstimate, 1000, ("estimator",), priority="real_time", express=True),
     Topic("phase", "state/phase", m.PhaseEvent, 0, ("estimator", "control"), reliability="reliable", priority="interactive_high"),
@@ -86,7 +87,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in _TABLE}
 assert len(TOPICS) == len(_TABLE), "duplicate topic name"
 assert len({t.suffix for t in _TABLE}) == len(_TABLE), "duplicate topic key"
 
-SERVICES = ("hardware", "twin", "mocap", "estimator", "control", "planner", "perception", "recorder", "view", "camera_overhead")
+SERVICES = ("hardware", "twin", "mocap", "camera", "estimator", "control", "planner", "perception", "recorder", "view",
+            "camera_overhead")
 
 
 def namespace(robot: str | None = None) -> str:

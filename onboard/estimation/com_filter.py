@@ -172,6 +172,29 @@ class ComFilter:
         out[4] += dvy
         out[5] += dvz
 
+    def anchor(self, px: float, py: float, pz: float, var: float) -> None:
+        """Define the position now [m]: the output moves there and the horizon with it, its position
+        variance ``var`` [m^2] per axis (the velocity and its variance stay): an odometry origin."""
+        out = self._out
+        dx, dy, dz = px - out[0], py - out[1], pz - out[2]
+        out[0], out[1], out[2] = px, py, pz
+        self._anchor_horizon(dx, dy, dz, var)
+
+    def shift_height(self, dz: float) -> None:
+        """Move the CoM's height by ``dz`` [m], output and horizon alike (its covariance stays)."""
+        self._out[2] += dz
+        self._shift_horizon_height(dz)
+
+    def _shift_horizon_height(self, dz: float) -> None:
+        self._x[2] += dz
+
+    def _anchor_horizon(self, dx: float, dy: float, dz: float, var: float) -> None:
+        x = self._x
+        x[0] += dx
+        x[1] += dy
+        x[2] += dz
+        self._p = [var, 0.0, self._p[2]]
+
     def add_leg_velocity(self, vx: float, vy: float, vz: float, var: float) -> None:
         """CoM velocity [m/s, world] from leg kinematics at the newest sample."""
         if self._entries:
@@ -466,6 +489,16 @@ class FilterpyComFilter(ComFilter):
 
     def _add_cov(self, pp: float, pv: float, vv: float) -> None:
         self._kf.P += np.kron(np.array([[pp, pv], [pv, vv]]), np.eye(3))
+
+    def _shift_horizon_height(self, dz: float) -> None:
+        self._kf.x[2, 0] += dz
+
+    def _anchor_horizon(self, dx: float, dy: float, dz: float, var: float) -> None:
+        kf = self._kf
+        kf.x[0:3, 0] += (dx, dy, dz)
+        kf.P[0:3, :] = 0.0
+        kf.P[:, 0:3] = 0.0
+        kf.P[0:3, 0:3] = var * np.eye(3)
 
     def _impulse(self, dvx: float, dvy: float, dvz: float, var: float) -> None:
         kf = self._kf

@@ -19,7 +19,8 @@ was rejected; rejections are counted by reason (non-finite, future, past, out of
 out of range, stale, gated outlier) in :meth:`StateEstimator.rejections` and
 :attr:`StateEstimator.counters`. :meth:`StateEstimator.status` summarizes health:
 ``mode`` is ``"init"`` until the first pose is fused, ``"pose_outage"`` while no pose
-has been fused for ``pose_timeout_s``, else ``"ok"``.
+has been fused for ``pose_timeout_s``, else ``"ok"``; with ``position_source = "odometry"``
+(no motion capture) ``"init"`` until the first touchdown, then ``"odometry"``.
 
 Honest covariance: every uncertainty grows with the time since its input was last
 fused, and ``valid`` is the covariance's verdict (position, velocity, attitude and body
@@ -215,6 +216,14 @@ class StateEstimator:
         self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
         self._gap_contact = False  # a contact reading since the newest IMU interval was integrated
         self._imu_gap = (0, 0)  # the newest interval of more than two IMU periods [ns]
+        # no pose (position_source "odometry"): the IMU's orientation for the attitude, an origin at touchdown
+        self._odometry = p.position_source == "odometry"
+        self._anchored = False
+        self._imu_att_var = p.imu_att_std_rad ** 2
+        self._imu_att_every = p.imu_att_every
+        self._imu_att_run = 0
+        self._anchor_var = p.anchor_std_m ** 2
+        self._flat_ground = p.odometry_flat_ground
 
     # --- helpers ------------------------------------------------------------------
 
@@ -328,6 +337,8 @@ class StateEstimator:
                     self._reject("gravity_outliers")
         else:
             self._static_since = -1
+        if self._odometry:
+            self._imu_attitude(msg.quat, t)
         w, x, y, z = att.q
         r00 = 1.0 - 2.0 * (y * y + z * z)
         r01 = 2.0 * (x * y - w * z)
@@ -350,6 +361,45 @@ class StateEstimator:
             reading = f > p.accel_contact_on_m_s2 or (self._switch and f > p.accel_contact_off_m_s2)
             self._contact_reading(reading, t)
         return True
+
+    def _imu_attitude(self, q: list[float], t: int) -> None:
+        """Odometry: every ``imu_att_every``-th IMU orientation (its own AHRS) corrects the attitude."""
+        self._imu_att_run += 1
+        if self._imu_att_run < self._imu_att_every:
+            return
+        self._imu_att_run = 0
+        qw, qx, qy, qz = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if not math.isfinite(n) or abs(n - 1.0) > QUAT_NORM_TOL:
+            self._reject("imu_bad_quat")
+            return
+        fused = self.att.correct_pose((qw / n, qx / n, qy / n, qz / n), t, self._imu_att_var, self._gate3)
+        if fused:
+            self._count("imu_att_fused")
+        elif fused is not None:
+            self._reject("imu_att_outliers")
+
+    def _com_from_contact(self) -> tuple[float, float, float]:
+        """The CoM from the foot's contact point [m, world]: the lever to the foot sphere's centre, then its radius."""
+        r = self._rot
+        bx, by, bz = self._r_cf0
+        bz -= self._mu_sprung * self.foot_pos
+        return (r[0] * bx + r[1] * by + r[2] * bz, r[3] * bx + r[4] * by + r[5] * bz,
+                r[6] * bx + r[7] * by + r[8] * bz + self._foot_radius)
+
+    def _anchor(self) -> None:
+        """Odometry, at a confirmed touchdown. The first one's contact point is the origin (ground at
+        z = 0). At each later one on flat ground (``odometry_flat_ground``) the foot is back on the
+        ground's height: the CoM's height is set from the leg, which keeps the unobserved vertical
+        drift to one hop's worth (its horizontal position stays the odometry's)."""
+        lx, ly, lz = self._com_from_contact()
+        if not self._anchored:
+            self._anchored = True
+            self.com.anchor(lx, ly, lz, self._anchor_var)
+            self._count("odometry_anchored")
+        elif self._flat_ground:
+            self.com.shift_height(lz - self.com.position[2])
+            self._count("ground_height_resets")
 
     def _modelled_specific_force(self) -> float:
         """The specific force along the leg [m/s^2, body z] with no accelerometer: the spring's
@@ -486,6 +536,8 @@ class StateEstimator:
                 if self.contact and self._impact is not None:
                     self._impact = None
                     self._count("touchdowns")
+                if self.contact and self._odometry and self.att.initialized:
+                    self._anchor()
 
     def _leg_velocity(self, s: float, sd: float, rolling: bool) -> tuple[float, float, float]:
         """CoM velocity [m/s, world] relative to the foot sphere's contact point
@@ -531,6 +583,8 @@ class StateEstimator:
         The position is gated against the state at the capture time first: a refused pose
         is not used at all (its attitude neither) and does not move the order check, so a
         stream of outliers cannot push the real poses out as out of order."""
+        if self._odometry:
+            return self._reject("pose_not_used")  # the odometry frame is not the pose sensor's
         t = msg.stamp_ns
         pos, q = msg.position, msg.quat
         px, py, pz = float(pos[0]), float(pos[1]), float(pos[2])
@@ -627,9 +681,10 @@ class StateEstimator:
             z, ppv, z, z, pvv, z,
             z, z, ppv, z, z, pvv,
         ]
-        converged = max(self._t_pose_fused, com.last_fused_stamp) >= 0
+        converged = max(self._t_pose_fused, com.last_fused_stamp) >= 0 or self._anchored
         attitude_valid = converged and max(av) <= self._valid_att_var and rate_var <= self._valid_rate_var
-        valid = attitude_valid and ppp <= self._valid_pos_var and pvv <= self._valid_vel_var
+        # odometry: the position is the drifting frame's by definition; its covariance is published as it grows
+        valid = attitude_valid and (self._odometry or ppp <= self._valid_pos_var) and pvv <= self._valid_vel_var
         return StateEstimate(
             stamp_ns=t_imu + lag_ns,
             position=[px, py, pz],
@@ -651,7 +706,10 @@ class StateEstimator:
         """Health figures: ``mode``, pose age [s], standard deviations, gyro bias [rad/s]."""
         t = self._t_imu
         fused = max(self._t_pose_fused, self.com.last_fused_stamp)
-        if fused < 0:
+        if self._odometry:
+            mode = "odometry" if self._anchored else "init"
+            pose_age = math.inf
+        elif fused < 0:
             mode = "init"
             pose_age = math.inf
         else:

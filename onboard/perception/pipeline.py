@@ -20,6 +20,7 @@ from onboard.perception.obstacles import obstacles_from_mask
 from onboard.perception.occupancy import OccupancyMap
 from onboard.perception.pointcloud import depth_to_points
 from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, Cloud, GeometricSegmenter, Segmenter
+from onboard.perception.terrain import ColorTerrainSegmenter
 
 MODES = ("free", "obstacles")
 NS = 1_000_000_000
@@ -43,18 +44,28 @@ class Perception:
         if params.mode not in MODES:
             raise ValueError(f"perception mode must be one of {MODES}, got {params.mode!r}")
         self.params = params
-        self.segmenter: Segmenter = segmenter if segmenter is not None else GeometricSegmenter(params)
+        if segmenter is None:
+            segmenter = ColorTerrainSegmenter(params) if params.segmenter == "color" else GeometricSegmenter(params)
+        self.segmenter: Segmenter = segmenter
         self.map = OccupancyMap(params, centre)
 
-    def integrate(self, img: DepthImage, robot_xy: tuple[float, float] | None = None) -> ViewStats:
-        """Fuse one depth image (its ``stamp_ns`` is the capture time)."""
+    def integrate(self, img: DepthImage, robot_xy: tuple[float, float] | None = None,
+                  color: np.ndarray | None = None) -> ViewStats:
+        """Fuse one depth image (its ``stamp_ns`` is the capture time); ``color``: the RGB image
+        aligned to it (the D435's), for a segmenter that reads colour."""
         p = self.params
         if robot_xy is not None:
             if not all(math.isfinite(v) for v in robot_xy):
                 raise ValueError("robot position is not finite")
             self.map.follow(*robot_xy)
         pts, valid = depth_to_points(img, p.max_range_m, p.pixel_stride)
-        labels = self.segmenter.segment(Cloud(pts, valid, np.asarray(img.cam_pos, dtype=float)))
+        image = None
+        if color is not None:
+            if color.shape[:2] != img.depth.shape:
+                raise ValueError(f"colour image {color.shape[:2]} is not aligned to the depth image {img.depth.shape}")
+            image = color[::p.pixel_stride, ::p.pixel_stride]
+        foot = np.array(robot_xy, dtype=float) if robot_xy is not None else None
+        labels = self.segmenter.segment(Cloud(pts, valid, np.asarray(img.cam_pos, dtype=float), image, foot))
         keep = labels != 0
         flat_pts = pts[keep]
         flat_lab = labels[keep]

@@ -31,6 +31,7 @@ class Cloud:
     valid: np.ndarray  # (h, w) bool
     cam_pos: np.ndarray  # (3,) camera optical centre, world [m]
     image: np.ndarray | None = None  # (h, w, 3) colour aligned with the points, if any
+    foot: np.ndarray | None = None  # (2,) the foot's world xy, if known (the ground under it seeds colour segmenters)
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "mocap": ("services.bench.mocap", "estimator RMSE with twin poses through the NatNet emulator and motioncapture vs. straight from the twin (lockstep)"),
     "twin": ("services.bench.twin", "physics step, the twin's own tick, lockstep real-time factor with the onboard stack"),
     "overhead": ("services.bench.overhead", "indoor loop at the thesis's rates, 20 sliding obstacles: overhead camera step, cut + search, MPC refinement p50/p99"),
+    "camera": ("services.bench.camera", "the D435 chain at 848x480/30 Hz through librealsense to polytopes: latency p50/p99 and CPU"),
 }
 
 

@@ -40,7 +40,7 @@ from services.runtime.process_env import prepare_environment
 RUNS_FILE = "runs.jsonl"
 # archer sim's options a campaign may set (the rest are about output, real time or the view)
 SIM_OPTIONS = ("duration", "estimator", "planner", "controller", "perception", "obstacles", "config", "no-noise", "keep-going",
-               "model-error")
+               "model-error", "sensing")
 FLAG_OPTIONS = ("no-noise", "keep-going")  # store_true flags: true/false
 TRUE_WORDS, FALSE_WORDS = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 PROGRESS_WIDTH = 30

@@ -56,7 +56,7 @@ SERVICE_GROUP = "archer"
 UNIT_SUFFIXES = (".service", ".target")
 KEPT_CONFIGS = ("archer.toml", "environment")  # never overwritten once installed
 # robot profiles: deploy/config/<profile>.toml is installed as archer.toml, and the profile's target runs it
-PROFILES = {"archer": "archer.target", "archer-firmware": "archer-firmware.target"}
+PROFILES = {"archer": "archer.target", "archer-firmware": "archer-firmware.target", "archer-outdoor": "archer-outdoor.target"}
 _PLACEHOLDER = re.compile(r"@[A-Z_]+@")
 
 

@@ -1,4 +1,4 @@
-"""``archer emulate drives|teensy|archer-firmware|natnet``: run an emulated device in this process.
+"""``archer emulate drives|teensy|archer-firmware|natnet|realsense``: run an emulated device in this process.
 
 Prints ONE JSON line on stdout telling a client how to connect, then serves until
 SIGINT/SIGTERM. Only loopback TCP or UDP, or pseudo-terminals, nothing else. The counters
@@ -24,6 +24,9 @@ go to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
   ``--rate`` Hz, each frame sent ``--latency`` s after its capture (the frame's
   timestamps say so, on this host's monotonic clock). ``--truth FILE`` writes each
   frame's true pose as a JSON line. Needs ``--twin``.
+
+- ``realsense``: a D435 through librealsense's software device with the ``camera`` service
+  reading it, on the twin (:mod:`services.cli.emulate_realsense`); needs ``--twin``.
 
 ``--twin SCENARIO`` puts the MuJoCo twin behind the emulated devices (:class:`TwinPlant`):
 the torques the emulated motors apply drive the twin's actuators, and the twin's
@@ -148,7 +151,7 @@ class TwinPlant:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware", "natnet"))
+    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware", "natnet", "realsense"))
     parser.add_argument("--node-ids", help="comma-separated CANopen node ids (default: hardware.node_ids)")
     parser.add_argument("--port", type=int, default=0,
                         help="drives: TCP port, archer-firmware: UDP port, natnet: UDP command port, on 127.0.0.1 (default: a free one)")
@@ -162,6 +165,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency", type=float, help="natnet: capture to transmit [s] (default: mocap.latency_s)")
     parser.add_argument("--truth", help="natnet: write every frame's true pose to this file (JSON lines)")
     parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
+    parser.add_argument("--endpoint", default=None, help="realsense: the Zenoh endpoint its camera service joins")
+    parser.add_argument("--namespace", default=None, help="realsense: the key namespace (default archer/robot0)")
+    parser.add_argument("--truth-pose", action="store_true",
+                        help="realsense: place the frames by the twin's true pose (no estimator running)")
     parser.add_argument("--seed", type=int, default=0, help="--twin: scenario and sensor-noise seed")
     parser.add_argument(
         "--rt-priority", type=int, default=0,
@@ -396,6 +403,10 @@ def run(args: argparse.Namespace) -> int:
         return _run_archer_firmware(args)
     if args.device == "natnet":
         return _run_natnet(args)
+    if args.device == "realsense":
+        from services.cli import emulate_realsense
+
+        return emulate_realsense.run(args, lambda: TwinPlant(args.twin, args.seed, (1.0,) * len(_gear_ratios())))
     try:
         params = load_params(args.config, ("hardware", "safety"))["hardware"]
         if args.node_ids:

@@ -11,7 +11,7 @@ import time
 import msgspec
 
 from onboard.contracts import messages as msgs
-from onboard.contracts.binary_messages import decode_depth, decode_grid
+from onboard.contracts.binary_messages import decode_color, decode_depth, decode_grid
 from onboard.contracts.topics import TOPICS, Topic, namespace, topic_for_key
 from services.runtime.peers import live_services, query_status
 from services.runtime.zenoh_session import default_endpoint, open_tool_session
@@ -94,6 +94,9 @@ def _render(topic: Topic, payload: bytes) -> str:
     if topic.binary == "depth":
         img = decode_depth(payload)
         return json.dumps({"stamp_ns": img.stamp_ns, "seq": img.seq, "shape": list(img.depth.shape), "fx": img.fx})
+    if topic.binary == "color":
+        rgb = decode_color(payload)
+        return json.dumps({"stamp_ns": rgb.stamp_ns, "seq": rgb.seq, "shape": list(rgb.rgb.shape), "fx": rgb.fx})
     if topic.binary == "grid":
         grid = decode_grid(payload)
         return json.dumps({"stamp_ns": grid.stamp_ns, "seq": grid.seq, "shape": list(grid.cells.shape), "resolution": grid.resolution})

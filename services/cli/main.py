@@ -23,7 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "echo": ("services.cli.introspect", "print decoded live messages of one topic"),
     "status": ("services.cli.introspect", "list live services and their status"),
     "view": ("services.cli.view", "live Foxglove view of a running stack: a WebSocket server on 127.0.0.1:8765"),
-    "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1) or a Teensy (pty); prints one JSON line"),
+    "emulate": ("services.cli.emulate", "run emulated ELMO drives (socketcand on 127.0.0.1), a Teensy (pty), ARCHER boards, NatNet or a D435 (librealsense); prints one JSON line"),
     "sim": ("services.cli.sim", "run a scenario on the MuJoCo twin with the onboard stack (lockstep or real time)"),
     "campaign": ("services.cli.campaign", "a sweep of lockstep runs (scenarios x seeds x variants x options) on a process pool or Ray; JSONL + summary + plot"),
     "train": ("services.cli.train", "offline training: 'zdp' (the thesis's Algorithm 2) and 'zdp-compare' (a campaign against the other policies)"),

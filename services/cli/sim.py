@@ -91,6 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--obstacles-from", choices=("truth", "overhead"), default="truth",
                         help="lockstep: the planner's world from the ground truth, or from the twin's rendered overhead "
                              "view through the camera_overhead pipeline at camera_overhead.rate_hz")
+    parser.add_argument("--sensing", choices=("mocap", "onboard"), default="mocap",
+                        help="onboard: no motion capture (outdoors); the estimator keeps an odometry frame from the IMU "
+                             "and leg kinematics, and the run reports its drift per metre (lockstep)")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -172,6 +175,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
         world=overhead_world(load_params(args.config, ("camera_overhead",))["camera_overhead"])
         if getattr(args, "obstacles_from", "truth") == "overhead" else None,
         model_error=getattr(args, "model_error", None),
+        sensing=getattr(args, "sensing", "mocap"),
     )
 
 
@@ -359,6 +363,8 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
 def run_realtime(args: argparse.Namespace) -> dict:
     """The services read their parameters from the config file: :func:`run_config`, in a
     temporary file for the run."""
+    if getattr(args, "sensing", "mocap") != "mocap":
+        raise ValueError("--sensing onboard runs in lockstep only (the twin service still publishes the pose)")
     user = run_config(args)
     fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
     with os.fdopen(fd, "w") as f:

@@ -23,7 +23,7 @@ from onboard.contracts.params.base import (CAN_NODES, FOOT_TORQUE_PEAK, LOOP_HZ_
 from onboard.contracts.params.estimation import EstimatorParams
 from onboard.contracts.params.high_level import PerceptionParams, PlannerParams
 from onboard.contracts.params.low_level import ControlParams, GeometricMpcParams
-from onboard.contracts.params.platform import (ArcherFirmwareParams, HardwareParams, MessagingParams, MocapParams, RecorderParams,
+from onboard.contracts.params.platform import (ArcherFirmwareParams, CameraParams, HardwareParams, MessagingParams, MocapParams, RecorderParams,
                                                SafetyLimits, ViewParams)
 from onboard.contracts.params.platform import CameraOverheadParams
 from onboard.contracts.params.twin import TwinParams
@@ -32,6 +32,7 @@ __all__ = [  # the one place for parameters: every layer's section, and what wor
     "SECTIONS", "NEEDS_RESTART", "ParamError", "restart_changes", "with_overrides", "as_dict",
     "CAN_NODES", "FOOT_TORQUE_PEAK", "LOOP_HZ_MAX", "WHEEL_NO_LOAD_SPEED", "WHEEL_TORQUE_PEAK",
     "SafetyLimits", "MessagingParams", "HardwareParams", "ArcherFirmwareParams", "RecorderParams", "ViewParams", "MocapParams",
+    "CameraParams",
     "EstimatorParams", "ControlParams", "GeometricMpcParams", "PlannerParams", "PerceptionParams", "TwinParams",
     "CameraOverheadParams",
 ]

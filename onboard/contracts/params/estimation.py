@@ -94,3 +94,14 @@ class EstimatorParams(_Section, section="estimator"):
     valid_att_std_rad: Annotated[float, above(0.0, math.pi)] = 0.05  # [rad] attitude std above this: estimate not valid
     valid_rate_std_rad_s: Annotated[float, above(0.0, 100.0)] = 0.5  # [rad/s] body rate std above this: estimate not valid
     kf_backend: Literal["lean", "filterpy"] = "lean"  # CoM filter arithmetic: "lean" (floats) or "filterpy" (reference)
+    # No motion capture (outdoors, thesis 8.2): "odometry" never waits for a pose. The frame is the
+    # odometry frame, its origin the foot's first touchdown point; from there the CoM follows the IMU
+    # and leg kinematics (the foot pinned in stance), and its position drifts: the published position
+    # covariance grows honestly and validity no longer asks for a small one (obstacles are seen
+    # relative to the robot, in the same frame). The attitude takes the IMU's own (AHRS) orientation
+    # instead of the pose's.
+    position_source: Literal["pose", "odometry"] = "pose"
+    imu_att_std_rad: Annotated[float, above(0.0, 1.0)] = 0.02  # [rad] the IMU's own orientation per axis (odometry)
+    imu_att_every: Annotated[int, within(1, 1000)] = 10  # fuse every n-th IMU orientation (odometry)
+    anchor_std_m: Annotated[float, above(0.0, 1.0)] = 0.01  # [m] the odometry origin at the first touchdown
+    odometry_flat_ground: bool = True  # every touchdown is at the first one's ground height (no steps or ramps)

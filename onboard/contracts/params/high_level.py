@@ -150,6 +150,15 @@ class PerceptionParams(_Section, section="perception"):
     obstacle_split_min_cells: Annotated[int, within(1, 10_000_000)] = 8
     obstacle_split_depth: Annotated[int, within(0, 64)] = 6  # halvings per blob at most
     obstacles_max: Annotated[int, within(1, 100_000)] = 400
+    # terrain segmentation from colour and depth (onboard/perception/terrain.py, thesis 8.2): outdoors
+    segmenter: Literal["geometric", "color"] = "geometric"  # "color": the D435's aligned colour image too
+    terrain_clusters: Annotated[int, within(2, 32)] = 6  # K-means colour clusters (CIE Lab) per image
+    terrain_seed_range_m: Annotated[float, above(0.0, 10.0)] = 1.2  # [m] ground this near the foot seeds the colour
+    terrain_seed_share: Probability = 0.2  # a cluster holding this share of the seed pixels is traversable colour
+    terrain_color_distance: Annotated[float, above(0.0, 1000.0)] = 14.0  # Lab distance of a cluster centre from the seed's colour
+    terrain_blur_px: Annotated[int, within(1, 31)] = 5  # odd: smoothing before clustering (texture is not class)
+    terrain_min_seed_px: Annotated[int, within(1, 1_000_000)] = 40  # fewer seed pixels: the last view's colours stand
+    terrain_memory: Probability = 0.7  # weight of the last views' seed colour against this view's
 
     def _relations(self) -> list[str]:
         if self.clusters_min > self.clusters_max:

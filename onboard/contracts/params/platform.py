@@ -225,3 +225,35 @@ class CameraOverheadParams(_Section, section="camera_overhead"):
         if len(set(self.marker_ids)) != n:
             return ["camera_overhead.marker_ids: a marker id twice"]
         return []
+
+
+@dataclass(frozen=True)
+class CameraParams(_Section, section="camera"):
+    """The ``camera`` service: the D435 through librealsense (``drivers/realsense``).
+
+    Depth at ``width`` x ``height`` @ ``fps`` (one of the D435's modes), colour aligned to
+    it, the SDK's decimation and spatial filters; one frame a hop, the one captured nearest
+    the apex (``capture = "apex"``), or every frame (``"every"``: bench, recordings). A
+    frame's ``stamp_ns`` is its sensor timestamp mapped onto the stack's clock.
+    """
+
+    source: Literal["device", "file"] = "device"  # a camera over USB, or a recording played back
+    serial: str = ""  # the camera's serial number ("": the first D435 found)
+    file: str = ""  # source = "file": a librealsense recording (.db3, as librealsense 2.59 records)
+    file_real_time: bool = True  # play a recording at its own pace (False: every frame, as fast as read)
+    width: Annotated[int, within(1, 4096)] = 848  # depth mode [px]
+    height: Annotated[int, within(1, 4096)] = 480
+    fps: Annotated[int, within(1, 300)] = 30  # [Hz]
+    color: bool = True  # colour stream, aligned to depth, published on `color`
+    color_width: Annotated[int, within(1, 4096)] = 848
+    color_height: Annotated[int, within(1, 4096)] = 480
+    color_fps: Annotated[int, within(1, 300)] = 30
+    decimation: Annotated[int, within(1, 8)] = 2  # the SDK's decimation filter (1: off); 848x480 -> 424x240
+    spatial: bool = True  # the SDK's spatial edge-preserving filter
+    capture: Literal["apex", "every"] = "apex"
+    apex_tolerance_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] a frame further from the apex is not its frame
+    min_latency_s: Annotated[float, within(0.0, 1.0)] = 0.010  # [s] exposure to host that no frame beats (clock map)
+    clock_window: Annotated[int, within(1, 100_000)] = 300  # frames over which the clock offset is the smallest delay
+    state_max_age_s: Annotated[float, above(0.0, 10.0)] = 0.05  # [s] an estimate further from the frame cannot pose it
+    robot_variant: Literal["indoor", "outdoor", "sim15nm"] = "outdoor"  # MJCF whose camera site is the extrinsic
+    reopen_s: Annotated[float, above(0.0, 60.0)] = 1.0  # [s] wait before opening the camera again after a failure

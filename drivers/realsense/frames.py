@@ -1,0 +1,105 @@
+"""The D435's frames as numbers: z16 <-> metres, its clock on the stack's, the frame nearest an apex.
+
+(Its modes, fields of view and depth error are the datasheet's: :mod:`robot_description.d435`.)
+
+Nothing here imports librealsense: the device (:mod:`drivers.realsense.device`) hands over
+arrays and timestamps, and these functions and classes are tested alone.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import numpy as np
+
+
+def z16_to_metres(z16: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Depth [m] (float32) of z16 counts; 0 stays 0 (no return)."""
+    return z16.astype(np.float32) * np.float32(depth_scale)
+
+
+def metres_to_z16(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """z16 counts of depth [m]: rounded; 0, negative, non-finite or beyond the z16 range -> 0 (no return)."""
+    counts = np.rint(np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0) / depth_scale)
+    return np.where((counts > 0) & (counts <= np.iinfo(np.uint16).max), counts, 0).astype(np.uint16)
+
+
+class ClockMap:
+    """A sensor's clock mapped onto the stack's monotonic clock.
+
+    The offset is the smallest ``receive - sensor`` over the last ``window`` frames (the
+    least-delayed frame bounds the transport delay from below; a sliding window follows the
+    two clocks' drift), less ``min_latency_ns``, the delay no frame beats (exposure to the
+    host, measured once). A frame's capture time is then ``sensor + offset``.
+    """
+
+    def __init__(self, window: int, min_latency_ns: int) -> None:
+        if window < 1 or min_latency_ns < 0:
+            raise ValueError("ClockMap needs window >= 1 and min_latency_ns >= 0")
+        self._gaps: deque[int] = deque(maxlen=window)
+        self._min_latency_ns = min_latency_ns
+        self._last_sensor_ns: int | None = None
+
+    def stamp(self, sensor_ns: int, receive_ns: int) -> int:
+        """The capture time on the stack's clock of a frame stamped ``sensor_ns``, received at ``receive_ns``.
+
+        A sensor clock that goes back (a camera reset, a recording played again) restarts the map.
+        """
+        if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
+            self._gaps.clear()
+        self._last_sensor_ns = sensor_ns
+        self._gaps.append(receive_ns - sensor_ns)
+        return sensor_ns + min(self._gaps) - self._min_latency_ns
+
+
+F = TypeVar("F")
+
+
+@dataclass
+class Picked(Generic[F]):
+    frame: F
+    stamp_ns: int  # the frame's capture time on the stack's clock
+    apex_ns: int  # the apex it stands for
+    offset_ns: int  # stamp - apex
+
+
+class ApexPicker(Generic[F]):
+    """The frame captured nearest each apex.
+
+    Frames (stamped on the stack's clock) go in as they arrive; apex events as the estimator
+    sends them. An apex is answered once a frame captured at or after it has arrived (the
+    nearest is then that one or the one before), with the nearer of the two if it lies within
+    ``tolerance_ns``; otherwise the apex is counted as missed (``missed``). A newer apex
+    replaces one still waiting.
+    """
+
+    def __init__(self, tolerance_ns: int, keep: int) -> None:
+        if tolerance_ns <= 0 or keep < 2:
+            raise ValueError("ApexPicker needs tolerance_ns > 0 and keep >= 2")
+        self._frames: deque[tuple[int, F]] = deque(maxlen=keep)
+        self._apex_ns: int | None = None
+        self.tolerance_ns = tolerance_ns
+        self.missed = 0
+
+    def add_frame(self, stamp_ns: int, frame: F) -> Picked[F] | None:
+        self._frames.append((stamp_ns, frame))
+        return self._try()
+
+    def add_apex(self, apex_ns: int) -> Picked[F] | None:
+        if self._apex_ns is not None:
+            self.missed += 1  # no frame came after the previous apex before this one
+        self._apex_ns = apex_ns
+        return self._try()
+
+    def _try(self) -> Picked[F] | None:
+        apex = self._apex_ns
+        if apex is None or not self._frames or self._frames[-1][0] < apex:
+            return None
+        self._apex_ns = None
+        stamp, frame = min(self._frames, key=lambda sf: abs(sf[0] - apex))
+        if abs(stamp - apex) > self.tolerance_ns:
+            self.missed += 1
+            return None
+        return Picked(frame, stamp, apex, stamp - apex)
