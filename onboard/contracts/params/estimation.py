@@ -94,3 +94,6 @@ class EstimatorParams(_Section, section="estimator"):
     valid_att_std_rad: Annotated[float, above(0.0, math.pi)] = 0.05  # [rad] attitude std above this: estimate not valid
     valid_rate_std_rad_s: Annotated[float, above(0.0, 100.0)] = 0.5  # [rad/s] body rate std above this: estimate not valid
     kf_backend: Literal["lean", "filterpy"] = "lean"  # CoM filter arithmetic: "lean" (floats) or "filterpy" (reference)
+    # hot standby (services/estimator.py): a primary on this host whose estimates stopped this long while ours are
+    # valid (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.02

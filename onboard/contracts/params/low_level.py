@@ -86,6 +86,9 @@ class ControlParams(_Section, section="control"):
     flip_settle_s: Annotated[float, within(0.0, 0.5)] = 0.06  # [s] the turn ends this long before the predicted touchdown
     flip_torque_share: Annotated[float, above(0.0, 1.0)] = 0.7  # share of a wheel's torque limit the turn's feed-forward may take
     flip_pump_hops: Annotated[int, within(1, 50)] = 10  # hops to raise the flight before the request is dropped
+    # hot standby (services/control.py): a primary on this host whose armed command stream stopped this long
+    # (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.03
 
 
 @dataclass(frozen=True)
