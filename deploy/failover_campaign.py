@@ -53,6 +53,7 @@ AFTER_KILL_S = 1.0  # the window after a kill the streams are read in
 FALL_WATCH_S = 1.5  # a fall within this long of a kill is the kill's
 PUT_BACK_SETTLE_S = 1.5
 TWIN = "twin"
+KILL_ATTEMPTS = 3
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -152,6 +153,7 @@ class Campaign:
         self.results: list[dict[str, Any]] = []
         self.falls_seen = 0.0
         self.put_backs = 0
+        self.arm_requests = 0
 
     def run(self) -> dict[str, Any]:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -175,10 +177,15 @@ class Campaign:
             streams = Streams(session, self.ns)
             for target in plan:
                 service = target.split("/")[0]
-                self._wait_ready(sim, session, service)
-                self._settle(sim, session)
-                self.results.append(self._kill(sim, session, streams, target))
-                print(json.dumps(self.results[-1]), flush=True)
+                for _attempt in range(KILL_ATTEMPTS):  # a unit restarted meanwhile (its watchdog on a loaded machine)
+                    self._wait_ready(sim, session, service)
+                    settled = self._settle(sim, session)
+                    result = self._kill(sim, session, streams, target)
+                    if "error" not in result:
+                        break
+                result["settled"] = settled
+                self.results.append(result)
+                print(json.dumps(result), flush=True)
         finally:
             if streams is not None:
                 streams.close()
@@ -217,17 +224,43 @@ class Campaign:
         st = query_status(session, self.ns, TWIN)
         return st.extra.get("falls", 0.0) if st is not None else 0.0
 
-    def _settle(self, sim: subprocess.Popen, session: zenoh.Session) -> None:
-        """Hopping, armed, before a kill: put a fallen robot back first."""
-        end = time.monotonic() + SETTLE_S
-        while time.monotonic() < end:
-            self._check(sim, time.monotonic() + 1)
+    def _armed(self, session: zenoh.Session) -> dict[str, bool]:
+        out = {}
+        for name in ("control", "control" + STANDBY_SUFFIX):
+            st = query_status(session, self.ns, name)
+            out[name] = st is not None and st.extra.get("armed", 0.0) == 1.0
+        return out
+
+    def _arm(self, session: zenoh.Session, names: list[str]) -> None:
+        for name in names:
+            ctl = query_params(session, self.ns, name)
+            if ctl is not None:
+                query_params(session, self.ns, name, {"control.arm_request": int(ctl.params["control.arm_request"]) + 1})
+
+    def _settle(self, sim: subprocess.Popen, session: zenoh.Session) -> bool:
+        """Hopping, both control loops armed, no fall for ``SETTLE_S``, before a kill: a fallen robot is
+        put back, a disarmed loop asked to arm (bounded: False when it did not settle)."""
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        calm_since = time.monotonic()
+        while time.monotonic() < deadline:
+            self._check(sim, deadline + 1)
             falls = self._falls(session)
             if falls > self.falls_seen:
                 self.falls_seen = falls
                 self._put_back(session)
-                end = time.monotonic() + SETTLE_S
+                calm_since = time.monotonic()
+                continue
+            armed = self._armed(session)
+            if not all(armed.values()):
+                self._arm(session, [n for n, a in armed.items() if not a])
+                self.arm_requests += 1
+                calm_since = time.monotonic()
+                time.sleep(0.5)
+                continue
+            if time.monotonic() - calm_since >= SETTLE_S:
+                return True
             time.sleep(0.1)
+        return False
 
     def _put_back(self, session: zenoh.Session) -> None:
         twin = query_params(session, self.ns, TWIN)
@@ -241,16 +274,18 @@ class Campaign:
             if est is not None:
                 query_params(session, self.ns, name, {"estimator.rate_hz": est.params["estimator.rate_hz"]})
         time.sleep(PUT_BACK_SETTLE_S)
-        for name in ("control", "control" + STANDBY_SUFFIX):
-            ctl = query_params(session, self.ns, name)
-            if ctl is not None:
-                query_params(session, self.ns, name, {"control.arm_request": int(ctl.params["control.arm_request"]) + 1})
+        self._arm(session, ["control", "control" + STANDBY_SUFFIX])
 
     def _kill(self, sim: subprocess.Popen, session: zenoh.Session, streams: Streams, target: str) -> dict[str, Any]:
         service, _, part = target.partition("/")
-        st = query_status(session, self.ns, service)
-        standby = query_status(session, self.ns, service + STANDBY_SUFFIX)
-        assert st is not None and standby is not None
+        st = standby = None
+        for _ in range(5):  # a status query may time out on a loaded machine
+            st = st or query_status(session, self.ns, service)
+            standby = standby or query_status(session, self.ns, service + STANDBY_SUFFIX)
+            if st is not None and standby is not None:
+                break
+        if st is None or standby is None:
+            return {"target": target, "error": f"no {'primary' if st is None else 'standby'} answered"}
         pid = st.pid if part != "child" else sf.loop_child_pid(st.pid)
         falls_before = self._falls(session)
         stale_before = len(streams.stale)
@@ -259,6 +294,7 @@ class Campaign:
             result["error"] = "no loop process found"
             return result
         kill_ns = time.monotonic_ns()
+        result["old_commands_last_s"] = sum(1 for t in streams.torque[-3000:] if t[1] == st.instance and t[0] > kill_ns - 1_000_000_000)
         os.kill(pid, signal.SIGKILL)
         time.sleep(AFTER_KILL_S)
         # who answers as the primary now
@@ -281,12 +317,14 @@ class Campaign:
         return result
 
     def _summarize(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"kills": len(self.results), "put_backs": self.put_backs, "by_target": {}}
+        out: dict[str, Any] = {"kills": len(self.results), "put_backs": self.put_backs, "arm_rounds": self.arm_requests,
+                               "by_target": {}}
         for target in sorted({r["target"] for r in self.results}):
             rs = [r for r in self.results if r["target"] == target]
             summary: dict[str, Any] = {
                 "kills": len(rs),
                 "falls": sum(1 for r in rs if r.get("fell")),
+                "not_settled": sum(1 for r in rs if not r.get("settled")),  # not hopping armed before the kill
                 "took_over": sum(1 for r in rs if r.get("standby_took_over")),
                 "switched": sum(1 for r in rs if r.get("switched")),
                 "stale_trip_kills": sum(1 for r in rs if r.get("stale_trips")),

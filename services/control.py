@@ -220,7 +220,9 @@ class ControlLoop:
         if got is None:
             return
         age = now - got[1]
-        if self._fence_ns and not self.fenced and age > self._fence_ns and got[0].armed and cmd.armed:
+        st = self.slots["state"].get()  # our own input flows: our Zenoh threads are not the ones starved
+        if (self._fence_ns and not self.fenced and age > self._fence_ns and got[0].armed and cmd.armed and st is not None
+                and now - st[1] < self._fence_ns // 4):
             # the primary was armed and went quiet with its token declared (a hang): we are armed and
             # ready, and its token would outlive it by seconds; kill it, and its token goes at once
             self.fenced = 1 if fence(self.cfg.fence_pid, ControlService.name) else -1
@@ -400,6 +402,7 @@ class ControlService(Service):
         self._params_seq = 0  # numbers the gains and limits sent to the loop
         self._mid_refused_logged = 0
         self._flips_refused_logged = 0
+        self._fence_logged = False
         await self._start_loop()
 
     def _loop_config(self, hold_disarmed: bool) -> LoopConfig:
@@ -529,6 +532,11 @@ class ControlService(Service):
             self.count(f"trip.{ev.trip}")
             self.log.warning("safety trip", extra={"fields": {"trip": ev.trip, "value": ev.value, "limit": ev.limit,
                                                               "armed": ev.armed, "count": ev.count}})
+        if rep.get("fenced") and not self._fence_logged:
+            self._fence_logged = True
+            self.count("fenced" if rep["fenced"] > 0 else "fence_failed")
+            self.log.warning("primary's armed commands stopped with its token declared: fenced (kill -9)",
+                             extra={"fields": {"pid": self.fence_pid(), "killed": rep["fenced"] > 0}})
         refused = rep.get("flip", {}).get("flips_refused", 0)
         if refused > self._flips_refused_logged:
             self._flips_refused_logged = refused

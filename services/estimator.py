@@ -64,6 +64,7 @@ class EstimatorService(Service):
         if self._primary_rx is not None:
             self.latest_sampled("state")
         self._fenced = 0  # 1: a hung primary was killed, -1: the fence found no such process
+        self._imu_rx = self.rate("rx.imu")  # ticked as the loop drains the IMU ring
         self._ticks = self.rate("loop")
         self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop",
                                   on_start=lambda: self._schedule_loop(p))
@@ -113,9 +114,14 @@ class EstimatorService(Service):
         rx = self._primary_rx
         if not self._fence_ns or self._fenced or rx is None or rx.last_ns == 0 or not own_valid:
             return
-        if self.clock.now_ns() - rx.last_ns > self._fence_ns:
+        now = self.clock.now_ns()
+        # our own inputs flow (so our Zenoh threads are not the ones starved) and the primary's estimates do not
+        if now - self._imu_rx.last_ns < self._fence_ns // 4 and now - rx.last_ns > self._fence_ns:
             self._fenced = 1 if fence(self._fence_pid, self.name) else -1
             self.count("fenced" if self._fenced > 0 else "fence_failed")
+            self.log.warning("primary estimates stopped with its token declared: fenced (kill -9)",
+                             extra={"fields": {"pid": self._fence_pid, "killed": self._fenced > 0,
+                                               "silent_ms": (now - rx.last_ns) / 1e6}})
 
     def _count_rejections(self) -> None:
         """Carry the estimator's new rejections into the status counters (under the lock)."""

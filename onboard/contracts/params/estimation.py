@@ -95,5 +95,7 @@ class EstimatorParams(_Section, section="estimator"):
     valid_rate_std_rad_s: Annotated[float, above(0.0, 100.0)] = 0.5  # [rad/s] body rate std above this: estimate not valid
     kf_backend: Literal["lean", "filterpy"] = "lean"  # CoM filter arithmetic: "lean" (floats) or "filterpy" (reference)
     # hot standby (services/estimator.py): a primary on this host whose estimates stopped this long while ours are
-    # valid (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never
-    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.02
+    # valid and our inputs flow (a hang: its token outlives it by the link's lease) is killed, so that the standby
+    # takes over [s]; 0: never. Above the worst stall of a loaded machine (a false fence costs a takeover and a
+    # restart), so over ControlParams.estimate_fault_disarm_s: control disarms first (a hang still drops the robot)
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25

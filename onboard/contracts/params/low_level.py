@@ -87,8 +87,9 @@ class ControlParams(_Section, section="control"):
     flip_torque_share: Annotated[float, above(0.0, 1.0)] = 0.7  # share of a wheel's torque limit the turn's feed-forward may take
     flip_pump_hops: Annotated[int, within(1, 50)] = 10  # hops to raise the flight before the request is dropped
     # hot standby (services/control.py): a primary on this host whose armed command stream stopped this long
-    # (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never
-    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.03
+    # (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never.
+    # Above the worst stall of a loaded machine (~65 ms measured): a false fence costs a takeover and a restart
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25
 
 
 @dataclass(frozen=True)
