@@ -47,7 +47,7 @@ from services.runtime.realtime import die_with_parent
 from services.runtime.zenoh_session import endpoint_in_use, free_endpoint, open_session
 
 START_TIMEOUT_S = 180.0  # the whole stack on a loaded 2-core machine
-READY_TIMEOUT_S = 60.0  # a killed primary restarted as the standby
+READY_TIMEOUT_S = 120.0  # a killed primary restarted as the standby
 SETTLE_S = 2.0  # after the standby is back, before the next kill (hopping again, not just started)
 AFTER_KILL_S = 1.0  # the window after a kill the streams are read in
 FALL_WATCH_S = 1.5  # a fall within this long of a kill is the kill's
@@ -213,11 +213,13 @@ class Campaign:
         """Both a primary and a standby of ``service`` (and of the other one) answer, and the twin runs."""
         deadline = time.monotonic() + (START_TIMEOUT_S if not self.results else READY_TIMEOUT_S)
         while True:
-            self._check(sim, deadline)
-            ok = all(query_status(session, self.ns, name) is not None
-                     for s in ("estimator", "control") for name in (s, s + STANDBY_SUFFIX))
-            if ok and query_status(session, self.ns, TWIN) is not None:
+            missing = [name for name in ("estimator", "estimator" + STANDBY_SUFFIX, "control", "control" + STANDBY_SUFFIX, TWIN)
+                       if query_status(session, self.ns, name) is None]
+            if not missing:
                 return
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{missing} did not answer: see {self.out / 'sim.stderr'}")
+            self._check(sim, deadline + 1)
             time.sleep(0.2)
 
     def _falls(self, session: zenoh.Session) -> float:

@@ -130,6 +130,7 @@ class ControlLoop:
         self.takeover: dict[str, float] = {}  # the first published tick after a promotion
         self._fence_ns = int(cfg.control.standby_fence_s * 1e9) if cfg.fence_pid else 0
         self.fenced = 0  # 1: the hung primary was killed, -1: the fence found no such process
+        self.realtime_applied: dict[str, str] = {}  # a standby's scheduling, applied when it takes over
         self.loop = DeadlineLoop(1.0 / cfg.control.rate_hz, self.tick, name="control-loop")
 
     def _latest(self, name: str) -> LatestSlot:
@@ -192,6 +193,7 @@ class ControlLoop:
         cmd.commander = self.cfg.commander
         if not self.publishing and self.promote_ns:  # promoted (by the pipe thread): this tick publishes
             self.publishing = True
+            self.realtime_applied = make_realtime_from(self.cfg.control.rt_priority, self.cfg.control.cpu)
         if not self.publishing:
             self._shadow(now, cmd)
         else:
@@ -295,7 +297,9 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     die_with_parent(cfg.parent_pid)
     try:
-        applied = make_realtime_from(cfg.control.rt_priority, cfg.control.cpu)
+        # a standby's loop stays at normal priority until it takes over: two real-time control loops (and two
+        # estimators) on a small machine starve everything else, a restarting service included
+        applied = {"standby": "normal priority until promoted"} if cfg.standby else make_realtime_from(cfg.control.rt_priority, cfg.control.cpu)
         loop = ControlLoop(cfg)
     except Exception as exc:  # reported to the parent, which fails the service
         conn.send({"error": repr(exc)})

@@ -64,13 +64,18 @@ class EstimatorService(Service):
         if self._primary_rx is not None:
             self.latest_sampled("state")
         self._fenced = 0  # 1: a hung primary was killed, -1: the fence found no such process
+        self._realtime_pending = False  # a standby's loop: real-time scheduling when it takes over
         self._imu_rx = self.rate("rx.imu")  # ticked as the loop drains the IMU ring
         self._ticks = self.rate("loop")
         self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop",
                                   on_start=lambda: self._schedule_loop(p))
 
     def _schedule_loop(self, p: EstimatorParams) -> None:
-        """On the loop thread: scheduling is per thread."""
+        """On the loop thread: scheduling is per thread. A standby's loop stays at normal priority until it
+        takes over (two real-time estimators and control loops on a small machine starve everything else)."""
+        if self.role == "standby":
+            self._realtime_pending = True
+            return
         applied = make_realtime_from(p.rt_priority, p.cpu)
         self.log.info("estimator loop scheduling", extra={"fields": applied})
 
@@ -103,6 +108,9 @@ class EstimatorService(Service):
                 return
             state = self.est.estimate(self.clock.now_ns())
         self._ticks.tick()
+        if self._realtime_pending and self.role != "standby":  # just promoted
+            self._realtime_pending = False
+            self._schedule_loop(self.params["estimator"])
         if self.role == "standby":  # warm, silent (role is set on the event loop; read once per tick)
             self._watch_primary_estimates(state.valid)
             return

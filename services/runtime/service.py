@@ -49,6 +49,7 @@ EXIT_DEADLINE_S = 2.8  # after a stop signal the process is gone by then, clean 
 ASYNC_QUEUE_DEPTH = 64  # per subscription; the oldest sample is dropped beyond it
 PEER_QUERY_TIMEOUT_S = 1.0  # liveliness and status queries to another instance
 COMMANDER = "control"  # the one service whose commands reach the motors
+PRIMARY_POLL_S = 0.5  # a standby also asks whether the primary's token is there this often (a missed DELETE)
 COMMANDER_REQUERY_S = 0.5  # a live commander that has not said who it is is asked again this often
 EXIT_CONFLICT = 2  # exit code of a service that found another instance running
 EXIT_SIGINT = 128 + signal.SIGINT  # the shell's convention for a run ended by Ctrl-C
@@ -733,9 +734,21 @@ class Service:
 
         key = liveliness_key(self.ns, self.name)
         self._declared.append(self.session.liveliness().declare_subscriber(key, on_liveliness, history=False))
-        # gone between the probe and the subscription: no DELETE will come
-        if not any(r.ok is not None for r in self.session.liveliness().get(key, timeout=PEER_QUERY_TIMEOUT_S)):
-            self.call_in_loop(self._promote)
+
+        async def poll() -> None:
+            # gone between the probe and the subscription (no DELETE will come), or a DELETE missed: asked again
+            # twice in a row: a query that timed out on a loaded machine looks the same as no token
+            empty = 0
+            while self.role == "standby" and not self.stopping.is_set():
+                replies = await asyncio.to_thread(lambda: list(self.session.liveliness().get(key, timeout=PEER_QUERY_TIMEOUT_S)))
+                empty = 0 if any(r.ok is not None for r in replies) else empty + 1
+                if empty >= 2:
+                    self.log.warning("primary's token found gone by asking (no DELETE seen)")
+                    self._promote()
+                    return
+                await asyncio.sleep(PRIMARY_POLL_S)
+
+        self._tasks.append(asyncio.create_task(poll(), name=f"{self.name}.watch_primary"))
 
     def _promote(self) -> None:
         """On the event loop: the primary's token is gone; declare ours under the service's name and
