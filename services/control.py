@@ -56,11 +56,13 @@ from robot_description.controller import build_controller
 from services.runtime.child_process import STOP_TIMEOUT_S, ChildProcess
 from services.runtime.clock import WallClock
 from services.runtime.realtime import STATUS_WINDOW, DeadlineLoop, die_with_parent, make_realtime_from
-from services.runtime.service import LatestSlot, Service, TypedPublisher, check_publisher
+from services.runtime.service import LatestSlot, Service, TypedPublisher, check_publisher, fence
 from services.runtime.zenoh_session import open_session
 from services.mid_level import MidLevelConfig, MidLevelProcess
 
 LOOP_READS = ("state", "reference", "joints", "mid_level")  # what the loop process subscribes to (latest values)
+SHADOW_READS = ("torque_cmd", "attitude_cmd")  # a standby's loop watches the primary's commands (its shadow figures)
+SHADOW_FRESH_NS = 5_000_000  # a primary command this recent is compared with the standby's own [ns]
 
 STATS_PERIOD_S = 0.5  # child -> parent report period [s]
 START_TIMEOUT_S = 30.0  # building the controller (linearization) and opening Zenoh [s]
@@ -84,6 +86,8 @@ class LoopConfig:
     parent_pid: int = 0  # the loop process dies with this process (0: no check)
     commander: str = ""  # the service's instance id, carried by every command (onboard/contracts/commander.py)
     hold_disarmed: bool = False  # start disarmed whatever auto_arm says (a restart for new parameters)
+    standby: bool = False  # compute on the same inputs, publish nothing until the parent says "promote"
+    fence_pid: int = 0  # a standby: the primary's pid on this host, killed when its armed commands stop (0: none)
 
 
 class ControlLoop:
@@ -116,6 +120,17 @@ class ControlLoop:
         self._flips_taken = 0
         if cfg.hold_disarmed:
             self.ctrl.disarm(self.clock.now_ns(), "parameter_restart")
+        # hot standby: the controller runs on the same inputs (its phase, arming and filters warm); its
+        # commands are compared with the primary's and not sent until promoted (set by the pipe thread)
+        self.publishing = not cfg.standby
+        self.promote_ns = 0  # when the promotion request arrived (stack clock)
+        self.primary = self._latest(self.command_topic) if cfg.standby else None
+        self.shadow_diff_max = 0.0  # largest |own - primary| torque [N m] / attitude component since the last report
+        self.shadow_compared = 0
+        self.takeover: dict[str, float] = {}  # the first published tick after a promotion
+        self._fence_ns = int(cfg.control.standby_fence_s * 1e9) if cfg.fence_pid else 0
+        self.fenced = 0  # 1: the hung primary was killed, -1: the fence found no such process
+        self.realtime_applied: dict[str, str] = {}  # a standby's scheduling, applied when it takes over
         self.loop = DeadlineLoop(1.0 / cfg.control.rate_hz, self.tick, name="control-loop")
 
     def _latest(self, name: str) -> LatestSlot:
@@ -176,20 +191,59 @@ class ControlLoop:
         if not cmd.armed:
             self.safe_ticks += 1
         cmd.commander = self.cfg.commander
-        self.pubs[self.command_topic].put(cmd)
+        if not self.publishing and self.promote_ns:  # promoted (by the pipe thread): this tick publishes
+            self.publishing = True
+            self.realtime_applied = make_realtime_from(self.cfg.control.rt_priority, self.cfg.control.cpu)
+        if not self.publishing:
+            self._shadow(now, cmd)
+        else:
+            if self.primary is not None and not self.takeover:
+                self._took_over(now, cmd)
+            self.pubs[self.command_topic].put(cmd)
         for ev in ctrl.drain_phase_events():
-            self.pubs["phase"].put(ev)
+            if self.publishing:
+                self.pubs["phase"].put(ev)
         trips = ctrl.drain_safety_events()
         if trips:
             for ev in trips:
-                self.pubs["safety"].put(ev)
+                if self.publishing:
+                    self.pubs["safety"].put(ev)
             with self._trip_lock:
                 self._unsent_trips.extend(trips)
         self._ticks += 1
-        if self._ticks % self._tube_every == 0:
+        if self._ticks % self._tube_every == 0 and self.publishing:
             self.pubs["tube"].put(ctrl.tube(now))
         if self.cfg.duration_s > 0 and self._ticks >= self.cfg.duration_s * self.cfg.control.rate_hz:
             self.loop.stop(timeout_s=0)
+
+    def _shadow(self, now: int, cmd: msgs.TorqueCommand | msgs.AttitudeSetpoint) -> None:
+        """A standby's tick: how far its command is from the primary's latest (the warmth of its state)."""
+        got = self.primary.get() if self.primary is not None else None
+        if got is None:
+            return
+        age = now - got[1]
+        st = self.slots["state"].get()  # our own input flows: our Zenoh threads are not the ones starved
+        if (self._fence_ns and not self.fenced and age > self._fence_ns and got[0].armed and cmd.armed and st is not None
+                and now - st[1] < self._fence_ns // 4):
+            # the primary was armed and went quiet with its token declared (a hang): we are armed and
+            # ready, and its token would outlive it by seconds; kill it, and its token goes at once
+            self.fenced = 1 if fence(self.cfg.fence_pid, ControlService.name) else -1
+        if age > SHADOW_FRESH_NS:
+            return
+        self.shadow_compared += 1
+        self.shadow_diff_max = max(self.shadow_diff_max, command_step(got[0], cmd))
+
+    def _took_over(self, now: int, cmd: msgs.TorqueCommand | msgs.AttitudeSetpoint) -> None:
+        """The first command a promoted standby publishes: the gap since the primary's last command and
+        the step from it (what the motors see at the takeover)."""
+        got = self.primary.get() if self.primary is not None else None
+        self.takeover = {
+            "gap_ms": (now - got[1]) / 1e6 if got is not None else -1.0,
+            "promote_to_publish_ms": (now - self.promote_ns) / 1e6,
+            "step": command_step(got[0], cmd) if got is not None else -1.0,
+            "armed": float(cmd.armed),
+            "primary_armed": float(got[0].armed) if got is not None else -1.0,
+        }
 
     def report(self, final: bool = False) -> dict[str, Any]:
         """Loop statistics and what happened since the last report (for the parent).
@@ -200,6 +254,7 @@ class ControlLoop:
         with self._trip_lock:
             trips, self._unsent_trips = self._unsent_trips, []
         tube = self.ctrl.tube(0)
+        shadow_diff_max, self.shadow_diff_max = self.shadow_diff_max, 0.0
         return {
             "loop": self.loop.recorder.stats(None if final else STATUS_WINDOW).as_dict(),
             "armed": self.ctrl.armed,
@@ -221,6 +276,11 @@ class ControlLoop:
             "trips": [msgs.encode(t) for t in trips],
             "rejected": dict(self.rejected),
             "received": dict(self.received),
+            "publishing": self.publishing,
+            "shadow_diff_max": shadow_diff_max,
+            "shadow_compared": self.shadow_compared,
+            "takeover": dict(self.takeover),
+            "fenced": self.fenced,
         }
 
     def close(self) -> None:
@@ -237,7 +297,9 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     die_with_parent(cfg.parent_pid)
     try:
-        applied = make_realtime_from(cfg.control.rt_priority, cfg.control.cpu)
+        # a standby's loop stays at normal priority until it takes over: two real-time control loops (and two
+        # estimators) on a small machine starve everything else, a restarting service included
+        applied = {"standby": "normal priority until promoted"} if cfg.standby else make_realtime_from(cfg.control.rt_priority, cfg.control.cpu)
         loop = ControlLoop(cfg)
     except Exception as exc:  # reported to the parent, which fails the service
         conn.send({"error": repr(exc)})
@@ -276,6 +338,8 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
                 loop.ctrl.disarm(loop.clock.now_ns())
             elif req == "flip":
                 loop.flip_requests += 1
+            elif req == "promote":
+                loop.promote_ns = loop.clock.now_ns()
         loop.loop.stop(timeout_s=0)  # parent gone or asked: end the loop
 
     server = threading.Thread(target=serve, name="control-pipe", daemon=True)
@@ -288,6 +352,19 @@ def loop_process_main(cfg: LoopConfig, conn: Connection) -> None:
         final["error"] = repr(loop.loop.error)
     send(final)
     loop.close()
+
+
+def command_step(a: msgs.TorqueCommand | msgs.AttitudeSetpoint, b: msgs.TorqueCommand | msgs.AttitudeSetpoint) -> float:
+    """The largest change of one command component from ``a`` to ``b``: torques [N m], or an attitude
+    setpoint's quaternion, rate [rad/s] and torques: what a switch of commander puts on the motors."""
+    if isinstance(a, msgs.TorqueCommand) and isinstance(b, msgs.TorqueCommand):
+        pairs = [*zip(a.wheel_torque, b.wheel_torque), (a.foot_torque, b.foot_torque)]
+    elif isinstance(a, msgs.AttitudeSetpoint) and isinstance(b, msgs.AttitudeSetpoint):
+        pairs = [*zip(a.quat_des, b.quat_des), *zip(a.omega_des, b.omega_des), *zip(a.torque_ff, b.torque_ff),
+                 (a.foot_torque, b.foot_torque)]
+    else:
+        return float("inf")
+    return max(abs(x - y) for x, y in pairs)
 
 
 class LoopProcess(ChildProcess):
@@ -313,7 +390,7 @@ class LoopProcess(ChildProcess):
 class ControlService(Service):
     name: ClassVar[str] = "control"
     params_sections: ClassVar[tuple[str, ...]] = ("control", "safety", "gmpc")
-    subscribes: ClassVar[tuple[str, ...]] = LOOP_READS  # read by the loop process
+    subscribes: ClassVar[tuple[str, ...]] = LOOP_READS + SHADOW_READS  # read by the loop process
     # parameter state, read by the parameter queryable from the moment run() declares it
     _loop_proc: LoopProcess | None = None
     _restart_pending = False  # a restart for new parameters is accepted and not done yet
@@ -329,13 +406,16 @@ class ControlService(Service):
         self._params_seq = 0  # numbers the gains and limits sent to the loop
         self._mid_refused_logged = 0
         self._flips_refused_logged = 0
+        self._fence_logged = False
         await self._start_loop()
 
     def _loop_config(self, hold_disarmed: bool) -> LoopConfig:
         self._sent = (self.params["control"], self.params["safety"])  # what the loop runs with
         return LoopConfig(ns=self.ns, endpoint=self.endpoint, zenoh_config=self._zenoh_config_file,
                           control=self.params["control"], safety=self.params["safety"], parent_pid=os.getpid(),
-                          commander=self.instance, hold_disarmed=hold_disarmed)
+                          commander=self.instance, hold_disarmed=hold_disarmed,
+                          standby=self.role == "standby" and not self.promoted.is_set(),
+                          fence_pid=self.fence_pid() if not self.promoted.is_set() else 0)
 
     async def _start_mid_level(self) -> None:
         """The geometric MPC's process, when ``control.mid_level`` asks for it."""
@@ -367,15 +447,38 @@ class ControlService(Service):
             self.fail(f"geometric MPC: {rep['error']}")
 
     async def _start_loop(self, hold_disarmed: bool = False) -> None:
-        await self._start_mid_level()
+        if self.role == "primary":  # a standby's MPC would publish: it starts on the takeover
+            await self._start_mid_level()
         proc = LoopProcess(self._loop_config(hold_disarmed))
         await asyncio.to_thread(proc.start)
+        # the loop's exit (kill -9, a crash) withdraws our token at once, so that the standby takes over
+        # within milliseconds, not at the next poll of main()
+        asyncio.get_running_loop().add_reader(proc.proc.sentinel, self._on_loop_exit, proc)
         self._progress_ticks = 0  # a new loop counts its ticks from zero
         with self._params_lock:
             self._loop_proc = proc
             self._restart_pending = False
             self._sync_loop()  # what changed while it started
         self.log.info("control loop started", extra={"fields": {"pid": proc.proc.pid, "realtime": proc.realtime}})
+
+    def _on_loop_exit(self, proc: LoopProcess) -> None:
+        """On the event loop: a loop process ended that nobody asked to stop (main() fails the service)."""
+        self._unwatch(proc)
+        if proc is self._loop_proc and not self.stopping.is_set():
+            self.withdraw()
+            self.log.error("control loop process exited; token withdrawn", extra={"fields": {"exitcode": proc.proc.exitcode}})
+
+    def _unwatch(self, proc: LoopProcess) -> None:
+        """Before a loop process is stopped on purpose (a restart, the service's stop)."""
+        if self._aio_loop is not None:
+            self._aio_loop.remove_reader(proc.proc.sentinel)
+
+    def on_promoted(self) -> None:
+        proc = self._loop_proc
+        if proc is not None:
+            proc.send("promote")
+        if self.params["control"].mid_level == "geometric_mpc":
+            self._tasks.append(asyncio.ensure_future(self._start_mid_level()))
 
     async def _restart_loop(self, proc: LoopProcess) -> None:
         """Stop the disarmed loop and start one with the new parameters, disarmed. A
@@ -385,6 +488,7 @@ class ControlService(Service):
         self._restarted_from = proc
         changed = restart_changes("control", self._sent[0], self.params["control"])
         self.log.info("restarting the control loop for new parameters", extra={"fields": {"changed": changed}})
+        self._unwatch(proc)
         final = await asyncio.to_thread(proc.stop)
         if final:
             self._absorb(final)
@@ -432,6 +536,11 @@ class ControlService(Service):
             self.count(f"trip.{ev.trip}")
             self.log.warning("safety trip", extra={"fields": {"trip": ev.trip, "value": ev.value, "limit": ev.limit,
                                                               "armed": ev.armed, "count": ev.count}})
+        if rep.get("fenced") and not self._fence_logged:
+            self._fence_logged = True
+            self.count("fenced" if rep["fenced"] > 0 else "fence_failed")
+            self.log.warning("primary's armed commands stopped with its token declared: fenced (kill -9)",
+                             extra={"fields": {"pid": self.fence_pid(), "killed": rep["fenced"] > 0}})
         refused = rep.get("flip", {}).get("flips_refused", 0)
         if refused > self._flips_refused_logged:
             self._flips_refused_logged = refused
@@ -441,6 +550,7 @@ class ControlService(Service):
     async def teardown(self) -> None:
         await self._stop_mid_level()
         if self._loop_proc is not None:
+            self._unwatch(self._loop_proc)
             final = await asyncio.to_thread(self._loop_proc.stop)
             for rep in ([final] if final else []):
                 self._absorb(rep)
@@ -555,6 +665,11 @@ class ControlService(Service):
         for key in ("solves", "published", "refused", "solve_ms_p50", "solve_ms_p99"):
             if key in mid:
                 out[f"gmpc_{key}"] = float(mid[key])
+        out["shadow_diff_max"] = float(rep.get("shadow_diff_max", 0.0))  # standby: |own - primary| command
+        out["shadow_compared"] = float(rep.get("shadow_compared", 0))
+        out["fenced"] = float(rep.get("fenced", 0))
+        for k, v in rep.get("takeover", {}).items():
+            out[f"takeover_{k}"] = float(v)
         out["params_seq_sent"] = float(self._params_seq)
         out["params_seq_applied"] = float(rep.get("params_seq", 0))
         return out

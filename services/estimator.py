@@ -38,7 +38,7 @@ from onboard.estimation.estimator import StateEstimator
 from onboard.contracts.params import EstimatorParams, restart_changes
 from robot_description.params import robot_params
 from services.runtime.realtime import DeadlineLoop, make_realtime_from
-from services.runtime.service import Service
+from services.runtime.service import Service, fence
 
 INPUTS = ("imu", "joints", "pose")
 
@@ -46,7 +46,7 @@ INPUTS = ("imu", "joints", "pose")
 class EstimatorService(Service):
     name: ClassVar[str] = "estimator"
     params_sections: ClassVar[tuple[str, ...]] = ("estimator",)
-    subscribes: ClassVar[tuple[str, ...]] = INPUTS
+    subscribes: ClassVar[tuple[str, ...]] = INPUTS + ("state",)  # state: a standby watches the primary's estimates
 
     async def setup(self) -> None:
         p: EstimatorParams = self.params["estimator"]
@@ -57,12 +57,25 @@ class EstimatorService(Service):
         # inputs wait in Zenoh's ring buffers and the loop thread drains them (Service.polled)
         self._inputs = {topic: self.polled(topic, max(1, p.input_queue)) for topic in INPUTS}
         self._state_pub = self.publisher("state")
+        # a hot standby (Service.role): the primary's estimates, by receipt time only (never decoded)
+        self._fence_pid = self.fence_pid()
+        self._fence_ns = int(p.standby_fence_s * 1e9) if self._fence_pid else 0
+        self._primary_rx = self.rate("rx.state") if self.role == "standby" else None
+        if self._primary_rx is not None:
+            self.latest_sampled("state")
+        self._fenced = 0  # 1: a hung primary was killed, -1: the fence found no such process
+        self._realtime_pending = False  # a standby's loop: real-time scheduling when it takes over
+        self._imu_rx = self.rate("rx.imu")  # ticked as the loop drains the IMU ring
         self._ticks = self.rate("loop")
         self._loop = DeadlineLoop(1.0 / p.rate_hz, self._tick, name="estimator-loop",
                                   on_start=lambda: self._schedule_loop(p))
 
     def _schedule_loop(self, p: EstimatorParams) -> None:
-        """On the loop thread: scheduling is per thread."""
+        """On the loop thread: scheduling is per thread. A standby's loop stays at normal priority until it
+        takes over (two real-time estimators and control loops on a small machine starve everything else)."""
+        if self.role == "standby":
+            self._realtime_pending = True
+            return
         applied = make_realtime_from(p.rt_priority, p.cpu)
         self.log.info("estimator loop scheduling", extra={"fields": applied})
 
@@ -94,8 +107,29 @@ class EstimatorService(Service):
                 self.count("ticks_without_imu")
                 return
             state = self.est.estimate(self.clock.now_ns())
-        self._state_pub.put(state)
         self._ticks.tick()
+        if self._realtime_pending and self.role != "standby":  # just promoted
+            self._realtime_pending = False
+            self._schedule_loop(self.params["estimator"])
+        if self.role == "standby":  # warm, silent (role is set on the event loop; read once per tick)
+            self._watch_primary_estimates(state.valid)
+            return
+        self._state_pub.put(state)
+
+    def _watch_primary_estimates(self, own_valid: bool) -> None:
+        """A standby: the primary's estimates stopped while its token stays (a hang) and ours are valid:
+        kill it (same host only), so that its token goes and we take over."""
+        rx = self._primary_rx
+        if not self._fence_ns or self._fenced or rx is None or rx.last_ns == 0 or not own_valid:
+            return
+        now = self.clock.now_ns()
+        # our own inputs flow (so our Zenoh threads are not the ones starved) and the primary's estimates do not
+        if now - self._imu_rx.last_ns < self._fence_ns // 4 and now - rx.last_ns > self._fence_ns:
+            self._fenced = 1 if fence(self._fence_pid, self.name) else -1
+            self.count("fenced" if self._fenced > 0 else "fence_failed")
+            self.log.warning("primary estimates stopped with its token declared: fenced (kill -9)",
+                             extra={"fields": {"pid": self._fence_pid, "killed": self._fenced > 0,
+                                               "silent_ms": (now - rx.last_ns) / 1e6}})
 
     def _count_rejections(self) -> None:
         """Carry the estimator's new rejections into the status counters (under the lock)."""

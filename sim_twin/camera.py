@@ -19,7 +19,6 @@ geoms, group 0, as :class:`sim_twin.sensors.SensorSuite`'s depth), at the D435's
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 

@@ -23,6 +23,7 @@ from services.cli.deploy import (EXAMPLE_CONFIG_DIR, EXPOSURE_MAX, apply, ip_all
 from services.table import SERVICES
 from services.runtime.config import load_params
 from onboard.contracts.params import ControlParams, EstimatorParams, HardwareParams
+from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
 from services.runtime.supervisor import parse_unit, spec_from_unit
 
 ROBOT = ("router", "hardware", "estimator", "control", "planner", "perception", "recorder")
@@ -76,10 +77,11 @@ def test_one_notify_unit_per_service_with_restart_watchdog_and_hardening():
     assert HardwareParams().rt_priority < EstimatorParams().rt_priority
     robot = one(parsed["archer.target"], "Unit", "Wants").split()
     sil = one(parsed["archer-sil.target"], "Unit", "Wants").split()
-    assert sorted(robot) == sorted(f"archer-{s}.service" for s in ROBOT)
-    assert sorted(sil) == sorted(f"archer-{s}.service" for s in ROBOT if s != "hardware") + ["archer-twin.service"]
+    standbys = [f"archer-{s}{STANDBY_SUFFIX}.service" for s in STANDBY_SERVICES]  # hot standbys go with the stack
+    assert sorted(robot) == sorted([f"archer-{s}.service" for s in ROBOT] + standbys)
+    assert sorted(sil) == sorted([f"archer-{s}.service" for s in ROBOT if s != "hardware"] + ["archer-twin.service"] + standbys)
     firmware = one(parsed["archer-firmware.target"], "Unit", "Wants").split()
-    assert sorted(firmware) == sorted(f"archer-{s}.service" for s in (*ROBOT, "mocap"))
+    assert sorted(firmware) == sorted([f"archer-{s}.service" for s in (*ROBOT, "mocap")] + standbys)
     assert "archer-view.service" not in robot + sil + firmware  # the viewer runs only when asked
     for name in firmware:  # stopping the target stops its units
         assert "archer-firmware.target" in one(parsed[name], "Unit", "PartOf").split(), name

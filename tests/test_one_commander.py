@@ -71,28 +71,40 @@ def test_the_live_commanders_id_copied_into_a_second_stream_is_refused() -> None
 # --- one instance per service ---------------------------------------------------------------------
 
 
-def test_a_second_control_service_is_refused_naming_the_first(zenoh_router) -> None:
+def test_a_third_control_service_is_refused_naming_the_first(zenoh_router) -> None:
+    """The second instance of control is its hot standby (issue 30: it publishes nothing until the first
+    one's token goes, tests/test_standby.py); a third is refused, naming the first."""
     ns = f"archer/twice{os.getpid()}"
     argv = [sys.executable, "-m", "services.cli.main", "run", "control", "--endpoint", zenoh_router, "--namespace", ns, "--log-level", "WARNING"]
     first = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    standby = None
     session = open_session(zenoh_router, "client")
-    try:
+
+    def wait_token(name: str, proc: subprocess.Popen) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
-        while not any(r.ok is not None for r in session.liveliness().get(liveliness_key(ns, "control"), timeout=1.0)):
-            assert first.poll() is None and time.monotonic() < deadline, "the first control did not start"
+        while not any(r.ok is not None for r in session.liveliness().get(liveliness_key(ns, name), timeout=1.0)):
+            assert proc.poll() is None and time.monotonic() < deadline, f"{name} did not start"
             time.sleep(0.1)
-        second = subprocess.run(argv, capture_output=True, text=True, timeout=START_TIMEOUT_S)
-        assert second.returncode == EXIT_CONFLICT
-        assert "control already runs" in second.stderr
-        assert f"pid {first.pid}" in second.stderr and f"host {socket.gethostname()}" in second.stderr
-        assert "started 20" in second.stderr  # the first one's start time, as a date
-        assert first.poll() is None, "the refused one must not disturb the running one"
+
+    try:
+        wait_token("control", first)
+        standby = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        wait_token("control_standby", standby)
+        third = subprocess.run(argv, capture_output=True, text=True, timeout=START_TIMEOUT_S)
+        assert third.returncode == EXIT_CONFLICT
+        assert "control already runs" in third.stderr and "with its standby" in third.stderr
+        assert f"pid {first.pid}" in third.stderr and f"host {socket.gethostname()}" in third.stderr
+        assert "started 20" in third.stderr  # the first one's start time, as a date
+        assert first.poll() is None and standby.poll() is None, "the refused one must not disturb the running ones"
     finally:
         session.close()
-        if first.poll() is None:
-            first.send_signal(signal.SIGTERM)
-        first.wait(timeout=10)
-    assert first.returncode == 0
+        for proc in (standby, first):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in (standby, first):
+            if proc is not None:
+                proc.wait(timeout=10)
+    assert first.returncode == 0 and standby.returncode == 0
 
 
 # --- forged commands never reach the motors ------------------------------------------------------

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from onboard.contracts.topics import TOPICS
+from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX, TOPICS
 from services.runtime.clock import WallClock
 from services.runtime.service import EVERY_TOPIC, Service
 from services.runtime.supervisor import parse_unit
@@ -19,11 +19,17 @@ UNITS = Path(__file__).resolve().parent.parent / "deploy" / "systemd"
 def test_every_unit_runs_a_row_and_every_row_with_a_unit_has_one():
     unit_files = {p.name for p in UNITS.glob("*.service")}
     rows_with_units = {row.unit for row in SERVICES.values() if row.unit}
-    assert unit_files == rows_with_units
+    # a hot standby's unit runs a second instance of its service's row (services/runtime/service.py)
+    standby_units = {f"archer-{s}{STANDBY_SUFFIX}.service": s for s in STANDBY_SERVICES}
+    assert unit_files == rows_with_units | set(standby_units)
     for row in SERVICES.values():
         if row.unit:
             exec_start = parse_unit((UNITS / row.unit).read_text())["Service"]["ExecStart"][-1].split()
             assert exec_start[1:3] == ["run", row.process], row.unit
+    for unit, process in standby_units.items():
+        parsed = parse_unit((UNITS / unit).read_text())
+        assert parsed["Service"]["ExecStart"][-1].split()[1:3] == ["run", process], unit
+        assert f"archer-{process}.service" in parsed["Unit"]["After"][-1].split(), unit  # the primary first
 
 
 @pytest.mark.parametrize("process", sorted(SERVICES))

@@ -89,6 +89,10 @@ assert len({t.suffix for t in _TABLE}) == len(_TABLE), "duplicate topic key"
 
 SERVICES = ("hardware", "twin", "mocap", "camera", "estimator", "control", "planner", "perception", "recorder", "view",
             "camera_overhead")
+# services whose second instance runs as a hot standby (services/runtime/service.py), under the same
+# user: it announces itself as <name>_standby until the first one's token goes
+STANDBY_SERVICES = ("estimator", "control")
+STANDBY_SUFFIX = "_standby"
 
 
 def namespace(robot: str | None = None) -> str:

@@ -117,6 +117,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "lockstep: the run paced to wall time, started once a viewer subscribes or after view.lockstep_wait_s)")
     parser.add_argument("--view-port", type=int, default=None, metavar="N",
                         help="with --view: the view's WebSocket port (default view.port, 8765)")
+    parser.add_argument("--standby", action="store_true",
+                        help="realtime: a hot standby beside the estimator and control (units <name>_standby), which "
+                             "takes over when the first one's liveliness goes (kill -9, crash)")
     parser.add_argument("--services", default="auto",
                         help="realtime: comma list of services to run as processes, or 'none' "
                              "(auto: estimator, control and planner, each if archer run knows it)")
@@ -379,7 +382,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES, missing_dependencies
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
     from services.runtime.peers import query_status, request_once
-    from services.runtime.supervisor import Supervisor, sim_specs
+    from services.runtime.supervisor import Supervisor, process_of, sim_specs
+    from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.contracts.topics import namespace
     from services.twin import FirmwareTwinService, ScenarioReferenceService, TwinService
@@ -419,10 +423,12 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         unknown = [s for s in wanted if s not in SERVICES]
         if unknown:
             raise ValueError(f"unknown services {unknown}; archer run knows {sorted(SERVICES)}")
+    if getattr(args, "standby", False):  # a hot standby beside each of these that runs
+        wanted += [s + STANDBY_SUFFIX for s in STANDBY_SERVICES if s in wanted]
     view = getattr(args, "view", False)
     if view and "view" not in wanted:
         wanted.append("view")
-    missing = [s for s in wanted if s not in SERVICES]
+    missing = [s for s in wanted if process_of(s) not in SERVICES]
     lacking = missing_dependencies(wanted)
     if lacking:  # said before anything starts, not as a unit that never came up
         raise ValueError("; ".join(lacking))
@@ -455,7 +461,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         # Each service its own process under its systemd unit's policy (services/runtime/supervisor.py), a
         # router first unless one serves the endpoint already; the twin's physics starts once all
         # are up, as a robot is switched on under a running stack.
-        units = [n for n in wanted if n in SERVICES]
+        units = [n for n in wanted if process_of(n) in SERVICES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
         sup = Supervisor(sim_specs(units, endpoint, ns, view_config.path if view_config is not None else
                                    rig.config_path if rig is not None else args.config))

@@ -36,7 +36,7 @@ from onboard.contracts import messages as msgs
 from onboard.contracts.binary_messages import ENCODING as BINARY_ENCODING
 from onboard.contracts.commander import UNKNOWN_COMMANDER, CommanderLatch
 from onboard.contracts.params import SECTIONS, as_dict, with_overrides
-from onboard.contracts.topics import TOPICS, Topic, liveliness_key, namespace, params_key, status_key
+from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX, TOPICS, Topic, liveliness_key, namespace, params_key, status_key
 from services.runtime import sd_notify
 from services.runtime.clock import Clock, WallClock
 from services.runtime.zenoh_session import (Mode, default_endpoint, endpoint_in_use, open_client_session, open_session,
@@ -49,6 +49,7 @@ EXIT_DEADLINE_S = 2.8  # after a stop signal the process is gone by then, clean 
 ASYNC_QUEUE_DEPTH = 64  # per subscription; the oldest sample is dropped beyond it
 PEER_QUERY_TIMEOUT_S = 1.0  # liveliness and status queries to another instance
 COMMANDER = "control"  # the one service whose commands reach the motors
+PRIMARY_POLL_S = 0.5  # a standby also asks whether the primary's token is there this often (a missed DELETE)
 COMMANDER_REQUERY_S = 0.5  # a live commander that has not said who it is is asked again this often
 EXIT_CONFLICT = 2  # exit code of a service that found another instance running
 EXIT_SIGINT = 128 + signal.SIGINT  # the shell's convention for a run ended by Ctrl-C
@@ -326,6 +327,11 @@ class Service:
         self._latch: CommanderLatch | None = None  # built by the first commands() slot
         self._set_up = False  # setup() was entered: teardown() has something to release
         self._serving_endpoint = self.zenoh_mode == "router"  # a router binds the endpoint: nobody else can
+        self.role = "primary"  # or "standby" (standby_capable services that found a primary running)
+        self.promoted = threading.Event()  # a standby took over (set on the event loop)
+        self.promoted_mono_ns = 0  # when it did (time.monotonic_ns)
+        self._identity: list[Any] = []  # status and params queryables and the token, under the name in use
+        self.primary_status: msgs.ServiceStatus | None = None  # a standby: the primary's status when it started
 
     # --- what subclasses override -------------------------------------------------
 
@@ -350,6 +356,23 @@ class Service:
         returns whether its tick count advanced and it has no error.
         """
         return True
+
+    @property
+    def standby_capable(self) -> bool:
+        """A second instance runs as the hot standby (one at most) instead of exiting: same inputs,
+        nothing published, and it takes over when the first one's token goes (STANDBY_SERVICES)."""
+        return self.name in STANDBY_SERVICES
+
+    def fence_pid(self) -> int:
+        """A standby: the pid of the primary it found, when that runs on this host (0: none), for a fence
+        (kill -9) of a primary that hangs with its token declared (the token outlives a hung process by
+        the link's lease, seconds: the robot would fall meanwhile)."""
+        st = self.primary_status
+        return st.pid if self.role == "standby" and st is not None and st.host == socket.gethostname() else 0
+
+    def on_promoted(self) -> None:
+        """Called on the event loop the moment a standby took over (token and status declared under
+        the service's own name): start publishing now. Must not block."""
 
     def accept_params(self, updated: dict[str, Any]) -> None:
         """Raise ValueError to refuse validated new sections the service cannot take in
@@ -578,7 +601,9 @@ class Service:
             last_error=self.last_error,
             contract=self.contract_state,
             # before setup() has run, a service's own figures do not exist yet
-            extra={} if self.state == "starting" else {k: float(v) for k, v in self.status_extra().items()},
+            # a hot standby says so from the start (services that may have one: 0 for the primary)
+            extra={**({} if self.state == "starting" else {k: float(v) for k, v in self.status_extra().items()}),
+                   **({"standby": float(self.role == "standby")} if self.standby_capable else {})},
             instance=self.instance,
             host=socket.gethostname(),
             pid=os.getpid(),
@@ -649,13 +674,13 @@ class Service:
             if self.session is None:
                 return  # stopped while waiting for the stack
         try:
-            await asyncio.to_thread(self._refuse_if_running)
-            # answerable before announced: whoever sees the token asks the status who we are
-            self._declared.append(self.session.declare_queryable(status_key(self.ns, self.name), self._on_status_query))
-            self._declared.append(self.session.declare_queryable(params_key(self.ns, self.name), self._on_params_query))
-            self._declared.append(self.session.liveliness().declare_token(liveliness_key(self.ns, self.name)))
+            if await asyncio.to_thread(self._refuse_if_running):
+                self.role = "standby"
+            self._declare_identity(self.name if self.role == "primary" else self.name + STANDBY_SUFFIX)
             self._set_up = True
             await self.setup()
+            if self.role == "standby":
+                self._watch_primary()
             self.state = "running"
             self._tasks.append(asyncio.create_task(sd_notify.keep_alive(self), name=f"{self.name}.sd_notify"))
             self.log.info("started", extra={"fields": {"ns": self.ns, "endpoint": self.endpoint}})
@@ -678,20 +703,82 @@ class Service:
             self.state = "stopping"
             await self._close()
 
-    def _refuse_if_running(self) -> None:
+    def _declare_identity(self, as_name: str) -> None:
+        """Status and parameter queryables and the liveliness token under ``as_name``; answerable
+        before announced: whoever sees the token asks the status who we are."""
+        self._identity = [
+            self.session.declare_queryable(status_key(self.ns, as_name), self._on_status_query),
+            self.session.declare_queryable(params_key(self.ns, as_name), self._on_params_query),
+            self.session.liveliness().declare_token(liveliness_key(self.ns, as_name)),
+        ]
+        self._declared.extend(self._identity)
+
+    def withdraw(self) -> None:
+        """Undeclare this instance's token and queryables now (a primary whose work stopped: its
+        standby takes over at once, and no late status reply of ours can name us commander)."""
+        for entity in reversed(self._identity):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass
+            if entity in self._declared:
+                self._declared.remove(entity)
+        self._identity = []
+
+    def _watch_primary(self) -> None:
+        """A standby: take over when the primary's token goes (or is gone already)."""
+
+        def on_liveliness(sample: zenoh.Sample) -> None:  # Zenoh thread
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.call_in_loop(self._promote)
+
+        key = liveliness_key(self.ns, self.name)
+        self._declared.append(self.session.liveliness().declare_subscriber(key, on_liveliness, history=False))
+
+        async def poll() -> None:
+            # gone between the probe and the subscription (no DELETE will come), or a DELETE missed: asked again
+            # twice in a row: a query that timed out on a loaded machine looks the same as no token
+            empty = 0
+            while self.role == "standby" and not self.stopping.is_set():
+                replies = await asyncio.to_thread(lambda: list(self.session.liveliness().get(key, timeout=PEER_QUERY_TIMEOUT_S)))
+                empty = 0 if any(r.ok is not None for r in replies) else empty + 1
+                if empty >= 2:
+                    self.log.warning("primary's token found gone by asking (no DELETE seen)")
+                    self._promote()
+                    return
+                await asyncio.sleep(PRIMARY_POLL_S)
+
+        self._tasks.append(asyncio.create_task(poll(), name=f"{self.name}.watch_primary"))
+
+    def _promote(self) -> None:
+        """On the event loop: the primary's token is gone; declare ours under the service's name and
+        start publishing (the one-commander latch re-forms on us: onboard/contracts/commander.py)."""
+        if self.role != "standby" or self.stopping.is_set():
+            return
+        self.withdraw()  # the standby token and queryables
+        self.role = "primary"
+        self._declare_identity(self.name)
+        self.promoted_mono_ns = time.monotonic_ns()
+        self.promoted.set()
+        self.on_promoted()
+        self.log.warning("took over from the primary", extra={"fields": {"instance": self.instance}})
+
+    def _refuse_if_running(self) -> bool:
         """Raise :class:`ServiceConflict` when this service's token is already declared:
-        two estimators, or two commanders on one set of motors, must never run.
+        two estimators, or two commanders on one set of motors, must never run. A service that
+        may stand by (``standby_capable``) returns True instead (it runs as the standby) unless a
+        standby runs already.
 
         Asked through a client session of its own: this service's peer session may not
         have learnt the router's tokens yet. A service that serves the endpoint itself
         (no router was there) is alone by construction."""
         if self._serving_endpoint:
-            return
+            return False
         probe = open_client_session(self.endpoint, self._zenoh_config_file)
         try:
             key = liveliness_key(self.ns, self.name)
             if not any(r.ok is not None for r in probe.liveliness().get(key, timeout=PEER_QUERY_TIMEOUT_S)):
-                return
+                return False
             other = "no status reply"
             for reply in probe.get(status_key(self.ns, self.name), timeout=PEER_QUERY_TIMEOUT_S):
                 if reply.ok is None:
@@ -700,11 +787,16 @@ class Service:
                     st = msgs.decode(reply.ok.payload.to_bytes(), msgs.ServiceStatus)
                 except msgs.MessageError:
                     continue
+                self.primary_status = st
                 started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(st.started_unix_s))
                 other = f"host {st.host}, pid {st.pid}, started {started}, instance {st.instance}"
+            standby_key = liveliness_key(self.ns, self.name + STANDBY_SUFFIX)
+            if self.standby_capable and not any(r.ok is not None for r in probe.liveliness().get(standby_key, timeout=PEER_QUERY_TIMEOUT_S)):
+                return True
         finally:
             probe.close()
-        raise ServiceConflict(f"{self.name} already runs under {self.ns} ({other}); stop it first")
+        also = " with its standby" if self.standby_capable else ""
+        raise ServiceConflict(f"{self.name} already runs under {self.ns} ({other}){also}; stop it first")
 
     async def _close(self) -> None:
         for task in self._tasks:
@@ -763,6 +855,22 @@ class StandInCommander:
     def close(self) -> None:
         for entity in self._entities:
             entity.undeclare()
+
+
+def fence(pid: int, service: str) -> bool:
+    """kill -9 ``pid`` if it still is an ``archer run <service>`` process (not a reused pid); True
+    when it was. A hot standby's fence of a hung primary."""
+    try:
+        argv = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+    except OSError:
+        return False
+    if b"run" not in argv or service.encode() not in argv:
+        return False
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except OSError:
+        return False
+    return True
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
 from services.runtime.realtime import make_realtime
 
 STDERR_FD = 2
@@ -189,9 +190,16 @@ def service_argv(service: str, endpoint: str, ns: str, config: str | None = None
     return argv
 
 
+def process_of(unit: str) -> str:
+    """What ``archer run`` starts for a unit: a hot standby unit (``control_standby``) runs a second
+    instance of its service, which stands by while the first one lives (services/runtime/service.py)."""
+    base = unit.removesuffix(STANDBY_SUFFIX)
+    return base if base != unit and base in STANDBY_SERVICES else unit
+
+
 def sim_specs(services: list[str], endpoint: str, ns: str, config: str | None = None, log_level: str = "WARNING") -> list[UnitSpec]:
     """Specs for ``archer sim --mode realtime``: the units' policy, the sim's endpoint."""
-    specs = [spec_from_unit(s, service_argv(s, endpoint, ns, config, log_level)) for s in services]
+    specs = [spec_from_unit(s, service_argv(process_of(s), endpoint, ns, config, log_level)) for s in services]
     names = set(services)
     # After= on units outside the run (the router the sim itself serves, the hardware the
     # twin replaces) orders nothing here.

@@ -30,7 +30,7 @@ import secrets
 from pathlib import Path
 from typing import Any
 
-from onboard.contracts.topics import SERVICES, TOPICS, liveliness_key, params_key, status_key
+from onboard.contracts.topics import SERVICES, STANDBY_SERVICES, STANDBY_SUFFIX, TOPICS, liveliness_key, params_key, status_key
 from services.runtime.zenoh_session import link_queue_config
 
 NS_PATTERN = "archer/*"  # every robot's namespace
@@ -81,6 +81,8 @@ def access_control() -> dict[str, Any]:
     ]
     for name in everyone:
         own = [f"{NS_PATTERN}/svc/{name}/**", liveliness_key(NS_PATTERN, name)]
+        if name in STANDBY_SERVICES:  # its hot standby, under its user
+            own += [f"{NS_PATTERN}/svc/{name}{STANDBY_SUFFIX}/**", liveliness_key(NS_PATTERN, name + STANDBY_SUFFIX)]
         rules.append(_rule(f"own-{name}", ["ingress"], _OWN, own))
         policies.append({"id": f"{name}-owns-its-keys", "rules": [f"own-{name}"], "subjects": [name]})
     for topic in TOPICS.values():

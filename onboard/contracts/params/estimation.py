@@ -105,3 +105,8 @@ class EstimatorParams(_Section, section="estimator"):
     imu_att_every: Annotated[int, within(1, 1000)] = 10  # fuse every n-th IMU orientation (odometry)
     anchor_std_m: Annotated[float, above(0.0, 1.0)] = 0.01  # [m] the odometry origin at the first touchdown
     odometry_flat_ground: bool = True  # every touchdown is at the first one's ground height (no steps or ramps)
+    # hot standby (services/estimator.py): a primary on this host whose estimates stopped this long while ours are
+    # valid and our inputs flow (a hang: its token outlives it by the link's lease) is killed, so that the standby
+    # takes over [s]; 0: never. Above the worst stall of a loaded machine (a false fence costs a takeover and a
+    # restart), so over ControlParams.estimate_fault_disarm_s: control disarms first (a hang still drops the robot)
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25

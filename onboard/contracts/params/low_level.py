@@ -97,6 +97,10 @@ class ControlParams(_Section, section="control"):
     balance_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] CoM speed at the touchdown
     balance_ref_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] reference speed at the touchdown
     balance_settle_hops: Annotated[int, within(1, 100)] = 3  # touchdowns in a row that slow before one counts
+    # hot standby (services/control.py): a primary on this host whose armed command stream stopped this long
+    # (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never.
+    # Above the worst stall of a loaded machine (~65 ms measured): a false fence costs a takeover and a restart
+    standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25
 
 
 @dataclass(frozen=True)
