@@ -189,7 +189,7 @@ def malformed_payloads(topic_name: str) -> list[bytes]:
     topic = TOPICS[topic_name]
     garbage = [b"", b"\xff\xfe\x00garbage", b"{", b"null", b"[1, 2, 3]", b'"a string"']
     if topic.msg_type is None:
-        decode = {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary]
+        decode = bm.DECODERS[topic.binary]
         candidates = garbage + [b"\x00" * 24, os.urandom(64)]
     else:
         base = example(msgspec.inspect.type_info(topic.msg_type))

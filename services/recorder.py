@@ -313,7 +313,7 @@ class RecorderService(Service):
         """The scene records of one message (Foxglove's schemas), beside its raw record."""
         try:
             if topic.binary:
-                msg: Any = {"depth": bm.decode_depth, "grid": bm.decode_grid}[topic.binary](payload)
+                msg: Any = bm.DECODERS[topic.binary](payload)
             else:
                 msg = m.decode(payload, topic.msg_type)
         except m.MessageError:

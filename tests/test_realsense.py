@@ -334,6 +334,7 @@ def test_recorded_twin_views_through_the_camera_and_perception_services(zenoh_ro
     assert xs.max() > 0.5
 
 
+@pytest.mark.timing_sensitive(reason="a 30 Hz software camera streamed by a thread while the service runs, on a shared 2-core host")
 def test_camera_service_publishes_the_frame_nearest_each_apex(zenoh_router) -> None:
     """A D435 streaming at 30 Hz (the software device, stamped with the host's clock at each capture as
     a camera's hardware clock would be): of all its frames the service publishes only the one captured
@@ -402,14 +403,15 @@ def test_camera_service_publishes_the_frame_nearest_each_apex(zenoh_router) -> N
         emu.stop()
     assert len(apexes) == 5, got
     # one frame an apex (a loaded machine may miss one), within the tolerance of it; its stamp is its
-    # capture on the stack's clock (the map's offset is the least delay: a few ms), and no frame was
-    # captured nearer the apex than it beyond that offset and a loaded machine's jitter
+    # capture on the stack's clock (the map's offset is the least delay over its window: a few ms, ~10 ms
+    # when every frame of the window waited for a busy core), and no frame was captured nearer the apex
+    # than it beyond that offset and a loaded machine's jitter
     assert len(depths) >= 3 and got["status"]["apex_missed"] + len(depths) == 5, got
     for img in depths:
         apex = min(apexes, key=lambda a: abs(a - img.stamp_ns))
         assert abs(img.stamp_ns - apex) <= 0.05e9, (img.stamp_ns - apex) / 1e6
         own = min(captured, key=lambda c: abs(c - img.stamp_ns))
-        assert 0 <= img.stamp_ns - own <= 0.005e9, (img.stamp_ns - own) / 1e6
+        assert 0 <= img.stamp_ns - own <= 0.015e9, (img.stamp_ns - own) / 1e6
         nearest = min(captured, key=lambda c: abs(c - apex))
         assert abs(own - apex) - abs(nearest - apex) <= 0.015e9, (own - nearest) / 1e6
     assert got["status"]["frames"] > 5 * len(depths)  # the others were read, not published

@@ -158,3 +158,7 @@ def decode_grid(payload: bytes | bytearray | memoryview) -> OccupancyGrid:
         raise MessageError("occupancy grid with bad resolution or origin")
     cells = np.frombuffer(buf, dtype=np.uint8, offset=off).reshape(rows, cols)
     return OccupancyGrid(cells, res, (ox, oy), stamp_ns, seq)
+
+
+# the decoder of each binary layout a topic names (``Topic.binary``): the one table every reader uses
+DECODERS = {"depth": decode_depth, "grid": decode_grid, "color": decode_color}

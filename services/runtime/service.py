@@ -393,7 +393,7 @@ class Service:
         if topic.binary:
             from onboard.contracts import binary_messages as bm
 
-            return {"depth": bm.decode_depth, "grid": bm.decode_grid, "color": bm.decode_color}[topic.binary]
+            return bm.DECODERS[topic.binary]
         msg_type = topic.msg_type
         return lambda payload: msgs.decode(payload, msg_type)
 

@@ -46,6 +46,11 @@ class LinearPolicy:
         lim = math.sin(self.tilt_max) if self.tilt_max > 0.0 else 0.999
         return clip_norm(ax, ay, lim)
 
+    def __reduce__(self) -> tuple[type, tuple[object, ...]]:
+        """Pickled by its fields (a campaign's workers get policies): the compiled build's frozen
+        dataclass cannot be restored field by field."""
+        return LinearPolicy, (self.s_eta, self.pos_err_max, self.vel_err_max, self.tilt_max)
+
     @classmethod
     def from_matrix(cls, s_eta: np.ndarray, pos_err_max: float, vel_err_max: float, tilt_max: float) -> LinearPolicy:
         rows = tuple(tuple(float(c) for c in row) for row in np.asarray(s_eta))
