@@ -13,9 +13,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from onboard.geometry.floor_camera import Lens, Marker
+
 from sim_twin import scenarios as sc
 
-# the twin may not import the drivers (the layers): the lab's camera model, as drivers.camera_overhead states it
+# the markers printed for the lab floor (drivers.camera_overhead.calibration.DICTIONARY)
 DICTIONARY = cv2.aruco.DICT_4X4_50
 
 FLOOR_BGR = (150, 150, 150)
@@ -25,46 +27,6 @@ ROBOT_BGR = (70, 45, 45)
 ROBOT_HEIGHT = 0.6  # [m] drawn height of the robot's body
 ROBOT_RADIUS = 0.13  # [m]
 QUIET = 0.25  # a marker's white margin, in marker sides per side
-
-
-@dataclass(frozen=True)
-class Lens:
-    """Pinhole intrinsics [px] and OpenCV's distortion (k1, k2, p1, p2, k3)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def D(self) -> np.ndarray:
-        return np.array(self.dist, dtype=float)
-
-    def undistort(self, pixels: np.ndarray) -> np.ndarray:
-        pts = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
-        return cv2.undistortPoints(pts, self.K, self.D, P=self.K).reshape(-1, 2)
-
-
-@dataclass(frozen=True)
-class Marker:
-    """An ArUco marker on the floor: corners in OpenCV's detection order at (-s/2, s/2), (s/2, s/2),
-    (s/2, -s/2), (-s/2, -s/2) of its own frame (drivers.camera_overhead.calibration.Marker)."""
-
-    id: int
-    x: float
-    y: float
-    size: float
-    yaw: float = 0.0
-
-    def corners(self) -> np.ndarray:
-        h = self.size / 2
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return np.array([[-h, h], [h, h], [h, -h], [-h, -h]]) @ np.array([[c, s], [-s, c]]) + (self.x, self.y)
 
 
 @dataclass(frozen=True)

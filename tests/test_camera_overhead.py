@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 from drivers.camera_overhead import tracking as tk
-from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration, Lens, Marker
+from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration
 from drivers.camera_overhead.device import CameraError, VideoSource
 from sim_twin import model as tm
 from sim_twin import overhead_camera as oc
 from sim_twin import scenarios as sc
 
 
-LENS = Lens(**vars(oc.default_camera().lens))  # the driver's model of the twin's camera
-MARKERS = [Marker(**vars(mk)) for mk in oc.default_markers()]
+LENS = oc.default_camera().lens  # the twin's camera, in the one lens model the driver calibrates with
+MARKERS = oc.default_markers()
 
 
 def _scene(name: str, seed: int):

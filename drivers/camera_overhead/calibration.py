@@ -8,59 +8,18 @@ top-right, bottom-right, bottom-left of the marker image), lie at (-s/2, +s/2), 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from onboard.geometry.floor_camera import Lens, Marker
 
 DICTIONARY = cv2.aruco.DICT_4X4_50  # the markers printed for the lab floor
 
 
 class CalibrationError(ValueError):
     """The frame does not show enough known markers to fix the floor."""
-
-
-@dataclass(frozen=True)
-class Marker:
-    id: int
-    x: float  # [m] centre on the floor, world frame
-    y: float
-    size: float  # [m] side of the black square
-    yaw: float = 0.0  # [rad] of the marker's x axis from world x
-
-    def corners(self) -> np.ndarray:
-        """(4, 2) floor corners [m] in OpenCV's detection order."""
-        h = self.size / 2
-        local = np.array([[-h, h], [h, h], [h, -h], [-h, -h]])
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return local @ np.array([[c, s], [-s, c]]) + (self.x, self.y)
-
-
-@dataclass(frozen=True)
-class Lens:
-    """Pinhole intrinsics and OpenCV's distortion (k1, k2, p1, p2, k3)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def D(self) -> np.ndarray:
-        return np.array(self.dist, dtype=float)
-
-    def undistort(self, pixels: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (N, 2) of the distorted image -> those of the ideal pinhole image."""
-        pts = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
-        if not np.any(self.D):
-            return pts.reshape(-1, 2)
-        return cv2.undistortPoints(pts, self.K, self.D, P=self.K).reshape(-1, 2)
 
 
 def detect_markers(frame: np.ndarray, dictionary: int = DICTIONARY) -> dict[int, np.ndarray]:

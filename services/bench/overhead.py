@@ -18,7 +18,6 @@ import time
 import mujoco
 import numpy as np
 
-from drivers.camera_overhead.calibration import Lens, Marker
 from onboard.contracts.params import CameraOverheadParams, PlannerParams
 from onboard.high_level.planning.graph_planner import GraphPlanner
 from robot_description import params as rd
@@ -52,8 +51,8 @@ def measure(args: argparse.Namespace) -> dict:
     renderer = oc.OverheadRenderer(cam, oc.default_markers(), seed=args.seed)
     p = CameraOverheadParams(obstacle_height_m=sc.OBSTACLE_HEIGHT)
     camera = ObstacleCamera(p)
-    camera.lens = Lens(**vars(cam.lens))
-    camera.markers = [Marker(**vars(mk)) for mk in oc.default_markers()]
+    camera.lens = cam.lens
+    camera.markers = oc.default_markers()
     robot = rd.robot_params()
     prm = rd.planner_params_for(PlannerParams(replan_hz=THESIS_HZ["plan"], refine_hz=THESIS_HZ["refine"]), robot)
     planner = GraphPlanner(prm, robot_radius=robot.footprint_radius)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from drivers.camera_overhead.calibration import Lens, Marker
 from onboard.contracts import messages as m
 from onboard.contracts.params import CameraOverheadParams
 from services.camera_overhead import ObstacleCamera
@@ -24,8 +23,8 @@ def overhead_world(p: CameraOverheadParams) -> Callable[[sc.Scenario], Callable[
         cam = oc.default_camera()
         renderer = oc.OverheadRenderer(cam, oc.default_markers(), seed=scenario.seed)
         camera = ObstacleCamera(p)
-        camera.lens = Lens(**vars(cam.lens))
-        camera.markers = [Marker(**vars(mk)) for mk in oc.default_markers()]
+        camera.lens = cam.lens
+        camera.markers = oc.default_markers()
         period_ns = int(NS / p.rate_hz)
         due = [0]
 
