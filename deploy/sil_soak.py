@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -68,6 +69,7 @@ HOT_AFTER_S = 5.0
 STATUS_COLD_S = 10.0
 TWIN_STATUS_S = 2.0
 SIM_START_TIMEOUT_S = 180.0  # the planner compiles its kernels on a cold cache
+HELPER_START_TIMEOUT_S = 60.0  # a hog or flood not started by then is killed
 HELPER_GRACE_S = 5.0  # a hog or flood past its duration by this much is killed
 KILL_WATCH_S = 5.0  # how long a killed process's exit and reaping are watched
 PUT_BACK_SETTLE_S = 1.5  # after the put back (and again after the estimator rebuild) before arming
@@ -372,11 +374,20 @@ class Soak:
         inj.exited_ns, inj.reaped_ns = watch.exited_ns, watch.reaped_ns
 
     def _run_helper(self, f: Fault, argv: list[str], window_end: int) -> Injection:
-        start = time.monotonic_ns()
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
         self.helpers.append(proc)
+        start = time.monotonic_ns()
         try:
-            out, err = proc.communicate(timeout=f.duration_s + HELPER_GRACE_S + (sf.LIVE_COPY_WAIT_S if f.kind == "bad_stamps" else 0.0))
+            # a busy host can take seconds to import and open a session: the fault (and its deadline)
+            # begins when the helper says so, not when it was spawned
+            ready = select.select([proc.stdout], [], [], HELPER_START_TIMEOUT_S)[0] and proc.stdout.readline()
+            if ready and ready.decode(errors="replace").strip() == sf.READY_LINE:
+                start = time.monotonic_ns()
+                out, err = proc.communicate(timeout=f.duration_s + HELPER_GRACE_S)
+            else:
+                proc.kill()
+                out, err = proc.communicate()
+                out = (ready or b"") + out
         except subprocess.TimeoutExpired:
             proc.kill()
             out, err = proc.communicate()
@@ -386,7 +397,7 @@ class Soak:
                 proc.wait()
             self.helpers.remove(proc)
         inj = Injection(f, start, time.monotonic_ns(), window_end, pid=proc.pid)
-        lines = out.decode(errors="replace").strip().splitlines()
+        lines = [ln for ln in out.decode(errors="replace").strip().splitlines() if ln.strip() != sf.READY_LINE]
         try:
             inj.helper = json.loads(lines[-1]) if lines else None
         except json.JSONDecodeError:

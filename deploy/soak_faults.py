@@ -15,7 +15,8 @@ their own, started with ``python -m deploy.soak_faults hog|flood``; each dies wi
   a schema example where nothing is live) stamped ``offset`` seconds from now, ``seq`` 0 so
   that no sequence check takes them for the real publisher's.
 
-Each helper prints one JSON line of what it sent when it ends.
+Each helper prints ``READY_LINE`` when its fault begins (a flood: once its session is open) and
+one JSON line of what it sent when it ends.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from typing import Any
 CHILD_MARKER = b"spawn_main"  # argv of a multiprocessing child (not its resource tracker)
 REAP_POLL_S = 0.001
 LIVE_COPY_WAIT_S = 1.0  # a stamps flood waits this long for a live message to copy
+READY_LINE = "ready"  # a helper's first line: its start-up (imports, session) is over, the fault begins
 
 
 # --- finding and signalling the stack's processes -------------------------------------------------
@@ -143,8 +145,13 @@ def helper_argv(mode: str, *args: str) -> list[str]:
 # --- the helper processes -------------------------------------------------------------------------
 
 
+def say_ready() -> None:
+    print(READY_LINE, flush=True)
+
+
 def run_hog(cpu: int, duration_s: float) -> dict[str, Any]:
     os.sched_setaffinity(0, {cpu})
+    say_ready()
     deadline = time.monotonic() + duration_s
     spins = 0
     while time.monotonic() < deadline:
@@ -262,6 +269,7 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
 
             def make(t: str, k: int) -> bytes:
                 return m.encode(msgspec.structs.replace(templates[t], stamp_ns=time.monotonic_ns() + offset_ns, seq=0))
+        say_ready()
         t0 = time.monotonic()
         while (elapsed := time.monotonic() - t0) < duration_s:
             for t in topics:
