@@ -56,7 +56,9 @@ LAYERS: dict[str, set[str]] = {
     "services.twin": _ROBOT | {"services", "sim_twin"},  # the twin's service stands in for the hardware
     "deploy": _ROBOT | {"services"},  # units, Zenoh configs, the SIL soak
     "services.bench": _ROBOT | {"services", "services.twin", "sim_twin"},
-    "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy", "offline"},
+    "services.cli": _ROBOT | {"services", "services.twin", "sim_twin", "deploy", "offline", "services.reproduce"},
+    # archer reproduce: campaigns, benches and the examples, drawn as the thesis draws them
+    "services.reproduce": _ROBOT | {"services", "services.twin", "sim_twin", "offline", "services.cli", "services.bench"},
 }
 ROBOT_SERVICES = ("control", "estimator", "planner", "perception", "hardware", "recorder", "mocap", "camera", "view")
 

@@ -12,8 +12,8 @@ from robot_description import params as rd
 from sim_twin import model as tm
 from sim_twin import scenarios as sc
 
-ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "flip", "shove", "step", "ramp", "blind-side", "forest", "maze",
-       "kicked", "sliding", "sliding-fast", "crossing", "sidewalk"]
+ALL = ["hop-in-place", "setpoint", "square", "lissajous", "push", "flip", "shove", "step", "ramp", "blind-side", "forest",
+       "forest-500", "maze", "kicked", "sliding", "sliding-fast", "crossing", "sidewalk", "stairs", "board", "treadmill", "maze-600"]
 
 
 def _compiled(scn: sc.Scenario) -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -76,6 +76,7 @@ def test_seed_changes_every_random_choice() -> None:
     assert len(sc.make("forest", seed=2, obstacles=4).obstacles) == 4
     with pytest.raises(ValueError, match="within 0..200"):
         sc.make("forest", seed=0, obstacles=500)
+    assert len(sc.make("forest-500", seed=3).obstacles) == 500  # thesis Fig. 7.5's count, in the field that holds it
     for seed in range(20):  # the first forest obstacle blocks the straight line to the goal
         ys = [v[1] for v in sc.make("forest", seed=seed).obstacles[0].vertices]
         assert min(ys) < 0.0 < max(ys)
@@ -142,3 +143,58 @@ def test_push_delivers_its_impulse() -> None:
     ang = push.push_angles[0]
     assert mass * v[:2] == pytest.approx([push.IMPULSE * math.cos(ang), push.IMPULSE * math.sin(ang)], abs=2 * push.IMPULSE * dt / push.PUSH_TIME)
     assert push.pushes_applied == 1
+
+
+def test_the_stairs_rise_a_stair_at_each_edge_and_the_board_stands_on_the_floor() -> None:
+    from sim_twin.scenarios_thesis import Board, Stairs
+
+    model, data = _compiled(sc.make("stairs", seed=0))
+    for k in range(Stairs.STEPS):
+        edge = Stairs.FIRST_EDGE + k * Stairs.TREAD
+        assert _ground_height(model, data, edge - 0.02, 0.0) == pytest.approx(k * Stairs.RISE, abs=1e-6)
+        assert _ground_height(model, data, edge + 0.02, 0.0) == pytest.approx((k + 1) * Stairs.RISE, abs=1e-6)
+    model, data = _compiled(sc.make("board", seed=0))
+    assert _ground_height(model, data, Board.AT + Board.WIDTH / 2, 0.3) == pytest.approx(Board.HEIGHT, abs=1e-6)
+    assert _ground_height(model, data, Board.AT + Board.WIDTH + 0.02, 0.0) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_treadmill_reference_moves_at_the_belt_speed_of_each_stage() -> None:
+    scn = sc.make("treadmill", seed=0)
+    for k, speed in enumerate(scn.SPEEDS):
+        t = scn.SETTLE_S + (k + 0.5) * scn.STAGE_S
+        dx = sc.sample_reference(scn.segments, t + 0.5)[0] - sc.sample_reference(scn.segments, t - 0.5)[0]
+        assert dx == pytest.approx(speed, rel=1e-9) and scn.belt_speed(t) == speed
+    assert sc.sample_reference(scn.segments, 1.0) == scn.start and scn.belt_speed(1.0) == 0.0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_600_cell_maze_joins_start_and_goal_with_room_for_the_robot(seed: int) -> None:
+    """A walk over the cell centres, stepping only where the robot's footprint and tube clear every wall."""
+    from sim_twin.scenarios_thesis import GridMaze
+
+    scn = sc.make("maze-600", seed=seed)
+    assert 220 <= len(scn.obstacles) <= 340  # the thesis's figure: 300
+    clearance = 0.13 + 0.1  # the robot's radius and the planner's tube
+    polys = [np.array(o.vertices) for o in scn.obstacles]
+
+    def blocked(p: np.ndarray) -> bool:
+        for v in polys:
+            lo, hi = v.min(axis=0) - clearance, v.max(axis=0) + clearance
+            if np.all(p >= lo) and np.all(p <= hi):
+                return True
+        return False
+
+    c = GridMaze.CELL
+    start, goal = (0, 0), (GridMaze.COLUMNS - 1, GridMaze.ROWS - 1)
+    assert scn.goal_xy == pytest.approx((goal[0] * c, goal[1] * c))
+    seen, frontier = {start}, [start]
+    while frontier:
+        i, j = frontier.pop()
+        for a, b in ((i + 1, j), (i - 1, j), (i, j + 1), (i, j - 1)):
+            if not (0 <= a < GridMaze.COLUMNS and 0 <= b < GridMaze.ROWS) or (a, b) in seen:
+                continue
+            if not any(blocked(np.array([(i + s * (a - i)) * c, (j + s * (b - j)) * c])) for s in np.linspace(0.0, 1.0, 9)):
+                seen.add((a, b))
+                frontier.append((a, b))
+    assert goal in seen
+    assert len(seen) > 0.9 * GridMaze.COLUMNS * GridMaze.ROWS  # nearly every cell is reachable, not just one corridor

@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "obstacles": ("services.cli.obstacles", "overhead camera: calibrate the floor by its ArUco markers; list and name the obstacles it sees"),
     "plan": ("services.cli.plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
     "goal": ("services.cli.plan", "send the robot a goal position X Y [m]"),
+    "reproduce": ("services.cli.reproduce", "regenerate the thesis's ARCHER figures and tables and compare them with its numbers (report.md)"),
     "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),
 }
 
@@ -60,7 +61,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
-TICK_COMMANDS = ("sim", "campaign", "bench", "soak")  # what runs the lockstep tick (and starts the real-time stack from this checkout)
+TICK_COMMANDS = ("sim", "campaign", "bench", "soak", "reproduce")  # what runs the lockstep tick (and starts the real-time stack from this checkout)
 
 
 def _check_compiled_tick() -> None:
