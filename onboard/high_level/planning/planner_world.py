@@ -78,15 +78,7 @@ class PlannerWorld:
                 still = np.hypot(vel[:, 0], vel[:, 1]) < mo.STILL
                 self._static = pg.pack_polygons([p for p, s in zip(polys, still) if s])
                 polygons = self._swept()
-        try:
-            packed = pg.pack_polygons(polygons)
-        except pg.PolygonError as exc:
-            raise PlanningError(f"obstacle: {exc}") from None
-        if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
-            return
-        self.mode = "obstacles"
-        self.obstacles = packed
-        self._world_version += 1
+        self._set_polygons("obstacles", _packed(polygons, "obstacle"))
 
     def _swept(self) -> list[np.ndarray]:
         """The obstacles the robot may meet near where it is: still ones as given, moving ones over the
@@ -143,14 +135,18 @@ class PlannerWorld:
 
     def set_free_cells(self, polygons: list) -> None:
         """Convex free cells: a curve is free iff its control points lie in one cell."""
-        try:
-            packed = pg.pack_polygons(list(polygons))
-        except pg.PolygonError as exc:
-            raise PlanningError(f"free cell: {exc}") from None
-        if self.mode == "free" and _same_polygons(packed, self.cells):
+        self._set_polygons("free", _packed(list(polygons), "free cell"))
+
+    def _set_polygons(self, mode: str, packed: pg.PolygonSet) -> None:
+        """Plan among obstacles or in free cells (``mode``) ``packed`` from now on; the same ones
+        in the same mode change nothing (no recut, no replan)."""
+        if self.mode == mode and _same_polygons(packed, self.obstacles if mode == "obstacles" else self.cells):
             return
-        self.mode = "free"
-        self.cells = packed
+        self.mode = mode
+        if mode == "obstacles":
+            self.obstacles = packed
+        else:
+            self.cells = packed
         self._world_version += 1
 
     def set_seen(self, seen: SeenSpace | None, required: bool = True) -> None:
@@ -243,6 +239,13 @@ class PlannerWorld:
                 seg = msgs.BezierSegment(t0=0.0, duration=float(duration), control_points=ctrl.tolist())
                 return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=False)
         return None
+
+
+def _packed(polygons: list, what: str) -> pg.PolygonSet:
+    try:
+        return pg.pack_polygons(polygons)
+    except pg.PolygonError as exc:
+        raise PlanningError(f"{what}: {exc}") from None
 
 
 def _same_polygons(a: pg.PolygonSet, b: pg.PolygonSet) -> bool:
