@@ -15,6 +15,7 @@ from onboard.high_level.tracking import collision as col
 from onboard.geometry import polygons as pg
 from onboard.high_level.planning import bezier_graph as bg
 from onboard.high_level.planning import graph_planner as gp
+from onboard.high_level.planning.planner_world import START_SLACK
 from onboard.high_level.tracking import reachability as reach
 from onboard.contracts.params import PlannerParams
 
@@ -328,11 +329,11 @@ def test_a_start_inside_the_margin_may_leave_keeping_its_clearance(graph):
     planner.set_obstacles([wall])
     planner.set_goal((5.0, 3.0), 0.1)
     start = (2.1 + 0.18, 3.0)  # 0.18 m from the wall: inside the 0.23 m margin, outside the robot
-    assert planner.start_margin(start) == pytest.approx(0.18 - gp.START_SLACK)
+    assert planner.start_margin(start) == pytest.approx(0.18 - START_SLACK)
     assert planner.plan(start, (0.0, 0.0)) is not None
     samples = np.stack([_dense(c, 200) for c in planner.path.control_points])
     clearance = col.samples_clearance(samples, pg.pack_polygons([wall]), reach=1.0)
-    assert clearance[0] >= 0.18 - gp.START_SLACK and np.all(clearance[1:] > planner.margin)
+    assert clearance[0] >= 0.18 - START_SLACK and np.all(clearance[1:] > planner.margin)
     # Touching the wall already: no way out that keeps the robot clear.
     assert planner.start_margin((2.1 + 0.05, 3.0)) == ROBOT_RADIUS
     assert planner.plan((2.1 + 0.05, 3.0), (0.0, 0.0)) is None

@@ -69,82 +69,33 @@ Frames: world z up; body = torso frame, origin at the point the pose sensor repo
 from __future__ import annotations
 
 import math
-from typing import Protocol, cast
+from typing import cast
 
 from scipy.stats import chi2
 
 from onboard.geometry import quaternion as quat
 from onboard.estimation.attitude_filter import AttitudeFilter
 from onboard.estimation.com_filter import ComFilter, make_com_filter
+from onboard.estimation.contact import FootContact
+from onboard.estimation.imu_gaps import GapModel
+from onboard.estimation.input_gate import ATTITUDE_HISTORY_S, NS, QUAT_NORM_TOL, InputGate, check_params
+from onboard.estimation.leg_model import FOOT_EXTENDED_M, LegModel, RobotGeometry
+from onboard.estimation.position_sources import MocapPoses, Odometry
 from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement, StateEstimate
 from onboard.contracts.params import EstimatorParams
-
-NS = 1_000_000_000
-QUAT_NORM_TOL = 0.1  # a pose quaternion further than this from unit norm is malformed
-FOOT_RANGE_MARGIN_M = 0.01  # [m] foot compression reading tolerated outside its travel
-FOOT_EXTENDED_M = 0.001  # [m] below this compression the spring (~12 N) no longer holds the foot down
-ATTITUDE_HISTORY_S = 0.25  # [s] oldest pose whose attitude can still be fused
-GAP_CORRELATION = 0.5  # position-velocity correlation of the covariance an IMU gap adds
-
-
-class RobotGeometry(Protocol):
-    """What the estimator needs of the robot (``sim_twin.model.RobotParams`` has it)."""
-
-    gravity: float  # [m/s^2]
-    total_mass: float  # [kg]
-    foot_mass: float  # unsprung mass [kg]
-    com_offset_body: tuple[float, float, float]  # CoM from the torso origin, foot extended [m, body]
-    leg_length: float  # torso origin to the foot's lowest point, foot extended [m]
-    foot_radius: float  # contact sphere [m]
-    foot_travel: float  # maximum compression [m]
-    spring_stiffness: float  # leg spring [N/m]
-    spring_damping: float  # [N s/m]
-
-
-def _check(p: EstimatorParams) -> None:
-    """Refuse parameters the filter cannot work with (a clear error, not a silent NaN)."""
-    positive = ("rate_hz", "pose_pos_std_m", "pose_att_std_rad", "leg_vel_std_m_s", "gyro_noise_density",
-                "tilt_std_rad", "init_pos_std_m", "init_vel_std_m_s", "init_att_std_rad", "init_bias_std_rad_s",
-                "accel_psd_flight", "accel_psd_stance", "valid_pos_std_m", "valid_vel_std_m_s", "valid_att_std_rad",
-                "valid_rate_std_rad_s", "imu_rate_hz", "max_speed_m_s", "input_max_age_s")
-    non_negative = ("pose_delay_s", "accel_delay_s", "leg_settle_s", "impact_vel_std_m_s", "liftoff_vel_std_m_s",
-                    "gyro_bias_walk", "static_hold_s", "pose_future_tolerance_s", "gap_accel_std_m_s2",
-                    "gap_angular_accel_std_rad_s2", "input_future_tolerance_s")
-    for name in positive:
-        if not getattr(p, name) > 0.0:
-            raise ValueError(f"estimator.{name} must be positive, got {getattr(p, name)}")
-    for name in non_negative:
-        if not getattr(p, name) >= 0.0:
-            raise ValueError(f"estimator.{name} must be >= 0, got {getattr(p, name)}")
-    if not 0.0 < p.gate_probability < 1.0:
-        raise ValueError(f"estimator.gate_probability must be in (0, 1), got {p.gate_probability}")
-    if p.pose_delay_s > ATTITUDE_HISTORY_S:
-        raise ValueError(f"estimator.pose_delay_s beyond the {ATTITUDE_HISTORY_S} s attitude history")
-    if p.contact_on_samples < 1 or p.contact_off_samples < 1:
-        raise ValueError("estimator contact debounce counts must be at least 1")
 
 
 class StateEstimator:
     """The estimator; see the module docstring for the interface and the model."""
 
     def __init__(self, params: EstimatorParams, robot: RobotGeometry) -> None:
-        _check(params)
+        check_params(params)
         self.params = params
         p = params
         self._g = robot.gravity
-        mu = robot.foot_mass / robot.total_mass
-        self._mu_foot = mu
-        self._mu_sprung = 1.0 - mu
-        c0 = tuple(float(v) for v in robot.com_offset_body)
-        self._foot_travel = robot.foot_travel
-        # the spring's push per metre of compression and per m/s of its rate, on the sprung body [m/s^2]
-        m_sprung = robot.total_mass - robot.foot_mass
-        self._spring_sf = (robot.spring_stiffness / m_sprung, robot.spring_damping / m_sprung)
+        self.leg = LegModel(robot)
+        self._mu_sprung = self.leg.mu_sprung
         self._accel_sensed = True  # False once a sample says it carries no accelerometer
-        self._foot_radius = robot.foot_radius
-        # CoM relative to the foot sphere's centre at zero compression [m, body]; the foot
-        # slides along body z, so compression s moves the sphere up by s and the CoM by mu s.
-        self._r_cf0 = (c0[0], c0[1], c0[2] + robot.leg_length - robot.foot_radius)
         self._gate3 = float(chi2.ppf(p.gate_probability, 3))
         self._gate2 = float(chi2.ppf(p.gate_probability, 2))
         self.att = AttitudeFilter(
@@ -163,15 +114,11 @@ class StateEstimator:
             init_pos_std=p.init_pos_std_m,
             init_vel_std=p.init_vel_std_m_s,
             gate_chi2=self._gate3,
-            com_offset_body=c0,
-            com_per_compression=(0.0, 0.0, mu),
+            com_offset_body=self.leg.com_offset,
+            com_per_compression=(0.0, 0.0, self.leg.mu_foot),
             reacquire_s=p.pose_reacquire_s,
         )
-        self._pose_pos_var = p.pose_pos_std_m ** 2
-        self._pose_att_var = p.pose_att_std_rad ** 2
         self._leg_var = p.leg_vel_std_m_s ** 2
-        self._impact_var = p.impact_vel_std_m_s ** 2
-        self._liftoff_var = p.liftoff_vel_std_m_s ** 2
         self._tilt_var = p.tilt_std_rad ** 2
         self._static_hold_ns = int(p.static_hold_s * NS)
         self._accel_delay = p.accel_delay_s
@@ -184,20 +131,12 @@ class StateEstimator:
         self._valid_att_var = p.valid_att_std_rad ** 2
         self._valid_rate_var = p.valid_rate_std_rad_s ** 2
         self._period_ns = int(round(NS / p.imu_rate_hz))
-        self._gap_accel_var = p.gap_accel_std_m_s2 ** 2
-        self._gap_alpha_var = p.gap_angular_accel_std_rad_s2 ** 2
-        self._max_speed2 = p.max_speed_m_s ** 2
+        self._gaps = GapModel(p)
         self._gyro_sample_var = p.gyro_noise_density ** 2 * p.imu_rate_hz  # one sample's white noise
-        self._future_ns = int(p.input_future_tolerance_s * NS)
-        self._max_age_ns = int(p.input_max_age_s * NS)
-        self._counters: dict[str, int] = {}  # events: touchdowns, bounces
-        self._rejections: dict[str, int] = {}  # refused inputs by reason
-        self._rejected = 0  # their total (cheap to compare)
+        self._gate = InputGate(p)  # refusals by reason, events
         # inputs
         self._t_imu = -1
         self._t_joints = -1
-        self._t_pose = -1  # capture stamp of the newest accepted pose
-        self._t_pose_fused = -1
         self._accel = (0.0, 0.0, 0.0)  # CoM acceleration at the newest sample [m/s^2, world]
         self._sf_prev = (0.0, 0.0, 0.0)  # specific force at the previous sample [m/s^2, world]
         self._pending: tuple[int, float, float, float, float] | None = None  # IMU interval not yet integrated
@@ -206,73 +145,16 @@ class StateEstimator:
         self.wheel_vel = (0.0, 0.0, 0.0)
         self.foot_pos = 0.0
         self.foot_vel = 0.0
-        # contact with hysteresis
-        self.contact = False
-        self._contact_run = 0
-        self._switch = False  # the raw contact reading
-        self._switch_on_ns = 0  # when the switch last closed
-        self._impact: tuple[float, float, float] | None = None  # applied, not yet confirmed
+        self._contact = FootContact(p, self.leg, self.com, self._gate)  # with hysteresis
         self._foot_sensed = True  # False: contact from the specific force (no foot sensor)
-        self._free_foot = (0.0, 0.0)  # foot compression and rate at the last no-contact reading
         self._gap_contact = False  # a contact reading since the newest IMU interval was integrated
         self._imu_gap = (0, 0)  # the newest interval of more than two IMU periods [ns]
-        # no pose (position_source "odometry"): the IMU's orientation for the attitude, an origin at touchdown
+        # where position and absolute attitude come from (onboard.estimation.position_sources)
         self._odometry = p.position_source == "odometry"
-        self._anchored = False
-        self._imu_att_var = p.imu_att_std_rad ** 2
-        self._imu_att_every = p.imu_att_every
-        self._imu_att_run = 0
-        self._anchor_var = p.anchor_std_m ** 2
-        self._flat_ground = p.odometry_flat_ground
+        self.mocap = MocapPoses(p, self._gate, self._gate3)
+        self.odometry = Odometry(p, self._gate, self._gate3)
 
-    # --- helpers ------------------------------------------------------------------
-
-    def _reject(self, reason: str) -> bool:
-        self._rejections[reason] = self._rejections.get(reason, 0) + 1
-        self._rejected += 1
-        return False
-
-    def _stamp_refused(self, topic: str, t: int, arrival_ns: int | None) -> str:
-        """The reason a stamp is refused against its arrival time ('' when it is not)."""
-        if arrival_ns is None:
-            return ""
-        if t > arrival_ns + self._future_ns:
-            return f"{topic}_future"
-        if t < arrival_ns - self._max_age_ns:
-            return f"{topic}_past"
-        return ""
-
-    def _speed_limit(self, vx: float, vy: float, vz: float, ax: float, ay: float, az: float, dt: float) -> float:
-        """The largest ``k`` in [0, 1] for which ``v + k a dt`` stays within the top speed: over an
-        IMU gap the held acceleration must not predict a speed the robot cannot reach (the gap's
-        velocity uncertainty is capped there too)."""
-        dx, dy, dz = ax * dt, ay * dt, az * dt
-        vmax2 = self._max_speed2
-        if (vx + dx) ** 2 + (vy + dy) ** 2 + (vz + dz) ** 2 <= vmax2:
-            return 1.0
-        # |v + k d|^2 = vmax^2: the positive root (0 when already at the top speed)
-        a = dx * dx + dy * dy + dz * dz
-        b = vx * dx + vy * dy + vz * dz
-        c = vx * vx + vy * vy + vz * vz - vmax2
-        if c >= 0.0:
-            return 0.0
-        return (-b + math.sqrt(b * b - a * c)) / a
-
-    def _gap_cov(self, g: float, stance: bool) -> tuple[float, float, float]:
-        """Per-axis CoM covariance ``(pp, pv, vv)`` that ``g`` [s] without the accelerometer adds:
-        an unknown constant acceleration, the velocity part capped by the robot's top speed.
-
-        The position and velocity errors are correlated by half, not fully: a constant
-        acceleration would correlate them fully, but it is a bound, not the truth, and a fully
-        correlated term would let the first pose after the gap "measure" the velocity too."""
-        if not stance or g <= 0.0:
-            return 0.0, 0.0, 0.0
-        vv = min(self._gap_accel_var * g * g, self._max_speed2)
-        pp = min(0.25 * self._gap_accel_var * g * g * g * g, self._max_speed2 * g * g)
-        return pp, GAP_CORRELATION * math.sqrt(pp * vv), vv
-
-    def _count(self, name: str) -> None:
-        self._counters[name] = self._counters.get(name, 0) + 1
+    # --- input ------------------------------------------------------------------
 
     def feed(self, topic: str, msg: object, arrival_ns: int | None = None) -> bool:
         """A sensor message by its topic (``imu``, ``joints``, ``pose``): the update it takes.
@@ -305,17 +187,17 @@ class StateEstimator:
             self.com.set_stance_psd(self.params.accel_psd_stance if sensed else self.params.accel_psd_stance_modelled)
         isf = math.isfinite
         if not (isf(gx) and isf(gy) and isf(gz) and isf(fx) and isf(fy) and isf(fz)):
-            return self._reject("imu_nonfinite")
-        refused = self._stamp_refused("imu", t, arrival_ns)  # first: a wrong clock, named as one
+            return self._gate.reject("imu_nonfinite")
+        refused = self._gate.stamp_refused("imu", t, arrival_ns)  # first: a wrong clock, named as one
         if refused:
-            return self._reject(refused)
+            return self._gate.reject(refused)
         if t <= self._t_imu:
-            return self._reject("imu_out_of_order")
+            return self._gate.reject("imu_out_of_order")
         p = self.params
         wr = gx * gx + gy * gy + gz * gz
         fn2 = fx * fx + fy * fy + fz * fz
         if wr > self._gyro_range2 or fn2 > self._accel_range2:
-            return self._reject("imu_out_of_range")
+            return self._gate.reject("imu_out_of_range")
         att = self.att
         if not att.initialized:
             return self._start(msg)
@@ -326,7 +208,7 @@ class StateEstimator:
         if t - self._t_imu > 2 * self._period_ns:
             self._imu_gap = (self._t_imu, t)
         self._t_imu = t
-        att.propagate(t, gx, gy, gz, dt, 0.25 * self._gap_alpha_var * gap ** 4 if gap > 0.0 else 0.0)
+        att.propagate(t, gx, gy, gz, dt, self._gaps.attitude_var(gap) if gap > 0.0 else 0.0)
         # gravity as the direction of up, only after a quasi-static spell
         wx, wy, wz = att.omega
         if sensed and abs(math.sqrt(fn2) - self._g) < p.static_accel_tol_m_s2 and wx * wx + wy * wy + wz * wz < self._static_gyro2:
@@ -334,11 +216,11 @@ class StateEstimator:
                 self._static_since = t
             elif t - self._static_since >= self._static_hold_ns:
                 if not att.correct_gravity(fx, fy, fz, self._tilt_var, self._gate2):
-                    self._reject("gravity_outliers")
+                    self._gate.reject("gravity_outliers")
         else:
             self._static_since = -1
         if self._odometry:
-            self._imu_attitude(msg.quat, t)
+            self.odometry.imu_attitude(att, msg.quat, t)
         w, x, y, z = att.q
         r00 = 1.0 - 2.0 * (y * y + z * z)
         r01 = 2.0 * (x * y - w * z)
@@ -358,56 +240,16 @@ class StateEstimator:
         if not self._foot_sensed and sensed:
             # the spring's push is the only large specific force on a hopping robot's body
             f = math.sqrt(fn2)
-            reading = f > p.accel_contact_on_m_s2 or (self._switch and f > p.accel_contact_off_m_s2)
+            reading = f > p.accel_contact_on_m_s2 or (self._contact.switch and f > p.accel_contact_off_m_s2)
             self._contact_reading(reading, t)
         return True
-
-    def _imu_attitude(self, q: list[float], t: int) -> None:
-        """Odometry: every ``imu_att_every``-th IMU orientation (its own AHRS) corrects the attitude."""
-        self._imu_att_run += 1
-        if self._imu_att_run < self._imu_att_every:
-            return
-        self._imu_att_run = 0
-        qw, qx, qy, qz = float(q[0]), float(q[1]), float(q[2]), float(q[3])
-        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if not math.isfinite(n) or abs(n - 1.0) > QUAT_NORM_TOL:
-            self._reject("imu_bad_quat")
-            return
-        fused = self.att.correct_pose((qw / n, qx / n, qy / n, qz / n), t, self._imu_att_var, self._gate3)
-        if fused:
-            self._count("imu_att_fused")
-        elif fused is not None:
-            self._reject("imu_att_outliers")
-
-    def _com_from_contact(self) -> tuple[float, float, float]:
-        """The CoM from the foot's contact point [m, world]: the lever to the foot sphere's centre, then its radius."""
-        r = self._rot
-        bx, by, bz = self._r_cf0
-        bz -= self._mu_sprung * self.foot_pos
-        return (r[0] * bx + r[1] * by + r[2] * bz, r[3] * bx + r[4] * by + r[5] * bz,
-                r[6] * bx + r[7] * by + r[8] * bz + self._foot_radius)
-
-    def _anchor(self) -> None:
-        """Odometry, at a confirmed touchdown. The first one's contact point is the origin (ground at
-        z = 0). At each later one on flat ground (``odometry_flat_ground``) the foot is back on the
-        ground's height: the CoM's height is set from the leg, which keeps the unobserved vertical
-        drift to one hop's worth (its horizontal position stays the odometry's)."""
-        lx, ly, lz = self._com_from_contact()
-        if not self._anchored:
-            self._anchored = True
-            self.com.anchor(lx, ly, lz, self._anchor_var)
-            self._count("odometry_anchored")
-        elif self._flat_ground:
-            self.com.shift_height(lz - self.com.position[2])
-            self._count("ground_height_resets")
 
     def _modelled_specific_force(self) -> float:
         """The specific force along the leg [m/s^2, body z] with no accelerometer: the spring's
         push in stance (the raw switch, as the CoM step picks its dynamics), free fall in flight."""
-        if not self._switch:
+        if not self._contact.switch:
             return 0.0
-        k, c = self._spring_sf
-        return max(0.0, k * self.foot_pos + c * self.foot_vel)  # the spring only pushes
+        return self.leg.spring_specific_force(self.foot_pos, self.foot_vel)
 
     def _step_com(self) -> None:
         """Integrate the CoM over the newest IMU interval.
@@ -424,12 +266,12 @@ class StateEstimator:
         t, dt, sx, sy, sz = pending
         self._pending = None
         gap = dt - self._period_ns / NS
-        gap_cov = self._gap_cov(gap, self._gap_contact or self._switch) if gap > 0.0 else None
-        self._gap_contact = self._switch
+        gap_cov = self._gaps.com_cov(gap, self._gap_contact or self._contact.switch) if gap > 0.0 else None
+        self._gap_contact = self._contact.switch
         px, py, pz = self._sf_prev
         self._sf_prev = (sx, sy, sz)
         g = self._g
-        stance = self._switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed)
+        stance = self._contact.switch and (self.foot_pos > FOOT_EXTENDED_M or not self._foot_sensed)
         if stance:
             # foot pinned: the CoM accelerates with the sprung mass's share of the body's. The
             # interval's mean from two samples each describing accel_delay_s before its stamp:
@@ -443,7 +285,7 @@ class StateEstimator:
             self._accel = ax, ay, az = (0.0, 0.0, -g)  # projectile
         if gap > 0.0:  # two samples a gap apart: their mean is held only up to the top speed
             vx, vy, vz = self.com.velocity
-            k = self._speed_limit(vx, vy, vz, ax, ay, az, dt)
+            k = self._gaps.speed_limit(vx, vy, vz, ax, ay, az, dt)
             ax, ay, az = k * ax, k * ay, k * az
         self.com.push(t, dt, ax, ay, az, stance, self.foot_pos, gap_cov)
 
@@ -468,14 +310,14 @@ class StateEstimator:
         s, sd = float(msg.foot_pos), float(msg.foot_vel)
         isf = math.isfinite
         if not (isf(wv[0]) and isf(wv[1]) and isf(wv[2]) and isf(s) and isf(sd)):
-            return self._reject("joints_nonfinite")
+            return self._gate.reject("joints_nonfinite")
         if t <= self._t_joints:
-            return self._reject("joints_out_of_order")
-        refused = self._stamp_refused("joints", t, arrival_ns)
+            return self._gate.reject("joints_out_of_order")
+        refused = self._gate.stamp_refused("joints", t, arrival_ns)
         if refused:
-            return self._reject(refused)
-        if not -FOOT_RANGE_MARGIN_M <= s <= self._foot_travel + FOOT_RANGE_MARGIN_M:
-            return self._reject("joints_out_of_range")
+            return self._gate.reject(refused)
+        if not self.leg.in_range(s):
+            return self._gate.reject("joints_out_of_range")
         self._t_joints = t
         self.wheel_vel = (float(wv[0]), float(wv[1]), float(wv[2]))
         if not msg.foot_sensed:
@@ -490,90 +332,25 @@ class StateEstimator:
         self.foot_vel = sd
         self._gap_contact = self._gap_contact or msg.foot_contact
         self._contact_reading(msg.foot_contact, t)
-        if (self.contact and msg.foot_contact and t - self._switch_on_ns >= self._leg_settle_ns and self.att.initialized
+        if (self._contact.contact and msg.foot_contact and t - self._contact.switch_on_ns >= self._leg_settle_ns and self.att.initialized
                 and t - self._t_imu <= self._period_ns):
             # not while the foot still bounces off the ground after the impact, nor while
             # lift-off is being debounced: in both the foot is not pinned; nor in an IMU gap,
             # where attitude and rate are predictions and the CoM filter has no sample at t
-            vx, vy, vz = self._leg_velocity(s, sd, rolling=True)
-            # the attitude's own uncertainty turns the lever arm: (|w| |r| + |r'|)^2 var(theta)
-            wx, wy, wz = self.att.omega
-            bx, by, bz = self._r_cf0
-            lever = (wx * wx + wy * wy + wz * wz) * (bx * bx + by * by + bz * bz) + (self._mu_sprung * sd) ** 2
+            omega = self.att.omega
+            vx, vy, vz = self.leg.velocity(self._rot, omega, s, sd, True)
+            # the attitude's own uncertainty turns the lever arm
+            lever = self.leg.lever_rate2(omega, sd)
             self.com.add_leg_velocity(vx, vy, vz, self._leg_var + lever * max(self.att.variances()))
         return True
 
     def _contact_reading(self, reading: bool, t: int) -> None:
-        """One contact reading at ``t``: raw switch, impact map, debounced contact."""
-        closed = reading and not self._switch
-        if not reading:
-            self._free_foot = (self.foot_pos, self.foot_vel)
-            if self._switch and self.att.initialized:
-                # lift-off: the stance velocity carries the leg kinematics' slow errors
-                # (the ground gives as the load goes) into the flight
-                self.com.add_impulse(0.0, 0.0, 0.0, self._liftoff_var, t)
-        elif closed:
-            self._switch_on_ns = t
-        self._switch = reading
+        """One contact reading at ``t``: raw switch, the CoM step it ends, impact map, debounced contact."""
+        closed = self._contact.switch_reading(reading, t, self.foot_pos, self.foot_vel, self.att.initialized)
         if self._pending is not None:
             self._step_com()
-        if closed and not self.contact and self.att.initialized:
-            # the impact map applies at once, taken back if the debounce refuses the contact
-            self._impact = self._touchdown_impulse()
-        if reading == self.contact:
-            self._contact_run = 0
-            if self._impact is not None:  # the switch reopened before the contact was confirmed
-                dvx, dvy, dvz = self._impact
-                self.com.add_impulse(-dvx, -dvy, -dvz, 0.0, self._switch_on_ns)
-                self._impact = None
-                self._count("contact_bounces")
-        else:
-            self._contact_run += 1
-            needed = self.params.contact_off_samples if self.contact else self.params.contact_on_samples
-            if self._contact_run >= needed:
-                self._contact_run = 0
-                self.contact = reading
-                if self.contact and self._impact is not None:
-                    self._impact = None
-                    self._count("touchdowns")
-                if self.contact and self._odometry and self.att.initialized:
-                    self._anchor()
-
-    def _leg_velocity(self, s: float, sd: float, rolling: bool) -> tuple[float, float, float]:
-        """CoM velocity [m/s, world] relative to the foot sphere's contact point
-        (``rolling``) or to the sphere's centre, from attitude, body rate and the foot."""
-        r = self._rot
-        wx, wy, wz = self.att.omega
-        k = self._mu_sprung
-        bx, by, bz = self._r_cf0
-        bz -= k * s
-        # CoM - sphere centre in world, plus the sphere radius up to the contact point
-        lx = r[0] * bx + r[1] * by + r[2] * bz
-        ly = r[3] * bx + r[4] * by + r[5] * bz
-        lz = r[6] * bx + r[7] * by + r[8] * bz
-        if rolling:
-            lz += self._foot_radius
-        ox = r[0] * wx + r[1] * wy + r[2] * wz
-        oy = r[3] * wx + r[4] * wy + r[5] * wz
-        oz = r[6] * wx + r[7] * wy + r[8] * wz
-        d = -k * sd  # d/dt of the body-z offset
-        return (
-            oy * lz - oz * ly + r[2] * d,
-            oz * lx - ox * lz + r[5] * d,
-            ox * ly - oy * lx + r[8] * d,
-        )
-
-    def _touchdown_impulse(self) -> tuple[float, float, float]:
-        """Impact map: the ground stops the foot, the CoM loses the foot's share of momentum.
-        Applies the velocity jump at the switch closure and returns it [m/s, world]."""
-        # the foot's motion relative to the body just before it hit (now the spring is compressing)
-        rx, ry, rz = self._leg_velocity(*self._free_foot, rolling=False)
-        vx, vy, vz = self.com.velocity
-        m = self._mu_foot
-        # foot velocity = CoM velocity - (CoM relative to the foot)'
-        dv = (-m * (vx - rx), -m * (vy - ry), -m * (vz - rz))
-        self.com.add_impulse(dv[0], dv[1], dv[2], self._impact_var, self._switch_on_ns)
-        return dv
+        if self._contact.debounce(reading, closed, self._rot, self.att) and self._odometry and self.att.initialized:
+            self.odometry.anchor(self.com, self.leg.com_from_contact(self._rot, self.foot_pos))
 
     # --- pose -------------------------------------------------------------------------
 
@@ -584,48 +361,13 @@ class StateEstimator:
         is not used at all (its attitude neither) and does not move the order check, so a
         stream of outliers cannot push the real poses out as out of order."""
         if self._odometry:
-            return self._reject("pose_not_used")  # the odometry frame is not the pose sensor's
-        t = msg.stamp_ns
-        pos, q = msg.position, msg.quat
-        px, py, pz = float(pos[0]), float(pos[1]), float(pos[2])
-        qw, qx, qy, qz = float(q[0]), float(q[1]), float(q[2]), float(q[3])
-        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if not (math.isfinite(px + py + pz) and math.isfinite(n)):  # a NaN or inf spreads to the sum
-            return self._reject("pose_nonfinite")
-        if abs(n - 1.0) > QUAT_NORM_TOL:
-            return self._reject("pose_bad_quat")
-        refused = self._stamp_refused("pose", t, arrival_ns)
-        if refused:
-            return self._reject(refused)
-        if self._t_imu < 0:
-            return self._reject("pose_before_imu")
-        if t <= self._t_pose:
-            return self._reject("pose_out_of_order")
-        if t > self._t_imu + int(self.params.pose_future_tolerance_s * NS):
-            return self._reject("pose_future")
-        if self._imu_gap[0] < t < self._imu_gap[1]:
-            # neither the attitude nor the CoM at that time is known well enough to compare
-            return self._reject("pose_in_imu_gap")
-        qm = (qw / n, qx / n, qy / n, qz / n)
+            return self._gate.reject("pose_not_used")  # the odometry frame is not the pose sensor's
+        pose = self.mocap.accept(msg, arrival_ns, self._t_imu, self._imu_gap)
+        if pose is None:
+            return False  # refused, counted by reason
         if self._pending is not None:
             self._step_com()
-        r0, r1, r2 = quat.to_matrix(qm)
-        rot = r0 + r1 + r2
-        if not self.com.admits_pose(t, (px, py, pz), rot, self._pose_pos_var):
-            return False  # counted by the CoM filter as an outlier
-        if self.params.compensate_latency:
-            fused = self.att.correct_pose(qm, t, self._pose_att_var, self._gate3)
-        else:  # as if captured now
-            fused = self.att.correct_pose(qm, self._t_imu, self._pose_att_var, self._gate3)
-        if fused is None:
-            return self._reject("pose_stale")
-        self._t_pose = t
-        if fused:
-            self._t_pose_fused = t
-        else:
-            self._reject("att_outliers")
-        self.com.add_pose(t, (px, py, pz), rot, self._pose_pos_var)
-        return True
+        return self.mocap.fuse(pose, self._t_imu, self.att, self.com)
 
     # --- output -------------------------------------------------------------------------
 
@@ -647,7 +389,7 @@ class StateEstimator:
         vx, vy, vz = com.velocity
         ax, ay, az = self._accel
         if tau > 0.0:
-            k = self._speed_limit(vx, vy, vz, ax, ay, az, tau)
+            k = self._gaps.speed_limit(vx, vy, vz, ax, ay, az, tau)
             ax, ay, az = k * ax, k * ay, k * az
         h = 0.5 * tau * tau
         att = self.att
@@ -667,11 +409,11 @@ class StateEstimator:
         rate_var = self._gyro_sample_var + bias_var
         if tau > 0.0:
             # the phase over the gap is known only while joint frames show the switch open throughout
-            flight = not (self._gap_contact or self._switch) and now_ns - self._t_joints <= self._period_ns
-            gpp, gpv, gvv = self._gap_cov(tau, not flight)
+            flight = not (self._gap_contact or self._contact.switch) and now_ns - self._t_joints <= self._period_ns
+            gpp, gpv, gvv = self._gaps.com_cov(tau, not flight)
             ppp, ppv, pvv = ppp + gpp, ppv + gpv, pvv + gvv
-            av = att.body_variances(q, att.predicted_variances(tau, 0.25 * self._gap_alpha_var * tau ** 4))
-            rate_var += self._gap_alpha_var * tau * tau
+            av = att.body_variances(q, att.predicted_variances(tau, self._gaps.attitude_var(tau)))
+            rate_var += self._gaps.rate_var(tau)
         z = 0.0
         cov = [
             ppp, z, z, ppv, z, z,
@@ -681,7 +423,7 @@ class StateEstimator:
             z, ppv, z, z, pvv, z,
             z, z, ppv, z, z, pvv,
         ]
-        converged = max(self._t_pose_fused, com.last_fused_stamp) >= 0 or self._anchored
+        converged = max(self.mocap.t_fused, com.last_fused_stamp) >= 0 or self.odometry.anchored
         attitude_valid = converged and max(av) <= self._valid_att_var and rate_var <= self._valid_rate_var
         # odometry: the position is the drifting frame's by definition; its covariance is published as it grows
         valid = attitude_valid and (self._odometry or ppp <= self._valid_pos_var) and pvv <= self._valid_vel_var
@@ -694,8 +436,8 @@ class StateEstimator:
             wheel_vel=list(self.wheel_vel),
             foot_pos=self.foot_pos,
             foot_vel=self.foot_vel,
-            contact=self.contact,
-            phase="stance" if self.contact else "flight",
+            contact=self._contact.contact,
+            phase="stance" if self._contact.contact else "flight",
             pos_vel_cov=cov,
             att_cov=list(av),
             valid=valid,
@@ -705,9 +447,9 @@ class StateEstimator:
     def status(self) -> dict[str, float | str]:
         """Health figures: ``mode``, pose age [s], standard deviations, gyro bias [rad/s]."""
         t = self._t_imu
-        fused = max(self._t_pose_fused, self.com.last_fused_stamp)
+        fused = max(self.mocap.t_fused, self.com.last_fused_stamp)
         if self._odometry:
-            mode = "odometry" if self._anchored else "init"
+            mode = "odometry" if self.odometry.anchored else "init"
             pose_age = math.inf
         elif fused < 0:
             mode = "init"
@@ -730,12 +472,12 @@ class StateEstimator:
     def rejected_total(self) -> int:
         """How many inputs were refused so far, all reasons together (cheap: for change detection)."""
         c = self.com.counters
-        return self._rejected + c["pose_outliers"] + c["leg_outliers"]
+        return self._gate.rejected + c["pose_outliers"] + c["leg_outliers"]
 
     def rejections(self) -> dict[str, int]:
         """Refused inputs by reason: malformed, future or past stamps, out of order or range,
         gated outliers (pose, attitude, gravity, leg kinematics)."""
-        out = dict(self._rejections)
+        out = dict(self._gate.rejections)
         c = self.com.counters
         out["pose_outliers"] = c["pose_outliers"]
         out["leg_outliers"] = c["leg_outliers"]
@@ -744,7 +486,7 @@ class StateEstimator:
     @property
     def counters(self) -> dict[str, int]:
         """Rejections by reason, gated outliers, fused measurements, touchdowns (a copy)."""
-        out = dict(self._counters)
-        out.update(self._rejections)
+        out = dict(self._gate.counters)
+        out.update(self._gate.rejections)
         out.update(self.com.counters)
         return out

@@ -18,7 +18,8 @@ Pipeline (Algorithm 3):
    :class:`~onboard.high_level.planning.bezier_graph.GraphSpec`; :meth:`GraphSpec.key` names it for an on-disk cache, and
    :meth:`BezierGraph.to_arrays` / :meth:`BezierGraph.from_arrays` convert it for the
    caller, who does the file I/O.
-2. **Cut** (:mod:`onboard.high_level.tracking.collision`): edges whose control-point hull comes within
+2. **Cut** (:mod:`onboard.high_level.planning.planner_world`, with the tests of
+   :mod:`onboard.high_level.tracking.collision`): edges whose control-point hull comes within
    ``robot_radius + tube`` of a convex obstacle are removed (exact separating-axis
    test), or, with free cells, edges not inside one cell. Edges leaving the planning
    region are removed too.
@@ -60,7 +61,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -68,8 +68,6 @@ from scipy.spatial import cKDTree
 from onboard.geometry import bezier as bz
 from onboard.high_level.tracking import collision as col
 from onboard.high_level.planning import densify as dn
-from onboard.high_level.planning import moving_obstacles as mo
-from onboard.geometry import polygons as pg
 from onboard.contracts import messages as msgs
 from onboard.high_level.planning.bezier_graph import (
     DIM,
@@ -88,46 +86,27 @@ from onboard.high_level.planning.bezier_graph import (
 )
 from onboard.contracts.params import PlannerParams
 from onboard.high_level.planning.refinement import MpcRefinement
-from onboard.high_level.planning.seen_space import SeenSpace
+from onboard.high_level.planning.frontier import FrontierSearch
+from onboard.high_level.planning.planner_status import PlannerStats, TubeContract
+from onboard.high_level.planning.planner_world import PlannerWorld
 
 MIN_AUTO_NODES = 500  # an automatic region never gets fewer nodes
-START_SLACK = 1e-3  # [m] a start closer than the margin may leave keeping its clearance less this
 _SPEED_ROWS = tuple((float(nx), float(ny)) for nx, ny in SPEED_NORMALS)  # the speed octagon's normals, as floats
 
 
 # --- the planner -----------------------------------------------------------------------
 
 
-@dataclass
-class PlannerStats:
-    """Counters and last timings a service reports (timings are filled by the caller)."""
-
-    plans: int = 0
-    no_path: int = 0
-    cuts: int = 0
-    graph_builds: int = 0
-    refines: int = 0  # MPC solves
-    refine_reused: int = 0  # refine calls answered with the last solution (nothing changed)
-    refine_failures: int = 0
-    refine_idle: int = 0  # refine calls answered with the graph path: its end reached, the robot at rest there
-    refine_skipped: int = 0  # free mode: refine calls answered with the graph path, the refinement having failed at that knot
-    refine_numerical_errors: int = 0  # of the failures: a solver or linear-algebra error (last one in last_refine_error)
-    last_refine_error: str = ""
-    edges_free: int = 0
-    unseen_holds: int = 0  # references held back because their committed part crossed ground not seen free
-    densify_plans: int = 0  # plans whose search failed and densified the graph (onboard.high_level.planning.densify)
-    densify_rounds: int = 0  # densification rounds that added nodes
-    densify_nodes: int = 0  # nodes they added
-    frontier_plans: int = 0  # free mode: plans that end at a frontier, the goal being beyond the known free cells
-    sweep_relaxed: int = 0  # searches with moving obstacles swept shorter, the longer sweep having left no path
-    evasions: int = 0  # no path, an obstacle coming: references stepping out of its way instead of holding
-
-
-class GraphPlanner(MpcRefinement):
+class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
     """The high-level planner of thesis ch. 7 as a pure object (see the module docstring).
 
     ``robot_radius`` [m] and the tube (``PlannerParams.tube``, changed by
-    :meth:`set_tube`) inflate every obstacle: ``margin = robot_radius + tube``.
+    :meth:`set_tube`) inflate every obstacle: ``margin = robot_radius + tube``. Here: the goal,
+    the graph, the search and the replan test; mixed in: the world and its cut
+    (:class:`~onboard.high_level.planning.planner_world.PlannerWorld`), the frontier search
+    (:class:`~onboard.high_level.planning.frontier.FrontierSearch`), the tube contract
+    (:class:`~onboard.high_level.planning.planner_status.TubeContract`) and the references handed
+    down (:class:`~onboard.high_level.planning.refinement.MpcRefinement`).
     """
 
     def __init__(self, params: PlannerParams, robot_radius: float, bounds: tuple[float, float, float, float] | None = None,
@@ -136,7 +115,7 @@ class GraphPlanner(MpcRefinement):
             raise PlanningError(f"robot radius must be finite and >= 0, got {robot_radius}")
         self.params = params
         self.robot_radius = float(robot_radius)
-        self.tube = float(params.tube)
+        self._init_world(params.tube)
         self.fixed_bounds = None if bounds is None else tuple(float(b) for b in bounds)
         self.fixed_nodes = nodes
         # [s] each MPC solve's bound (OSQP's own limit), set by a real-time caller; 0 (lockstep): none,
@@ -146,20 +125,6 @@ class GraphPlanner(MpcRefinement):
         self.graph: BezierGraph | None = None
         self._tree: cKDTree | None = None
         self._scale: np.ndarray | None = None
-        self.mode = "obstacles"
-        self.obstacles = pg.pack_polygons([])
-        self.cells = pg.pack_polygons([])
-        # moving obstacles (onboard.high_level.planning.moving_obstacles): as given, their velocities, and
-        # the sweep level they are cut at now (an index into SWEEP_LEVELS); None: no obstacle moves
-        self._moving: tuple[list[np.ndarray], np.ndarray] | None = None
-        self._sweep_level = 0
-        self._static = pg.pack_polygons([])  # with moving obstacles: the still ones
-        self._band_origin = np.zeros(2)  # where the robot is: the cut in time measures from here
-        self._bands: dict[int, pg.PolygonSet] = {}  # moving obstacles per distance band, at the current level
-        self._world_moves = False  # the obstacles come with velocities: a world that changes keeps a path still clear of it
-        self._world_version = 0
-        self._cut_key: tuple | None = None
-        self.free: np.ndarray | None = None  # edge mask after the cut
         self._densifier: dn.Densifier | None = None  # what densification added to the current graph
         self.last_densify: dn.DensifyReport | None = None  # the last plan's densification (None: it needed none)
         self._unreachable: tuple | None = None  # (world version, goal, graph) densified to the finest level in vain
@@ -174,19 +139,10 @@ class GraphPlanner(MpcRefinement):
         self._last_refined: tuple | None = None  # (knot, world version, path, first knot, reference)
         self._arrived: tuple | None = None  # (path, its reference) once the robot rests at its end
         self._failed_refine: tuple | None = None  # (knot, world version, path) of the last failed refinement
-        self.contract_violations = 0
-        self._reports: list[msgs.ContractReport] = []
-        self.seen: SeenSpace | None = None  # None: the world is known (ground truth), nothing to gate
-        self.require_seen = False
-        self.frontier_goal: np.ndarray | None = None  # free mode: where the current path ends short of the goal
-        self._frontier_target: np.ndarray | None = None  # the last frontier a path was found to (kept while none reaches the goal)
+        self._init_contract()
+        self._init_frontier()
 
     # --- inputs ----------------------------------------------------------------------
-
-    @property
-    def margin(self) -> float:
-        """Clearance [m] the plan keeps from every obstacle: robot radius plus tube."""
-        return self.robot_radius + self.tube
 
     def set_goal(self, position: tuple[float, float] | np.ndarray, tolerance: float = 0.1) -> None:
         """Goal position [m] (world), reached at rest within ``tolerance`` [m]."""
@@ -218,121 +174,6 @@ class GraphPlanner(MpcRefinement):
         except PlanningError as exc:
             return f"goal {g.tolist()} is beyond any graph the planner can build from {np.asarray(start, float)[:2].tolist()}: {exc}"
         return None
-
-    def set_obstacles(self, polygons: list, velocities: object | None = None) -> None:
-        """Convex obstacles ``[(k, 2) vertices, ...]`` [m], and optionally their velocities ``(M, 2)`` [m/s]:
-        a moving one is cut swept along its velocity over ``obstacle_sweep_s`` (at most
-        ``obstacle_sweep_max_m``); raises :class:`PlanningError` on a bad one."""
-        polygons = list(polygons)
-        self._moving = None
-        self._world_moves = velocities is not None
-        if velocities is not None:
-            try:
-                vel = mo.check_velocities(velocities, len(polygons))
-                polys = [pg.validate_polygon(p) for p in polygons]
-            except (ValueError, pg.PolygonError) as exc:
-                raise PlanningError(f"obstacle: {exc}") from None
-            if mo.moving(vel):
-                self._moving = (polys, vel)
-                self._sweep_level = 0
-                self._bands = {}
-                still = np.hypot(vel[:, 0], vel[:, 1]) < mo.STILL
-                self._static = pg.pack_polygons([p for p, s in zip(polys, still) if s])
-                polygons = self._swept()
-        try:
-            packed = pg.pack_polygons(polygons)
-        except pg.PolygonError as exc:
-            raise PlanningError(f"obstacle: {exc}") from None
-        if self.mode == "obstacles" and _same_polygons(packed, self.obstacles):
-            return
-        self.mode = "obstacles"
-        self.obstacles = packed
-        self._world_version += 1
-
-    def _swept(self) -> list[np.ndarray]:
-        """The obstacles the robot may meet near where it is: still ones as given, moving ones over the
-        first band's window (what the refinement's halfspaces and the start's clearance see)."""
-        assert self._moving is not None
-        polys, vel = self._moving
-        still = [p for p, v in zip(polys, vel.tolist()) if math.hypot(*v) < mo.STILL]
-        return still + mo.band_polygons(polys, vel, 0.0, self._band_window(0)[1], self.params.obstacle_sweep_max_m)
-
-    def _band_window(self, band: int) -> tuple[float, float]:
-        """The time window [s] in which the robot may be on curves of distance band ``band`` and must
-        not meet a moving obstacle: from its earliest arrival to past the band plus the committed
-        horizon, shortened by the current level."""
-        prm = self.params
-        t0 = band * prm.obstacle_band_m / prm.v_max
-        return t0, t0 + mo.SWEEP_LEVELS[self._sweep_level] * (prm.obstacle_band_m / prm.v_max + prm.obstacle_sweep_s)
-
-    def _band_set(self, band: int) -> pg.PolygonSet:
-        got = self._bands.get(band)
-        if got is None:
-            assert self._moving is not None
-            polys, vel = self._moving
-            got = self._bands[band] = pg.pack_polygons(mo.band_polygons(polys, vel, *self._band_window(band),
-                                                                        self.params.obstacle_sweep_max_m))
-        return got
-
-    def _blocked_in_time(self, hulls: col.HullSet, margin: float, active: np.ndarray) -> np.ndarray:
-        """Blocked mask of curves against the still obstacles and, band by band of distance from the
-        robot, the moving ones over that band's window (the cut in time)."""
-        blocked = col.cut_obstacles(hulls, self._static, margin, active=active)
-        free = active & ~blocked
-        bands = (mo.curve_distances(hulls.aabb, self._band_origin) / self.params.obstacle_band_m).astype(np.int64)
-        for b in np.unique(bands[free]).tolist():
-            sel = free & (bands == b)
-            blocked |= col.cut_obstacles(hulls, self._band_set(b), margin, active=sel) & sel
-        return blocked
-
-    def _set_band_origin(self, position: np.ndarray) -> None:
-        """Measure the cut in time from ``position`` (a changed origin is a changed world for the cut)."""
-        p = np.asarray(position, dtype=float)[:2]
-        if self._moving is not None and not np.array_equal(p, self._band_origin):
-            self._band_origin = p.copy()
-            self._world_version += 1
-
-    def _set_sweep_level(self, level: int) -> bool:
-        """Cut the moving obstacles at sweep ``level`` from now on; whether that changed the world."""
-        if self._moving is None or level == self._sweep_level or not 0 <= level < len(mo.SWEEP_LEVELS):
-            return False
-        self._sweep_level = level
-        self._bands = {}
-        self.obstacles = pg.pack_polygons(self._swept())
-        self._world_version += 1
-        return True
-
-    def set_free_cells(self, polygons: list) -> None:
-        """Convex free cells: a curve is free iff its control points lie in one cell."""
-        try:
-            packed = pg.pack_polygons(list(polygons))
-        except pg.PolygonError as exc:
-            raise PlanningError(f"free cell: {exc}") from None
-        if self.mode == "free" and _same_polygons(packed, self.cells):
-            return
-        self.mode = "free"
-        self.cells = packed
-        self._world_version += 1
-
-    def set_seen(self, seen: SeenSpace | None, required: bool = True) -> None:
-        """What the camera has seen free (``onboard.high_level.planning.seen_space``). With ``required`` every
-        reference is gated on it, and before the first one the robot is committed nowhere;
-        ``required=False`` (a world given whole, as ground truth) gates nothing."""
-        self.seen = seen
-        self.require_seen = bool(required)
-
-    def set_tube(self, tube: float) -> None:
-        """Plan with tube ``tube`` [m] from now on (a larger one after a broken promise)."""
-        if not (math.isfinite(tube) and tube >= 0):
-            raise PlanningError(f"tube must be finite and >= 0, got {tube}")
-        if tube != self.tube:
-            self.tube = float(tube)
-            self._world_version += 1
-
-    @property
-    def world_version(self) -> int:
-        """Increments whenever obstacles, cells or the tube change (a replan is due)."""
-        return self._world_version
 
     # --- graph -------------------------------------------------------------------------
 
@@ -397,33 +238,6 @@ class GraphPlanner(MpcRefinement):
             self.set_graph(build_graph(spec))
             self.stats.graph_builds += 1
 
-    # --- cut ---------------------------------------------------------------------------
-
-    def _blocked(self, hulls: col.HullSet, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Blocked mask and (free mode) containing cell of arbitrary curves (``margin``: default the planner's)."""
-        assert self.graph is not None
-        margin = self.margin if margin is None else margin
-        xmin, ymin, xmax, ymax = self.graph.spec.bounds
-        outside = ((hulls.aabb[:, 0] < xmin) | (hulls.aabb[:, 1] < ymin)
-                   | (hulls.aabb[:, 2] > xmax) | (hulls.aabb[:, 3] > ymax))
-        if self.mode == "free":
-            cell = col.free_cell_of(hulls, self.cells, margin, active=~outside)
-            return outside | (cell < 0), cell
-        if self._moving is not None:
-            return outside | self._blocked_in_time(hulls, margin, ~outside), np.full(len(hulls), -1)
-        return outside | col.cut_obstacles(hulls, self.obstacles, margin, active=~outside), np.full(len(hulls), -1)
-
-    def cut(self) -> np.ndarray:
-        """Recut the graph if the world, the tube or the graph changed; the free-edge mask."""
-        assert self.graph is not None
-        key = (id(self.graph), self._world_version)
-        if self._cut_key != key or self.free is None:
-            self.free = ~self._blocked(self.graph.hulls)[0]
-            self._cut_key = key
-            self.stats.cuts += 1
-            self.stats.edges_free = int(self.free.sum())
-        return self.free
-
     # --- plan ----------------------------------------------------------------------------
 
     def _state(self, position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
@@ -458,25 +272,6 @@ class GraphPlanner(MpcRefinement):
             blocked, _ = self._blocked(col.hull_set(ctrl), margin)
             near, ctrl = near[~blocked], ctrl[~blocked]
         return near, bz.path_length_bound(ctrl), ctrl
-
-    def start_margin(self, position: np.ndarray) -> float:
-        """Clearance the segments leaving the start must keep: the margin, or, when the
-        robot already stands closer to an obstacle (its tube was exceeded) or nearer the
-        edge of its free cell (the cells were fitted anew around it), what it has
-        now -- so that it can leave (never below the robot radius: that is a collision)."""
-        p = np.asarray(position, dtype=float)[:2]
-        if self.mode == "free":
-            if len(self.cells) == 0:
-                return self.margin
-            inside = self.cells.face_offsets - self.cells.normals @ p  # per face: distance inside it
-            have = float(np.max(np.minimum.reduceat(inside, self.cells.offsets[:-1])))
-        elif len(self.obstacles) == 0:
-            return self.margin
-        else:
-            have = float(col.samples_clearance(p[None, None, :], self.obstacles, reach=self.margin)[0])
-        if have >= self.margin:
-            return self.margin
-        return max(have - START_SLACK, self.robot_radius)
 
     def plan(self, position: np.ndarray, velocity: np.ndarray, stamp_ns: int = 0,
              build: bool = True, clock: Callable[[], float] | None = None) -> msgs.ComReference | None:
@@ -523,29 +318,6 @@ class GraphPlanner(MpcRefinement):
             self.stats.no_path += 1
             return self.evade_reference(x0, stamp_ns) if self._moving is not None else None
         return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
-
-    def evade_reference(self, x0: np.ndarray, stamp_ns: int) -> msgs.ComReference | None:
-        """No path, and a moving obstacle comes at the robot: a reference stepping ``EVADE_M`` out of its
-        way (a cubic from the state to rest there, at the planner's speed), in the first direction whose
-        step keeps the robot radius from every obstacle where it is now; None (hold) when no obstacle
-        comes within ``obstacle_sweep_max_m`` plus the margin or no step is clear. :attr:`path` stays None:
-        the next replan searches again."""
-        assert self._moving is not None
-        polys, vel = self._moving
-        k = mo.threat(x0[:2], polys, vel, self.params.obstacle_sweep_max_m + self.margin)
-        if k is None or self.graph is None:
-            return None
-        self._set_sweep_level(len(mo.SWEEP_LEVELS) - 1)  # where the obstacles are now
-        p0, v0 = x0[:2], x0[2:]
-        duration = 1.5 * mo.EVADE_M / self.params.v_max  # a cubic's peak speed is 1.5 times its mean
-        for d in mo.evasion_directions(p0, polys[k].mean(axis=0), vel[k]):
-            end = p0 + mo.EVADE_M * d
-            ctrl = np.array([p0, p0 + v0 * duration / 3.0, end, end])
-            if not self._blocked(col.hull_set(ctrl[None]), self.robot_radius)[0][0]:
-                self.stats.evasions += 1
-                seg = msgs.BezierSegment(t0=0.0, duration=float(duration), control_points=ctrl.tolist())
-                return msgs.ComReference(stamp_ns=stamp_ns, t_ref_ns=stamp_ns, segments=[seg], hold=False)
-        return None
 
     def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
         """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
@@ -607,65 +379,6 @@ class GraphPlanner(MpcRefinement):
                                            approach)
         return result, np.concatenate(start_nodes[:2]).astype(np.int64), np.concatenate([g_nodes, at_goal]).astype(np.int64)
 
-    def frontier_costs(self, position: np.ndarray, approach: bool = False) -> np.ndarray:
-        """Per graph node, the cost of ending a path there toward a goal beyond the known free
-        cells: ``frontier_weight`` times its distance to the goal for nodes at rest near a
-        frontier cell (:meth:`SeenSpace.frontier`: connected to ``position`` through free cells,
-        beside unknown ground as wide as the robot) at least ``frontier_min`` from ``position``:
-        within the margin plus ``frontier_reach`` over free ground (4-connected cells: up to
-        sqrt(2) times the straight line, so the reach is allowed as much; a node beside a wall
-        with the frontier behind it is not near it). With ``approach``, every node at rest
-        connected to such a cell, plus ``frontier_approach_weight`` per metre it falls short of
-        that reach. Inf elsewhere, and everywhere without a seen space."""
-        assert self.graph is not None and self.goal is not None
-        prm = self.params
-        nodes = self.graph.nodes
-        costs = np.full(len(nodes), np.inf)
-        if self.seen is None:
-            return costs
-        here = np.asarray(position, dtype=float)[:2]
-        pts = self.seen.frontier(2 * self.robot_radius, here)
-        pts = pts[np.hypot(*(pts - here).T) >= prm.frontier_min]
-        if len(pts) == 0:
-            return costs
-        rest = np.flatnonzero(np.all(np.abs(nodes[:, 2:]) <= prm.goal_speed_tol, axis=1))
-        d = self.seen.distance_through_free(pts, nodes[rest, :2])
-        short = np.maximum(d - math.sqrt(2.0) * (self.margin + prm.frontier_reach), 0.0)
-        ok = np.isfinite(short) if approach else short == 0.0
-        costs[rest[ok]] = (prm.frontier_weight * np.hypot(*(nodes[rest[ok], :2] - self.goal).T)
-                           + prm.frontier_approach_weight * short[ok])
-        return costs
-
-    def _search_frontier(self, x0: np.ndarray, start_nodes: np.ndarray, start_costs: np.ndarray,
-                         start_edge_ctrl: dict[int, np.ndarray], goal_state: np.ndarray, extra: float,
-                         approach: bool = False) -> SearchResult | None:
-        """Free mode, no path to the goal in the known cells: the path to the frontier node of
-        least path cost plus :meth:`frontier_costs` (the goal's straight line keeps the search's
-        heuristic admissible, every frontier cost being at least it). With ``approach``, when the
-        cells reach no frontier (a wall's gap whose cells overlap too thinly for the margin), the
-        path as near one as they let the robot go, where the cells fitted around it may join up."""
-        assert self.graph is not None and self.free is not None and self.goal is not None
-        prm = self.params
-        if len(start_nodes) == 0:
-            return None
-        for near in (False, True) if approach else (False,):
-            costs = self.frontier_costs(x0[:2], near)
-            if not np.isfinite(costs).any():
-                continue
-            if self._frontier_target is not None:  # hysteresis: the frontier already headed for keeps an advantage
-                nodes = self.graph.nodes[:, :2]
-                kept = np.isfinite(costs) & (np.hypot(*(nodes - self._frontier_target).T) <= max(prm.rest_grid, 1e-9))
-                # never below the straight line to the goal: the search's heuristic stays admissible
-                costs[kept] = np.maximum(costs[kept] - prm.frontier_hysteresis, np.hypot(*(nodes[kept] - self.goal).T))
-            result = search(self.graph, self.free, x0, start_nodes, start_costs, goal_state, costs, 0.0,
-                            start_edge_ctrl, {}, extra)
-            if result is not None:
-                self.frontier_goal = result.states[-1, :2].copy()
-                self._frontier_target = self.frontier_goal
-                self.stats.frontier_plans += 1
-                return result
-        return None
-
     def _settled(self) -> bool:
         """The same world, goal and graph were densified to the finest level in vain: that answer
         (:attr:`last_densify`) stands, and replans at ``replan_hz`` do not spend the budget on it again."""
@@ -718,39 +431,6 @@ class GraphPlanner(MpcRefinement):
         margin = min(self.margin, self.start_margin(position))
         return not bool(np.any(self._blocked(col.hull_set(ctrl[k0:]), margin)[0]))
 
-    # --- contract with the low level ------------------------------------------------------
-
-    def check_tube(self, tube: msgs.TrackingTube, stamp_ns: int = 0) -> msgs.ContractReport | None:
-        """Compare the tube the low level achieves (p95 CoM error at impact) with the tube planned with.
-
-        Judged once the window holds ``contract_min_hops`` impacts. A broken promise
-        returns a :class:`~onboard.contracts.messages.ContractReport` (also kept for
-        :meth:`drain_contract_reports`) and makes the planner plan with the achieved tube
-        times ``tube_growth`` (at most ``tube_max``) from now on, which recuts. None when
-        the promise holds.
-        """
-        prm = self.params
-        promised = self.tube
-        achieved = float(tube.impact_err_p95)
-        if tube.hops < prm.contract_min_hops or not math.isfinite(achieved) or achieved <= promised:
-            return None
-        self.contract_violations += 1
-        new_tube = min(achieved * prm.tube_growth, prm.tube_max)
-        report = msgs.ContractReport(
-            stamp_ns=stamp_ns, layer="planner", promised=promised, achieved=achieved, violated=True,
-            violations=self.contract_violations,
-            detail=f"tube p95 {achieved:.3f} m over {tube.hops} impacts > {promised:.3f} m planned; "
-                   f"planning with {max(new_tube, promised):.3f} m")
-        self._reports.append(report)
-        if new_tube > promised:
-            self.set_tube(new_tube)
-        return report
-
-    def drain_contract_reports(self) -> list[msgs.ContractReport]:
-        """Reports of broken promises since the last call."""
-        out, self._reports = self._reports, []
-        return out
-
 
 class _PlanView(dn.SearchView):
     """The planner as :class:`onboard.high_level.planning.densify.Densifier` sees it during one plan call from ``x0``."""
@@ -784,10 +464,6 @@ class _PlanView(dn.SearchView):
 
     def install(self, graph: BezierGraph, free: np.ndarray) -> None:
         self.planner._install_densified(graph, free)
-
-
-def _same_polygons(a: pg.PolygonSet, b: pg.PolygonSet) -> bool:
-    return a.offsets.shape == b.offsets.shape and np.array_equal(a.offsets, b.offsets) and np.array_equal(a.vertices, b.vertices)
 
 
 def _covers(outer: tuple[float, float, float, float], inner: tuple[float, float, float, float]) -> bool:
