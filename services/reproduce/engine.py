@@ -100,14 +100,19 @@ class _Watcher:
 
 
 class _PlannerClock:
-    """Wall time of each call of the graph planner's plan (cut and search) and refine (the MPC):
-    what rate this machine sustains, the lockstep runner calling them at their rates in twin time."""
+    """Wall time of each call of the graph planner's steps: ``plan`` (what the replanning costs: the
+    graph ``build`` when the region needs a new one, the ``cut``, the ``search``) and ``refine``
+    (the MPC), every call timed: what rate this machine sustains, the lockstep runner calling
+    them at their rates in twin time."""
+
+    STEPS = ("plan", "refine", "_ensure_graph", "cut", "_search")
+    NAMES = {"_ensure_graph": "build", "_search": "search"}
 
     def __init__(self, planner: Any) -> None:
-        self.plan_ms: list[float] = []
-        self.refine_ms: list[float] = []
-        for name, samples in (("plan", self.plan_ms), ("refine", self.refine_ms)):
-            setattr(planner, name, self._timed(getattr(planner, name), samples))
+        self.samples: dict[str, list[float]] = {}
+        for step in self.STEPS:
+            samples = self.samples.setdefault(self.NAMES.get(step, step), [])
+            setattr(planner, step, self._timed(getattr(planner, step), samples))
 
     @staticmethod
     def _timed(fn: Any, samples: list[float]) -> Any:
@@ -122,7 +127,7 @@ class _PlannerClock:
 
     def summary(self) -> dict[str, float | int | None]:
         out: dict[str, float | int | None] = {}
-        for name, samples in (("plan", self.plan_ms), ("refine", self.refine_ms)):
+        for name, samples in self.samples.items():
             out[f"{name}_calls"] = len(samples)
             for q in (50, 99):
                 out[f"{name}_ms_p{q}"] = round(float(np.percentile(samples, q)), 3) if samples else None

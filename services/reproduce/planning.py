@@ -232,7 +232,7 @@ def cut_qp(ctx: Context) -> ItemResult:
     unsound = int((exact & ~qp_blocked).sum())  # the QP keeping what the exact test cuts
     per_obstacle_s = per_edge_s * graph.n_edges
     rows = [Row(f"Cut-QP, one obstacle over all {graph.n_edges} edges (OSQP, from {len(sample)} timed)",
-                f"{THESIS_CUT_QP_S} s per obstacle", f"{per_obstacle_s:.2f} s", verdict(per_obstacle_s <= THESIS_CUT_QP_S * 2)),
+                f"{THESIS_CUT_QP_S} s per obstacle", f"{per_obstacle_s:.2f} s", verdict(per_obstacle_s <= THESIS_CUT_QP_S)),
             Row("edge-obstacle pairs the fast test leaves for the exact test", f"< {100 * (1 - THESIS_FAST_SHARE):.0f} % of edges",
                 f"{100 * pairs_left:.3f} % of pairs", verdict(pairs_left < 1 - THESIS_FAST_SHARE)),
             Row("sampled edges the closed-form test cuts but Cut-QP keeps", "-",
@@ -240,7 +240,11 @@ def cut_qp(ctx: Context) -> ItemResult:
                 verdict(unsound == 0))]
     notes = [f"{nodes} nodes, {len(polys)} random rectangles (archer bench planner's world), margin {margin} m; "
              f"{100 * edges_untouched:.1f} % of the edges meet no obstacle's box at all. The stack's cut runs the closed-form "
-             "separating-axis test instead of Cut-QP (collision.py): Cut-QP stays as its cross-check."]
+             "separating-axis test instead of Cut-QP (collision.py): Cut-QP stays as its cross-check, and is written as one: "
+             "each pair a fresh OSQP problem (setup, polish, tolerance collision.QP_TOL, up to 20,000 iterations) where the "
+             "thesis capped OSQP at 50 iterations; its time here is a cross-check's, not a cut's.",
+             "The thesis counts the edges its heuristic removes (> 99 %); ours counts the edge-obstacle pairs the bounding-box "
+             "test settles before the exact separating-axis kernel, which costs microseconds a pair rather than a QP."]
     return ItemResult(rows, [], notes)
 
 
@@ -267,30 +271,38 @@ def _rate_hz(ms: float | None) -> float:
     return 1e3 / ms if ms else math.nan
 
 
+def _median_of(timing: list[dict], key: str) -> float:
+    values = [t[key] for t in timing if t.get(key) is not None]
+    return float(np.median(values)) if values else math.nan
+
+
 def _closed_loop(ctx: Context, name: str, scenario: str, seeds: list[int], title: str, figure: str) -> ItemResult:
     records = campaign(ctx, name, [run_spec(scenario, s, trace=s == 0, duration=ctx.duration(20.0)) for s in seeds])
     figures = [_planning_figure(ctx, records, figure, title)]
     reps = [report_of(r) for r in records]
     timing = [r["planner_timing"] for r in records if r.get("planner_timing")]
-    plan_p50 = float(np.median([t["plan_ms_p50"] for t in timing if t["plan_ms_p50"] is not None])) if timing else math.nan
-    plan_max = max((t["plan_ms_max"] for t in timing if t["plan_ms_max"] is not None), default=math.nan)
-    solves = [t["refine_ms_p99"] for t in timing if t["refine_ms_p99"] is not None]
-    refine_p99 = float(np.median(solves)) if solves else math.nan
+    replan = _median_of(timing, "plan_ms_p50")
+    search = _median_of(timing, "search_ms_p50")
+    cut_max = _median_of(timing, "cut_ms_max")
+    build_max = _median_of(timing, "build_ms_max")
+    refine_p99 = _median_of(timing, "refine_ms_p99")
     world = reps[0].get("world", {}) if reps else {}
     rows = [Row("closed loop on the twin: runs arriving without a fall", "arrives (qualitative)", _rate(records),
                 verdict(all(map(succeeded, records)))),
             Row("collisions (all runs)", "none", str(sum(int(p.get("collisions", 0)) for p in reps)),
                 verdict(all(int(p.get("collisions", 0)) == 0 for p in reps) and _falls(records) == 0)),
-            Row("graph plan (cut and search) per call: p50, and the slowest", f"replanned at {THESIS_GRAPH_HZ:g} Hz",
-                f"{plan_p50:.0f} ms ({_rate_hz(plan_p50):.1f} Hz), slowest {plan_max:.0f} ms",
-                verdict(_rate_hz(plan_p50) >= THESIS_GRAPH_HZ)),
+            Row("a replan (cut and search, the graph built when the region needs one), p50", f"graph replanned at {THESIS_GRAPH_HZ:g} Hz",
+                f"{replan:.0f} ms ({_rate_hz(replan):.1f} Hz); graph build {build_max:.0f} ms, the slowest cut {cut_max:.0f} ms",
+                verdict(_rate_hz(replan) >= THESIS_GRAPH_HZ)),
+            Row("graph search, p50", f"{THESIS_MPC_HZ:g} Hz (Fig. 7.6)", f"{search:.1f} ms ({_rate_hz(search):.0f} Hz)",
+                verdict(_rate_hz(search) >= THESIS_MPC_HZ)),
             Row("MPC refine per call, p99 (median over runs)", f"{THESIS_MPC_HZ:g} Hz",
                 f"{refine_p99:.1f} ms ({_rate_hz(refine_p99):.0f} Hz)", verdict(_rate_hz(refine_p99) >= THESIS_MPC_HZ))]
     notes = [f"Scenario {scenario} ({world}), seeds {seeds}, the indoor robot with the ZDP and the Kalman estimator, the "
-             "graph planner on the ground-truth obstacles with the stack's defaults (planner params: 5000 nodes plus the rest "
-             "lattice, 2 s segments, MPC of 50 knots at 0.1 s refined at 100 Hz, replans when the world, the goal or the "
-             "tracking calls for it rather than at a fixed 10 Hz). Call times are wall times in the lockstep run, every call "
-             "timed; the first plan builds the graph.",
+             "graph planner on the ground-truth obstacles with the stack's defaults (5000 nodes plus the 0.15 m rest lattice "
+             "over the planning region, 2 s segments, an MPC of 50 knots at 0.1 s refined at 100 Hz, replanning when the world, "
+             "the goal or the tracking calls for it rather than at a fixed 10 Hz). Every call is timed (wall clock, in the "
+             "lockstep run); a refine that reuses the last solution is a call too.",
              f"Per run: {[{'seed': r['spec']['seed'], **r.get('planner_timing', {}), 'sim_s': report_of(r).get('sim_time_s'), 'wall_s': report_of(r).get('wall_time_s')} for r in records]}"]
     return ItemResult(rows, figures, notes, runs=len(records))
 
