@@ -53,7 +53,9 @@ def test_the_mpc_process_publishes_setpoints_the_loop_tracks(zenoh_router):
                 assert all(math.isfinite(v) for v in (*sp.quat_des, *sp.omega_des, *sp.torque_ff))
                 assert all(abs(v) <= limit + 1e-9 for v in sp.torque_ff)
                 assert abs(sum(v * v for v in sp.quat_des) - 1.0) < 1e-9 and len(sp.qp_iterations) == 2
-            await wait_for(lambda: service._loop_proc.last.get("mid_level_ticks", 0) > 500, timeout_s=10.0)
+            # (the loop's process handle is None only between a restart's stop and start)
+            await wait_for(lambda: service._loop_proc is not None and service._loop_proc.last.get("mid_level_ticks", 0) > 500,
+                           timeout_s=30.0)
             # the status is a snapshot the MPC process refreshes on its own period: ask until it shows the count
             status = await asyncio.to_thread(query_status, client, NS, "control")
             deadline = time.monotonic() + 10.0
