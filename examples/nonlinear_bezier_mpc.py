@@ -36,6 +36,7 @@ KP, KD = 400.0, 40.0  # low-level PD gains (critically damped, 20 rad/s)
 DT = 1e-3  # [s] low-level period
 TAU = 0.2  # [s] segment duration
 HORIZON = 10  # segments (2 s)
+DIVERGED = 10.0  # |x| past this (four times the state limit) ends a run: it has left every limit for good
 
 
 def drift(x: np.ndarray) -> np.ndarray:
@@ -92,7 +93,10 @@ class RunLog:
         return {"x1": float(np.abs(self.x[:, 0]).max()), "x2": float(np.abs(self.x[:, 1]).max()), "u": float(np.abs(self.u).max())}
 
 
-def run_bezier_mpc(x0: np.ndarray, duration: float, backend: str = "osqp") -> RunLog:
+def run_bezier_mpc(x0: np.ndarray, duration: float, backend: str = "osqp", track: bool = True) -> RunLog:
+    """The Bezier MPC replanning every segment; ``track=False`` applies each plan's own input with
+    no low level under it (thesis Figure 6.2, 'MPC only'): the disturbance then moves the state off
+    the plan, and a replan that finds no certified plan from there ends the run early."""
     model = planning_model()
     limits = rc.box_limits(model, U_PLAN, [-X1_MAX + TUBE[0], -X2_MAX + TUBE[1]], [X1_MAX - TUBE[0], X2_MAX - TUBE[1]])
     reach = rc.BezierReachability(model, limits, TAU, refinement=2)
@@ -118,6 +122,8 @@ def run_bezier_mpc(x0: np.ndarray, duration: float, backend: str = "osqp") -> Ru
             pending = list(sol.control_points)
             ref = np.vstack([sol.waypoints[1:], nominal_reference(sol.waypoints[-1], 1)[1:]])
         else:
+            if not pending and not track:
+                break  # the MPC alone lost its plan: what happened so far is the result
             if not pending:
                 raise RuntimeError(f"no certified plan from {x}: {sol.status}")
             ref = np.vstack([ref[1:], nominal_reference(ref[-1], 1)[1:]])
@@ -131,13 +137,19 @@ def run_bezier_mpc(x0: np.ndarray, duration: float, backend: str = "osqp") -> Ru
             qd = bz.evaluate(q, TAU, s)[0, 0]
             vd = bz.evaluate(dq, TAU, s)[0, 0]
             ad = bz.evaluate(ddq, TAU, s)[0, 0]
-            # feedback linearization of the known model, PD on the tracking error
-            u = ad - np.sin(x[0]) - x[1] ** 3 - KP * (x[0] - qd) - KD * (x[1] - vd)
+            if track:  # feedback linearization of the known model, PD on the tracking error
+                u = ad - np.sin(x[0]) - x[1] ** 3 - KP * (x[0] - qd) - KD * (x[1] - vd)
+            else:  # the plan's own input: what the planning model says the curve needs
+                u = ad - np.sin(qd) - vd**3
             ts.append(t)
             xs.append(x.copy())
             us.append(u)
             x = plant_step(x, u, t)
             t += DT
+            if not np.all(np.abs(x) < DIVERGED):
+                break
+        if not np.all(np.abs(x) < DIVERGED):
+            break  # open loop on an unstable system (x2' grows with x2^3): the state is gone
     planned_arr = np.array(planned)
     tt = np.linspace(0.0, TAU, 200)
     xq = bz.state_values(planned_arr, TAU, 2, tt)

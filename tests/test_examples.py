@@ -76,3 +76,14 @@ def test_section61_low_level_alone_violates_the_limits(nonlinear):
     log = nonlinear.run_low_level_only(np.array([2.0, 0.0]), duration=2.0)
     worst = log.max_abs
     assert worst["x2"] > nonlinear.X2_MAX and worst["u"] > nonlinear.U_MAX
+
+
+def test_section61_mpc_alone_loses_the_state_to_the_disturbance(nonlinear):
+    """No low level under the plans (thesis Fig. 6.2's middle arm): each plan's own input, bounded
+    by the planning limit, applied open loop; the disturbance drives x2 off and away."""
+    with np.errstate(all="ignore"):
+        log = nonlinear.run_bezier_mpc(np.array([2.0, 0.0]), duration=8.0, track=False)
+    worst = log.max_abs
+    assert worst["x2"] > nonlinear.X2_MAX
+    assert worst["u"] <= nonlinear.U_PLAN + 1e-6  # the plans' input: within the planning bound
+    assert log.t[-1] < 8.0 - nonlinear.DT  # it diverged and the run ended early

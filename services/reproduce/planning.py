@@ -40,34 +40,52 @@ def _example(name: str) -> ModuleType:
       "On the nonlinear system of 6.1, the low level alone violates the state and input limits; the Bezier MPC over a "
       "tracking low level keeps both.", quick=True)
 def fig_6_2(ctx: Context) -> ItemResult:
+    import warnings
+
     ex = _example("nonlinear_bezier_mpc")
     x0 = np.array([2.0, 0.0])
     duration = 8.0
     t0 = time.perf_counter()
     ours = ex.run_bezier_mpc(x0, duration)
     alone = ex.run_low_level_only(x0, duration)
+    with warnings.catch_warnings():  # the open-loop arm diverges on purpose: numpy's overflow warnings say so
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mpc_only = ex.run_bezier_mpc(x0, duration, track=False)
     wall = time.perf_counter() - t0
     limits = {"x1": ex.X1_MAX, "x2": ex.X2_MAX, "u": ex.U_MAX}
+    arms = ((alone, "low level (CLF) only", "C3"), (mpc_only, "MPC only (no low level)", "C1"), (ours, "Bezier MPC + low level", "C0"))
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     for ax, (k, key) in zip(axes, ((0, "x1"), (1, "x2"), (None, "u"))):
-        for log, name, colour in ((alone, "low level (CLF) only", "C3"), (ours, "Bezier MPC + low level", "C0")):
-            ax.plot(log.t, log.u if k is None else log.x[:, k], colour, label=name)
+        for log, name, colour in arms:
+            values = log.u if k is None else log.x[:, k]
+            ax.plot(log.t, np.clip(values, -3 * limits[key], 3 * limits[key]), colour, label=name)
         for sign in (-1, 1):
             ax.axhline(sign * limits[key], color="k", ls="--", lw=0.8)
         ax.set_xlabel("t [s]")
-        ax.set_ylabel(key)
+        ax.set_ylabel(key + " (clipped at 3x its limit)")
         ax.legend(fontsize=7)
     figures = [save(fig, ctx.out, "fig6_2.png")]
-    peaks_ours, peaks_alone = ours.max_abs, alone.max_abs
-    violated = [k for k in limits if peaks_alone[k] > limits[k]]
-    kept = all(peaks_ours[k] <= limits[k] + 1e-9 for k in limits)
-    rows = [Row("low level alone: limits violated", "state and input (line 2987)", ", ".join(violated) or "none",
-                verdict({"u"} <= set(violated) and ({"x1", "x2"} & set(violated)) != set())),
+
+    def violated(log: Any) -> list[str]:
+        return [k for k in limits if log.max_abs[k] > limits[k]]
+
+    def both(names: list[str]) -> bool:
+        return "u" in names and bool({"x1", "x2"} & set(names))
+
+    kept = not violated(ours)
+    rows = [Row("low level alone: limits violated", "state and input (line 2987)", ", ".join(violated(alone)) or "none",
+                verdict(both(violated(alone)))),
+            Row("MPC alone (each plan's input applied open loop): limits violated", "state and input (line 2987)",
+                f"{', '.join(violated(mpc_only)) or 'none'}" + (f"; diverged at t = {mpc_only.t[-1]:.2f} s" if mpc_only.t[-1] < duration - 0.01 else ""),
+                verdict(both(violated(mpc_only)))),
             Row("Bezier MPC + low level: peaks |x1|, |x2|, |u| against the limits", "within all limits",
-                ", ".join(f"{k} {peaks_ours[k]:.2f} <= {limits[k]}" for k in limits), verdict(kept))]
-    notes = [f"examples/nonlinear_bezier_mpc.py from x0 = (2, 0) for {duration} s, with its disturbance; {wall:.1f} s wall. "
-             "The thesis's third arm (MPC with no low level) is not built: the example's plans are only ever tracked."]
+                ", ".join(f"{k} {ours.max_abs[k]:.2f} <= {limits[k]}" for k in limits), verdict(kept))]
+    notes = [f"examples/nonlinear_bezier_mpc.py from x0 = (2, 0) for {duration} s, with its disturbance (amplitude {ex.W_AMP}); "
+             f"{wall:.1f} s wall for the three arms. The MPC alone applies each certified plan's own input (the planning "
+             f"model's, within {ex.U_PLAN} by construction), so its input never exceeds the limit: the disturbance pushes the "
+             "state off the plan, x2' = sin x1 + x2^3 + u + w runs away, and the input violation the thesis shows would need "
+             "a controller that chases the drift."]
     return ItemResult(rows, figures, notes)
 
 
