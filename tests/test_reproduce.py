@@ -13,7 +13,7 @@ import pytest
 
 from services.reproduce.engine import _quat_tilt
 from services.reproduce.catalogue import load_all
-from services.reproduce.items import DIFFERS, PARTLY, REPRODUCED, ItemResult, Row, thesis_line
+from services.reproduce.items import DIFFERS, MEASURED, PARTLY, REPRODUCED, ItemResult, Row, thesis_line
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -63,6 +63,8 @@ def test_an_item_is_reproduced_only_when_every_row_is() -> None:
     assert ItemResult([ok, ok]).verdict == REPRODUCED
     assert ItemResult([ok, bad]).verdict == PARTLY
     assert ItemResult([bad]).verdict == DIFFERS
+    info = Row("c", "no number given", "o", MEASURED)  # reported, never judged
+    assert ItemResult([ok, info]).verdict == REPRODUCED and ItemResult([bad, info]).verdict == DIFFERS
     back = ItemResult.from_json(json.loads(json.dumps(ItemResult([ok, bad], ["f.png"], ["n"], 3, 1.5).to_json())))
     assert back.rows == [ok, bad] and back.figures == ["f.png"] and back.runs == 3
 

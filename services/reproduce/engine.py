@@ -28,6 +28,7 @@ from services.cli.campaign import Progress, read_records, spec_key
 
 RUNS_DIR = "runs"
 TRACE_FIELDS = ("t", "com", "est", "ref", "wheel_vel", "torque", "tracking_error")
+ATTITUDE_EVERY_NS = 10_000_000  # the attitude error's samples, at the trace's 100 Hz
 TRACE_MAX_SAMPLES = 20_000  # a longer run's trace is thinned to about this many samples (a 600 s maze: 60,000)
 
 
@@ -77,18 +78,27 @@ class _Watcher:
     """The run's messages as they happen: phase events and, at each touchdown, the commanded impact
     attitude (the controller's last flight setpoint) beside the estimated one."""
 
-    def __init__(self) -> None:
+    def __init__(self, attitude_every_ns: int = 0) -> None:
         self.runner: Any = None
         self.phases: list[tuple[float, str]] = []
         self.impacts: list[dict[str, float]] = []
+        # (t, angle [rad] between the estimated attitude and the low level's setpoint) every this often; 0: none
+        self.attitude_every_ns = attitude_every_ns
+        self.attitude_error: list[tuple[float, float]] = []
+        self._next_attitude_ns = 0
         self._state: Any = None
         self._flight_q_des: Any = None
 
     def __call__(self, topic: str, now_ns: int, msg: Any) -> None:
         if topic == "state":
             self._state = msg
-        elif topic == "torque_cmd" and self._state is not None and not self._state.contact:
-            self._flight_q_des = tuple(self.runner.controller.ctrl.q_des)
+        elif topic == "torque_cmd" and self._state is not None:
+            if not self._state.contact:
+                self._flight_q_des = tuple(self.runner.controller.ctrl.q_des)
+            if self.attitude_every_ns and now_ns >= self._next_attitude_ns:
+                self._next_attitude_ns = now_ns + self.attitude_every_ns
+                dot = abs(float(np.dot(self._state.quat, self.runner.controller.ctrl.q_des)))
+                self.attitude_error.append((round(now_ns / 1e9, 4), 2.0 * math.acos(min(1.0, dot))))
         elif topic == "phase":
             t = now_ns / 1e9
             self.phases.append((round(t, 4), msg.event))
@@ -159,7 +169,7 @@ def run_one(spec: dict) -> dict:
     try:
         from sim_twin.lockstep import LockstepRunner
 
-        watcher = _Watcher()
+        watcher = _Watcher(ATTITUDE_EVERY_NS if spec["trace"] else 0)
         runner = LockstepRunner(_config(spec, watcher))
         watcher.runner = runner
         if spec["step_reference"]:
@@ -178,6 +188,7 @@ def run_one(spec: dict) -> dict:
             record["trace"] = {name: getattr(result.trace, name)[::stride] for name in TRACE_FIELDS}
             record["trace"]["impact_points"] = result.trace.impacts
             record["phases"] = watcher.phases
+            record["attitude_error"] = watcher.attitude_error
             record["obstacles"] = [[list(v) for v in o.vertices] for o in runner.scenario.obstacles]
     except Exception as exc:  # a failing run is data: recorded, and the item goes on
         record["error"] = f"{type(exc).__name__}: {exc}"

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 REPRODUCED, DIFFERS, PARTLY = "reproduced", "differs", "partly"
+MEASURED = "measured"  # a row where the thesis gives no number: ours is reported, and no verdict is drawn from it
 
 
 @dataclass
@@ -21,7 +22,7 @@ class Row:
     quantity: str
     thesis: str  # the thesis's number or claim, with its line
     ours: str  # measured here
-    verdict: str  # REPRODUCED or DIFFERS
+    verdict: str  # REPRODUCED, DIFFERS, or MEASURED
 
 
 @dataclass
@@ -34,7 +35,7 @@ class ItemResult:
 
     @property
     def verdict(self) -> str:
-        verdicts = {r.verdict for r in self.rows}
+        verdicts = {r.verdict for r in self.rows if r.verdict != MEASURED}
         if verdicts == {REPRODUCED}:
             return REPRODUCED
         return DIFFERS if REPRODUCED not in verdicts else PARTLY
