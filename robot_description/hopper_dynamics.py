@@ -164,38 +164,41 @@ class HopperDynamics:
     def flow(self, mode: str, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(z_dot, A, B)`` at ``x``, ``u``: eq. 5.20 for the attitude, plain Jacobians else.
 
-        ``A`` is d z_dot / d(dp, eta, dtheta, dl, dv), ``B`` d z_dot / du.
+        ``A`` is d z_dot / d(dp, eta, dtheta, dl, dv), ``B`` d z_dot / du. The MPC calls this
+        for every knot of every SQP iteration: the numpy work around Pinocchio's is kept to a
+        few whole-block operations (it was twice Pinocchio's own time).
         """
         q, v = self.configuration(x), x[11:]
         tau = self._tau(mode, x, u)
         jac = self._jac_template.copy()  # p_dot = v, xi_dot = omega (eq. 5.19), theta_dot, l_dot
+        lower = jac[NV:]  # d a / d(dq, dv)
+        b = np.zeros((STATE_DIM, INPUT_DIM))
         if mode == STANCE:
             a = pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox).copy()
             da_dq, da_dv, da_dtau = pin.computeConstraintDynamicsDerivatives(
                 self.model, self.data, self._contacts, self._contact_data, self._prox)[:3]
-            jac[NV:, :NV] = da_dq
-            jac[NV:, NV:] = da_dv
+            lower[:, :NV] = da_dq
+            lower[:, NV:] = da_dv
             # the spring's force on the foot joint: -k l - c l_dot
-            jac[NV:, _FOOT_V] -= self.spring_k * da_dtau[:, _FOOT_V]
-            jac[NV:, NV + _FOOT_V] -= self.spring_c * da_dtau[:, _FOOT_V]
-            wheels = da_dtau[:, _WHEEL_V]
+            foot = da_dtau[:, _FOOT_V]
+            lower[:, _FOOT_V] -= self.spring_k * foot
+            lower[:, NV + _FOOT_V] -= self.spring_c * foot
+            b[NV:] = da_dtau[:, _WHEEL_V]
         elif mode == FLIGHT:
             # the lock's force enters as a generalized force: differentiate ABA there, then
             # project (the lock row is constant, so d a = P d a_free with P = I - col e')
             m_inv, col = self._lock_column(q)
             a_free = pin.aba(self.model, self.data, q, v, tau)
             a = a_free - col * a_free[_FOOT_V]
-            tau_locked = tau.copy()
-            tau_locked[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]
-            pin.computeABADerivatives(self.model, self.data, q, v, tau_locked)
-            dq, dv = self.data.ddq_dq, self.data.ddq_dv
-            jac[NV:, :NV] = dq - np.outer(col, dq[_FOOT_V])
-            jac[NV:, NV:] = dv - np.outer(col, dv[_FOOT_V])
-            wheels = m_inv[:, _WHEEL_V] - np.outer(col, m_inv[_FOOT_V, _WHEEL_V])
+            tau[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]  # tau is ours: the locked torque
+            pin.computeABADerivatives(self.model, self.data, q, v, tau)
+            lower[:, :NV] = self.data.ddq_dq
+            lower[:, NV:] = self.data.ddq_dv
+            lower -= np.outer(col, lower[_FOOT_V])
+            b[NV:] = m_inv[:, _WHEEL_V]
+            b[NV:] -= np.outer(col, b[NV + _FOOT_V])
         else:
             raise ValueError(f"unknown mode {mode!r}")
-        b = np.zeros((STATE_DIM, INPUT_DIM))
-        b[NV:, :] = wheels
         return np.concatenate([v, a]), jac, b
 
     # --- jumps ---------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from onboard.contracts.params import ControlParams, GeometricMpcParams, with_overrides
+from onboard.contracts.params import GMPC_THESIS_KNOTS, ControlParams, GeometricMpcParams, with_overrides
 from sim_twin.lockstep import LockstepRunner, RunConfig
 
 MS = 1e3
@@ -28,7 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="square", help="the twin scenario the states come from")
     parser.add_argument("--variant", default="sim15nm", help="robot model variant")
     parser.add_argument("--duration", type=float, default=10.0, help="simulated seconds")
-    parser.add_argument("--backend", choices=("osqp", "piqp"), default=None, help="QP solver (default: gmpc.backend)")
+    parser.add_argument("--backend", choices=("condensed", "piqp", "osqp"), default=None, help="QP solver (default: gmpc.backend)")
+    parser.add_argument("--thesis-settings", action="store_true",
+                        help="the thesis's Table 5.3 knots (GMPC_THESIS_KNOTS: horizon 20, 0.01 s flight, 0.001 s stance) "
+                             "in place of the stack's default ones")
     parser.add_argument("--seed", type=int, default=0)
 
 
@@ -39,6 +42,8 @@ def _percentiles(samples: list[float]) -> dict[str, float]:
 
 def measure(args: argparse.Namespace) -> dict:
     gmpc = GeometricMpcParams()
+    if args.thesis_settings:
+        gmpc = with_overrides(gmpc, GMPC_THESIS_KNOTS)
     if args.backend:
         gmpc = with_overrides(gmpc, {"backend": args.backend})
     cfg = RunConfig(scenario=args.scenario, seed=args.seed, duration_s=args.duration, variant=args.variant, estimator="kalman",
@@ -79,6 +84,7 @@ def measure(args: argparse.Namespace) -> dict:
         "variant": args.variant,
         "scenario": args.scenario,
         "horizon": mpc.n,
+        "knots_s": {"flight": gmpc.flight_step_s, "stance": gmpc.stance_step_s},
         "state_dim": 20,
         "variables": mpc.nvar,
         "constraints": mpc.neq + mpc.n * 3,  # dynamics and initial state (equalities), input box
@@ -101,6 +107,7 @@ def measure(args: argparse.Namespace) -> dict:
         "rate_hz_target": gmpc.rate_hz,
         "rate_hz_at_p99": round(1.0 / p99, 1),
         "p99_under_10_ms": p99 < 0.010,
+        "p99_under_5_ms": p99 < 0.005,  # the thesis's 100 Hz with a 2x margin (issue 29)
         "falls": result.metrics["falls"],
         "rms_tracking_error_m": result.metrics["rms_tracking_error_m"],
     }

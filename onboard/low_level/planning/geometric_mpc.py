@@ -39,11 +39,11 @@ from typing import Protocol
 import numpy as np
 import osqp
 import piqp
-import scipy.linalg
 import scipy.sparse as sp
 
 from onboard.geometry import quaternion as qt
 from onboard.contracts.params import GeometricMpcParams
+from onboard.low_level.planning import box_qp, gmpc_kernels
 
 STATE_DIM = 20
 INPUT_DIM = 3
@@ -58,6 +58,8 @@ VEL, OMEGA, WHEEL_RATE, FOOT_RATE = slice(10, 13), slice(13, 16), slice(16, 19),
 
 _PIQP_OK = "PIQP_SOLVED"
 _OSQP_OK = "solved"
+# active-set guesses of the condensed QP: each one factorization; on these QPs 2-4 (a cycle ends here)
+_ACTIVE_SET_MAX_ITER = 30
 
 
 class HybridDynamics(Protocol):
@@ -218,8 +220,12 @@ def _blocks(n_knots: int) -> tuple[np.ndarray, np.ndarray]:
 class GeometricMpc:
     """The FTOCP of eq. 5.26 over ``params.horizon`` knots, solved in SQP fashion.
 
-    ``torque_limit`` [N m]: the input set ``U`` (a box). ``backend``: "osqp" or "piqp"
-    (default ``params.backend``).
+    ``torque_limit`` [N m]: the input set ``U`` (a box). ``backend``: "condensed", "piqp" or
+    "osqp" (default ``params.backend``). "condensed" eliminates the states through the
+    dynamics (``z = z_free + S u``, the dynamics' exact solution for any inputs) and solves the
+    dense QP on the inputs alone (:mod:`onboard.low_level.planning.box_qp`): 60 variables and
+    their box instead of 480 variables and 420 equalities. It has no general inequalities, so
+    with the tilt rows (``params.tilt_max_plan > 0``) the QP goes to PIQP.
     """
 
     def __init__(self, dynamics: HybridDynamics, params: GeometricMpcParams, torque_limit: float, backend: str | None = None) -> None:
@@ -228,8 +234,10 @@ class GeometricMpc:
         self.dyn = dynamics
         self.p = params
         self.backend = backend or params.backend
-        if self.backend not in ("osqp", "piqp"):
+        if self.backend not in ("osqp", "piqp", "condensed"):
             raise ValueError(f"unknown backend {self.backend!r}")
+        if self.backend == "condensed" and params.tilt_max_plan > 0.0:
+            self.backend = "piqp"
         self.limit = float(torque_limit)
         n, nz, nu = params.horizon, STATE_DIM, INPUT_DIM
         self.n = n
@@ -258,6 +266,7 @@ class GeometricMpc:
         self.u_lo = np.full(n * nu, -self.limit)
         self.u_hi = np.full(n * nu, self.limit)
         self._solver = None
+        self._aug = np.zeros((n, nz + nu + 1, nz + nu + 1))  # the flows' [A B C; 0] h, exponentiated (eq. 5.24)
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
         self._build_tilt_rows()
         self._setup()
@@ -325,6 +334,8 @@ class GeometricMpc:
 
     def _setup(self) -> None:
         q = np.zeros(self.nvar)
+        if self.backend == "condensed":
+            return
         if self.backend == "osqp":
             # the input rows below the dynamics; in each column A_eq's entries come first, in
             # their own order, so they sit at the stacked matrix's rows < neq
@@ -387,52 +398,67 @@ class GeometricMpc:
         res = self._solver.result
         return (np.array(res.x) if status == _PIQP_OK else None), status, int(res.info.iter)
 
+    def _solve_condensed(self, z0: np.ndarray, knots: list[Knot], a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                         q_lin: np.ndarray) -> tuple[np.ndarray | None, str, int]:
+        """The same QP with the states eliminated: ``z = z_free + S u`` over the flow knots'
+        inputs (a jump's input is zero), ``S`` built knot by knot (``S_k+1 = A_k S_k + [B_k]``),
+        then ``min 1/2 u'(S'P_z S + P_u)u + (S'(P_z z_free + q_z))'u`` in the torque box."""
+        n, nz, nu = self.n, STATE_DIM, INPUT_DIM
+        flow = np.array([not knot.is_jump for knot in knots])
+        flows = np.flatnonzero(flow)
+        z_free, s_flat, h, g = gmpc_kernels.condense(a, b, c, z0, flow, self._p_diag[: self._u0], q_lin)
+        h[np.diag_indices(h.shape[0])] += self._p_diag[self._u0 :].reshape(n, nu)[flows].ravel()
+        lo = self.u_lo.reshape(n, nu)[flows].ravel()
+        hi = self.u_hi.reshape(n, nu)[flows].ravel()
+        res = box_qp.solve(h, g, lo, hi, self.p.eps, min(self.p.max_qp_iter, _ACTIVE_SET_MAX_ITER))
+        if res.status != box_qp.SOLVED:
+            return None, res.status, res.iterations
+        u = np.zeros((n, nu))
+        u[flows] = res.x.reshape(-1, nu)
+        z = z_free.ravel() + s_flat @ res.x
+        return np.concatenate([z, u.ravel()]), res.status, res.iterations
+
     # --- linearization -----------------------------------------------------------------------
 
-    def _linearize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-        """A jump's ``(D, 0, E)`` (eq. 5.25), or a flow's augmented matrix ``[A B C; 0]``
-        (eq. 5.23, times the knot's duration) and two Nones to be exponentiated."""
+    def _linearize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray, aug: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """A jump's ``(D, E)`` (eq. 5.25), or None with the flow's ``[A B C; 0]`` (eq. 5.23,
+        times the knot's duration) written into ``aug`` (its last rows stay zero), to be
+        exponentiated."""
         nz, nu = STATE_DIM, INPUT_DIM
         if knot.is_jump:
             x_plus, d = self.dyn.jump(knot.kind, x)
             z_plus = np.concatenate([z[:10], x_plus[11:]])  # the attitude does not jump
-            return d, np.zeros((nz, nu)), z_plus - d @ z
+            return d, z_plus - d @ z
         f, a, b = self.dyn.flow(knot.kind, x, u)
-        aug = np.zeros((nz + nu + 1, nz + nu + 1))
-        aug[:nz, :nz] = a * knot.h
-        aug[:nz, nz : nz + nu] = b * knot.h
-        aug[:nz, -1] = (f - a @ z - b @ u) * knot.h  # eq. 5.23's C
-        return None, aug, np.empty(0)
-
-    @staticmethod
-    def _exponentiate(aug: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(A_d, B_d, C_d)`` of eq. 5.24 from the matrix exponential of the augmented system
-        (exact for the affine model; batched over a leading axis)."""
-        nz, nu = STATE_DIM, INPUT_DIM
-        e = scipy.linalg.expm(aug)
-        return e[..., :nz, :nz], e[..., :nz, nz : nz + nu], e[..., :nz, -1]
+        aug[:nz, :nz] = a
+        aug[:nz, nz : nz + nu] = b
+        aug[:nz, -1] = f - a @ z - b @ u  # eq. 5.23's C
+        aug[:nz] *= knot.h
+        return None
 
     def _discretize_all(self, knots: list[Knot], q0, z_bar, u_bar, a, b, c, rollout: bool) -> bool:
         """Fill ``a, b, c`` along ``(z_bar, u_bar)``; with ``rollout`` each knot's point is
         the previous knot's prediction (sequential), else all flows exponentiate at once."""
-        flows, augs = [], []
+        nz, nu = STATE_DIM, INPUT_DIM
+        aug = self._aug
+        flows = []
         for k, knot in enumerate(knots):
             x_k = retract(z_bar[k], q0)
-            if not np.all(np.isfinite(x_k)):
+            if not np.isfinite(x_k).all():
                 return False
-            d, aug, e = self._linearize(knot, x_k, z_bar[k], u_bar[k])
-            if d is not None:
-                a[k], b[k], c[k] = d, aug, e
+            jump = self._linearize(knot, x_k, z_bar[k], u_bar[k], aug[k])
+            if jump is not None:
+                a[k], c[k] = jump
+                b[k] = 0.0
             elif rollout:
-                a[k], b[k], c[k] = self._exponentiate(aug)
+                gmpc_kernels.discretize(aug[k], a[k], b[k], c[k])
             else:
                 flows.append(k)
-                augs.append(aug)
             if rollout:
                 z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
         if flows:
-            a[flows], b[flows], c[flows] = self._exponentiate(np.array(augs))
-        return bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(c)))
+            gmpc_kernels.discretize_many(aug, np.array(flows), a, b, c)
+        return bool(np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all())
 
     def solve(self, x0: np.ndarray, knots: list[Knot], z_ref: np.ndarray) -> GmpcSolution:
         """Solve from the measured manifold state ``x0`` (21) along ``knots`` toward ``z_ref``
@@ -468,9 +494,12 @@ class GeometricMpc:
             # the first linearization point: the linearized model's own rollout at zero torque
             if not self._discretize_all(knots, q0, z_bar, u_bar, a, b, c, rollout=it == 0):
                 return refuse("non-finite linearization", iters)
-            self._fill(a, b, c)
             self._set_start_and_bounds(z0, knots)
-            y, status, count = self._solve_qp(q_cost)
+            if self.backend == "condensed":
+                y, status, count = self._solve_condensed(z0, knots, a, b, c, q_lin)
+            else:
+                self._fill(a, b, c)
+                y, status, count = self._solve_qp(q_cost)
             iters.append(count)
             if y is None:
                 return refuse(status, iters)
@@ -478,7 +507,9 @@ class GeometricMpc:
                 return refuse("non-finite solution", iters)
             z_bar = y[: self._u0].reshape(n + 1, nz)
             u_bar = y[self._u0 :].reshape(n, nu)
-        resid = float(np.abs(self.A_eq @ y - self.b_eq).max())
+        # eq. 5.26a-c at the answer, whichever solver gave it: z_0 = z(t), z_k+1 = A z_k + B u_k + C
+        predicted = np.einsum("kij,kj->ki", a, z_bar[:-1]) + np.einsum("kij,kj->ki", b, u_bar) + c
+        resid = float(max(np.abs(z_bar[0] - z0).max(), np.abs(z_bar[1:] - predicted).max()))
         tol = self.p.residual_tol
         if resid > tol:
             return refuse(f"dynamics residual {resid:.2e}", iters, resid)

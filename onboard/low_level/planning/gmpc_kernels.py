@@ -1,0 +1,99 @@
+"""Compiled inner loops of the geometric MPC (numba, cached on disk): the knots' matrix
+exponentials (eq. 5.24) and the condensing of the QP onto its inputs.
+
+Both are dozens of products of 20-24 wide matrices per solve; from Python each product costs
+more in call overhead than in arithmetic (scipy's ``expm`` took 50 us a knot, most of it outside
+the Pade evaluation), so the loops run compiled and call BLAS directly.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+# Taylor coefficients 1 / k!, k = 0..12
+_TAYLOR = np.array([1.0 / math.factorial(k) for k in range(13)])
+# the largest 1-norm the degree-12 Taylor polynomial takes unscaled: its truncation error is then
+# below 1/13! / (1 - 1/14) = 1.7e-10 relative (tests/test_geometric_mpc.py compares it with scipy's Pade)
+EXPM_THETA = 1.0
+
+
+@nb.njit(cache=True)
+def expm(m: np.ndarray) -> np.ndarray:
+    """``exp(m)`` of one square matrix: scaling and squaring of the degree-12 Taylor polynomial,
+    evaluated with five products (Paterson-Stockmeyer)."""
+    d = m.shape[0]
+    norm = 0.0
+    for j in range(d):
+        col = 0.0
+        for i in range(d):
+            col += abs(m[i, j])
+        norm = max(norm, col)
+    s = int(math.ceil(math.log2(norm / EXPM_THETA))) if norm > EXPM_THETA else 0
+    c = _TAYLOR
+    x = m * 0.5**s
+    x2 = x @ x
+    x3 = x2 @ x
+    x4 = x2 @ x2
+    p = c[9] * x + c[10] * x2 + c[11] * x3 + c[12] * x4
+    for i in range(d):
+        p[i, i] += c[8]
+    p = c[5] * x + c[6] * x2 + c[7] * x3 + x4 @ p
+    for i in range(d):
+        p[i, i] += c[4]
+    p = x + c[2] * x2 + c[3] * x3 + x4 @ p
+    for i in range(d):
+        p[i, i] += 1.0
+    for _ in range(s):
+        p = p @ p
+    return p
+
+
+@nb.njit(cache=True)
+def discretize(aug: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+    """``(A_d, B_d, C_d)`` of eq. 5.24 into ``a, b, c`` from ``exp([A B C; 0] h)`` (exact for
+    the affine model): ``aug`` (nz + nu + 1) square, ``a`` (nz, nz), ``b`` (nz, nu), ``c`` (nz)."""
+    nz = a.shape[0]
+    nu = b.shape[1]
+    e = expm(aug)
+    a[:, :] = e[:nz, :nz]
+    b[:, :] = e[:nz, nz : nz + nu]
+    c[:] = e[:nz, nz + nu]
+
+
+@nb.njit(cache=True)
+def discretize_many(aug: np.ndarray, knots: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+    """:func:`discretize` for each index in ``knots`` (the flows) of the batch."""
+    for k in knots:
+        discretize(aug[k], a[k], b[k], c[k])
+
+
+@nb.njit(cache=True)
+def condense(a: np.ndarray, b: np.ndarray, c: np.ndarray, z0: np.ndarray, flow: np.ndarray, p_z: np.ndarray,
+             q_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The states through the dynamics ``z_k+1 = A_k z_k + B_k u_k + c_k`` from ``z_0 = z0``:
+    ``z = z_free + S u`` over the inputs of the knots where ``flow`` (a jump's input is zero).
+    Returns ``(z_free (N+1, nz), S ((N+1) nz, m), S' diag(p_z) S, S'(p_z z_free + q_z))`` for
+    the cost ``1/2 z' diag(p_z) z + q_z' z`` (``p_z``, ``q_z`` flat over the knots)."""
+    n, nz, nu = b.shape[0], b.shape[1], b.shape[2]
+    m = 0
+    for k in range(n):
+        if flow[k]:
+            m += nu
+    z_free = np.empty((n + 1, nz))
+    s = np.zeros(((n + 1) * nz, m))
+    z_free[0] = z0
+    col = 0
+    for k in range(n):
+        z_free[k + 1] = a[k] @ z_free[k] + c[k]
+        if col:  # whole rows (contiguous for BLAS): the columns from col on are still zero
+            s[(k + 1) * nz : (k + 2) * nz] = a[k] @ s[k * nz : (k + 1) * nz]
+        if flow[k]:
+            s[(k + 1) * nz : (k + 2) * nz, col : col + nu] = b[k]
+            col += nu
+    weighted = s * p_z.reshape(-1, 1)
+    h = s.T @ weighted
+    g = s.T @ (p_z * z_free.ravel() + q_z)
+    return z_free, s, h, g
