@@ -43,6 +43,8 @@ _SLIDES = ("gmpc_x", "gmpc_y", "gmpc_z")  # massless bodies and slides that carr
 _MASS_MATRIX_COORDS = (3, 4, 5, 9)
 _FD_STEP = 1e-6  # central-difference step of the lift-off Jacobian's configuration columns
 _FOOT_V = 9
+# Pinocchio's configuration from the manifold state: position, quaternion x y z w, wheels, foot
+_PIN_Q = np.array([0, 1, 2, 4, 5, 6, 3, 7, 8, 9, 10])
 # Pinocchio's constrained solvers: exact (no proximal regularization) in one iteration
 _PROX = (1e-12, 1e-12, 0.0, 1)
 
@@ -113,7 +115,7 @@ class HopperDynamics:
     @staticmethod
     def configuration(x: np.ndarray) -> np.ndarray:
         """Pinocchio's ``q`` (quaternion ``x, y, z, w``) from the manifold state."""
-        return np.concatenate([x[0:3], x[4:7], x[3:4], x[7:11]])
+        return x[_PIN_Q]
 
     @staticmethod
     def state(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -194,9 +196,8 @@ class HopperDynamics:
             pin.computeABADerivatives(self.model, self.data, q, v, tau)
             lower[:, :NV] = self.data.ddq_dq
             lower[:, NV:] = self.data.ddq_dv
-            lower -= np.outer(col, lower[_FOOT_V])
-            b[NV:] = m_inv[:, _WHEEL_V]
-            b[NV:] -= np.outer(col, b[NV + _FOOT_V])
+            lower -= col[:, None] * lower[_FOOT_V]  # broadcasting: np.outer's checks cost more than the product
+            b[NV:] = m_inv[:, _WHEEL_V] - col[:, None] * m_inv[_FOOT_V, _WHEEL_V]
         else:
             raise ValueError(f"unknown mode {mode!r}")
         return np.concatenate([v, a]), jac, b

@@ -266,7 +266,9 @@ class GeometricMpc:
         self.u_lo = np.full(n * nu, -self.limit)
         self.u_hi = np.full(n * nu, self.limit)
         self._solver = None
-        self._aug = np.zeros((n, nz + nu + 1, nz + nu + 1))  # the flows' [A B C; 0] h, exponentiated (eq. 5.24)
+        # the flows' continuous linearization (eq. 5.23) per knot, discretized in one call
+        self._a_c, self._b_c = np.zeros((n, nz, nz)), np.zeros((n, nz, nu))
+        self._f, self._h = np.zeros((n, nz)), np.zeros(n)
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
         self._build_tilt_rows()
         self._setup()
@@ -420,44 +422,32 @@ class GeometricMpc:
 
     # --- linearization -----------------------------------------------------------------------
 
-    def _linearize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray, aug: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """A jump's ``(D, E)`` (eq. 5.25), or None with the flow's ``[A B C; 0]`` (eq. 5.23,
-        times the knot's duration) written into ``aug`` (its last rows stay zero), to be
-        exponentiated."""
-        nz, nu = STATE_DIM, INPUT_DIM
-        if knot.is_jump:
-            x_plus, d = self.dyn.jump(knot.kind, x)
-            z_plus = np.concatenate([z[:10], x_plus[11:]])  # the attitude does not jump
-            return d, z_plus - d @ z
-        f, a, b = self.dyn.flow(knot.kind, x, u)
-        aug[:nz, :nz] = a
-        aug[:nz, nz : nz + nu] = b
-        aug[:nz, -1] = f - a @ z - b @ u  # eq. 5.23's C
-        aug[:nz] *= knot.h
-        return None
-
     def _discretize_all(self, knots: list[Knot], q0, z_bar, u_bar, a, b, c, rollout: bool) -> bool:
-        """Fill ``a, b, c`` along ``(z_bar, u_bar)``; with ``rollout`` each knot's point is
-        the previous knot's prediction (sequential), else all flows exponentiate at once."""
-        nz, nu = STATE_DIM, INPUT_DIM
-        aug = self._aug
+        """Fill ``a, b, c`` along ``(z_bar, u_bar)``: a jump's ``(D, 0, E)`` (eq. 5.25), a flow's
+        exact discretization of eq. 5.23 (eq. 5.24). With ``rollout`` each knot's point is the
+        previous knot's prediction (sequential), else all flows exponentiate in one compiled call."""
         flows = []
+        a_c, b_c, f, h = self._a_c, self._b_c, self._f, self._h
         for k, knot in enumerate(knots):
             x_k = retract(z_bar[k], q0)
             if not np.isfinite(x_k).all():
                 return False
-            jump = self._linearize(knot, x_k, z_bar[k], u_bar[k], aug[k])
-            if jump is not None:
-                a[k], c[k] = jump
-                b[k] = 0.0
-            elif rollout:
-                gmpc_kernels.discretize(aug[k], a[k], b[k], c[k])
+            if knot.is_jump:
+                x_plus, d = self.dyn.jump(knot.kind, x_k)
+                z_plus = np.concatenate([z_bar[k, :10], x_plus[11:]])  # the attitude does not jump
+                a[k], b[k], c[k] = d, 0.0, z_plus - d @ z_bar[k]
+                if rollout:
+                    z_bar[k + 1] = z_plus
+                continue
+            f[k], a_c[k], b_c[k] = self.dyn.flow(knot.kind, x_k, u_bar[k])
+            h[k] = knot.h
+            if rollout:
+                gmpc_kernels.discretize(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k])
+                z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
             else:
                 flows.append(k)
-            if rollout:
-                z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
         if flows:
-            gmpc_kernels.discretize_many(aug, np.array(flows), a, b, c)
+            gmpc_kernels.discretize_many(a_c, b_c, f, z_bar, u_bar, h, np.array(flows), a, b, c)
         return bool(np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all())
 
     def solve(self, x0: np.ndarray, knots: list[Knot], z_ref: np.ndarray) -> GmpcSolution:

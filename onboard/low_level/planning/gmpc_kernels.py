@@ -52,22 +52,29 @@ def expm(m: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(cache=True)
-def discretize(aug: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
-    """``(A_d, B_d, C_d)`` of eq. 5.24 into ``a, b, c`` from ``exp([A B C; 0] h)`` (exact for
-    the affine model): ``aug`` (nz + nu + 1) square, ``a`` (nz, nz), ``b`` (nz, nu), ``c`` (nz)."""
-    nz = a.shape[0]
-    nu = b.shape[1]
+def discretize(a_c: np.ndarray, b_c: np.ndarray, f: np.ndarray, z: np.ndarray, u: np.ndarray, h: float,
+               a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+    """``(A_d, B_d, C_d)`` of eq. 5.24 into ``a, b, c``: the flow's Jacobians ``a_c`` (nz, nz),
+    ``b_c`` (nz, nu) and derivative ``f`` at ``(z, u)`` over ``h`` seconds, from
+    ``exp([A B C; 0] h)`` with eq. 5.23's ``C = f - A z - B u`` (exact for the affine model)."""
+    nz, nu = b_c.shape
+    d = nz + nu + 1
+    aug = np.zeros((d, d))
+    aug[:nz, :nz] = a_c * h
+    aug[:nz, nz : nz + nu] = b_c * h
+    aug[:nz, d - 1] = (f - a_c @ z - b_c @ u) * h
     e = expm(aug)
     a[:, :] = e[:nz, :nz]
     b[:, :] = e[:nz, nz : nz + nu]
-    c[:] = e[:nz, nz + nu]
+    c[:] = e[:nz, d - 1]
 
 
 @nb.njit(cache=True)
-def discretize_many(aug: np.ndarray, knots: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
-    """:func:`discretize` for each index in ``knots`` (the flows) of the batch."""
+def discretize_many(a_c: np.ndarray, b_c: np.ndarray, f: np.ndarray, z: np.ndarray, u: np.ndarray, h: np.ndarray,
+                    knots: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
+    """:func:`discretize` for each index in ``knots`` (the flows) of the horizon's batch."""
     for k in knots:
-        discretize(aug[k], a[k], b[k], c[k])
+        discretize(a_c[k], b_c[k], f[k], z[k], u[k], h[k], a[k], b[k], c[k])
 
 
 @nb.njit(cache=True)
@@ -97,3 +104,85 @@ def condense(a: np.ndarray, b: np.ndarray, c: np.ndarray, z0: np.ndarray, flow: 
     h = s.T @ weighted
     g = s.T @ (p_z * z_free.ravel() + q_z)
     return z_free, s, h, g
+
+
+# --- the box QP (onboard.low_level.planning.box_qp) -----------------------------------------------
+
+
+@nb.njit(cache=True)
+def _cholesky_solve(m: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``m^-1 rhs`` by Cholesky (m symmetric); False when ``m`` is not positive definite."""
+    n = m.shape[0]
+    low = np.zeros((n, n))
+    for j in range(n):
+        d = m[j, j] - low[j, :j] @ low[j, :j]
+        if not d > 0.0:
+            return rhs.copy(), False
+        low[j, j] = math.sqrt(d)
+        for i in range(j + 1, n):
+            low[i, j] = (m[i, j] - low[i, :j] @ low[j, :j]) / low[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        y[i] = (rhs[i] - low[i, :i] @ y[:i]) / low[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for j in range(i + 1, n):
+            acc -= low[j, i] * x[j]
+        x[i] = acc / low[i, i]
+    return x, True
+
+
+@nb.njit(cache=True)
+def box_qp_active_set(h: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int) -> tuple[np.ndarray, int, int]:
+    """The primal-dual active-set iteration of :func:`onboard.low_level.planning.box_qp.solve`:
+    ``(x, status, factorizations)``, status 0 converged, 1 iteration cap, 2 not positive definite."""
+    n = g.size
+    x, ok = _cholesky_solve(h, -g)  # the first guess: the bounds the unconstrained minimizer crosses
+    if not ok:
+        return x, 2, 0
+    lam = np.zeros(n)  # H x + g + lam = 0: lam > 0 pushes at an upper bound, < 0 at a lower one
+    upper = np.zeros(n, np.bool_)
+    lower = np.zeros(n, np.bool_)
+    fixed = lo >= hi
+    for it in range(1, max_iter + 1):
+        # a bound holds while its multiplier pushes outward; a free variable beyond a bound goes onto it
+        changed = it == 1
+        for i in range(n):
+            if fixed[i]:
+                new_u, new_l = False, False
+            elif upper[i]:
+                new_u, new_l = lam[i] > 0.0, False
+            elif lower[i]:
+                new_u, new_l = False, lam[i] < 0.0
+            else:
+                new_u, new_l = x[i] > hi[i], x[i] < lo[i]
+            if new_u != upper[i] or new_l != lower[i]:
+                changed = True
+            upper[i], lower[i] = new_u, new_l
+        if not changed:
+            return x, 0, it - 1
+        free = np.empty(n, np.int64)
+        bound = np.empty(n, np.int64)
+        nf, nb_ = 0, 0
+        for i in range(n):
+            if upper[i]:
+                x[i] = hi[i]
+            elif lower[i] or fixed[i]:
+                x[i] = lo[i]
+            if upper[i] or lower[i] or fixed[i]:
+                bound[nb_] = i
+                nb_ += 1
+            else:
+                free[nf] = i
+                nf += 1
+        free, bound = free[:nf], bound[:nb_]
+        if nf:
+            rhs = -(g[free] + h[free][:, bound] @ x[bound])
+            xf, ok = _cholesky_solve(h[free][:, free], rhs)
+            if not ok:
+                return x, 2, it
+            x[free] = xf
+        lam = -(h @ x + g)
+        lam[free] = 0.0
+    return x, 1, max_iter
