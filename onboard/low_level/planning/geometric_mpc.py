@@ -16,10 +16,15 @@ Per solve:
 2. SQP (eq. 5.26): each iteration linearizes the hybrid dynamics along the last iterate
    (the first along a rollout of the linearization itself with zero torque), discretizes
    each flow knot exactly with the matrix exponential of the affine system (eq. 5.24) and
-   each jump by its momentum-transfer Jacobian (eq. 5.25), and solves the QP. The QP is set
-   up once; an iteration updates values only (never the sparsity pattern). The second
-   iteration starts from the first's answer (its linearization point); OSQP also warm starts
-   from its last iterate (PIQP, an interior-point method, starts afresh by design).
+   each jump by its momentum-transfer Jacobian (eq. 5.25), and solves the QP. By default
+   (backend "condensed") the QP is condensed onto its inputs: the states are the dynamics'
+   own rollout ``z = z_free + S u``, which leaves 3 inputs per flow knot and their torque box,
+   a dense QP that an active-set method solves exactly (:mod:`box_qp`); the exponentials and
+   the condensing run compiled (:mod:`gmpc_kernels`). PIQP and OSQP solve the same QP in its
+   sparse form (480 variables, 420 equalities), set up once and updated by value (never the
+   sparsity pattern); PIQP is the cross-check and takes the QP when the tilt rows are on.
+   The second iteration starts from the first's answer (its linearization point); OSQP also
+   warm starts from its last iterate (PIQP, an interior-point method, starts afresh by design).
 3. Every answer is checked (solver status, finiteness, dynamics residual, input bounds)
    before it may be used; :class:`GmpcSolution.ok` is that verdict.
 
@@ -272,6 +277,18 @@ class GeometricMpc:
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
         self._build_tilt_rows()
         self._setup()
+        if self.backend == "condensed":
+            self._compile()
+
+    def _compile(self) -> None:
+        """One solve of a still robot in the air, its answer dropped: numba compiles the kernels
+        at their first call (seconds; loaded from its on-disk cache after), here rather than in
+        the first solve that counts."""
+        x = np.zeros(STATE_DIM + 1)
+        x[2], x[3] = 1.0, 1.0
+        p = self.p
+        knots = mode_schedule(FLIGHT, 2.0 * p.flight_step_s, p, 2.0 * p.flight_step_s, p.horizon * p.stance_step_s)
+        self.solve(x, knots, np.zeros((self.n + 1, STATE_DIM)))
 
     @staticmethod
     def state_weights(p: GeometricMpcParams) -> np.ndarray:
