@@ -459,8 +459,7 @@ class GeometricMpc:
             f[k], a_c[k], b_c[k] = self.dyn.flow(knot.kind, x_k, u_bar[k])
             h[k] = knot.h
             if rollout:
-                gmpc_kernels.discretize(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k])
-                z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
+                gmpc_kernels.rollout_step(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k], z_bar[k + 1])
             else:
                 flows.append(k)
         if flows:

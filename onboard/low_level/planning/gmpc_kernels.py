@@ -70,6 +70,14 @@ def discretize(a_c: np.ndarray, b_c: np.ndarray, f: np.ndarray, z: np.ndarray, u
 
 
 @nb.njit(cache=True)
+def rollout_step(a_c: np.ndarray, b_c: np.ndarray, f: np.ndarray, z: np.ndarray, u: np.ndarray, h: float,
+                 a: np.ndarray, b: np.ndarray, c: np.ndarray, z_next: np.ndarray) -> None:
+    """:func:`discretize`, then the discrete model's prediction ``z_next = A_d z + B_d u + C_d``."""
+    discretize(a_c, b_c, f, z, u, h, a, b, c)
+    z_next[:] = a @ z + b @ u + c
+
+
+@nb.njit(cache=True)
 def discretize_many(a_c: np.ndarray, b_c: np.ndarray, f: np.ndarray, z: np.ndarray, u: np.ndarray, h: np.ndarray,
                     knots: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
     """:func:`discretize` for each index in ``knots`` (the flows) of the horizon's batch."""
