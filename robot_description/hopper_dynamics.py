@@ -38,10 +38,6 @@ NV = STATE_DIM // 2  # velocity coordinates: 3 linear, 3 angular, 3 wheels, 1 fo
 MANIFOLD_DIM = STATE_DIM + 1  # the quaternion takes four numbers for three directions
 _WHEEL_V = slice(6, 9)
 _SLIDES = ("gmpc_x", "gmpc_y", "gmpc_z")  # massless bodies and slides that carry the torso
-# the configuration coordinates the mass matrix depends on: the attitude and the foot (not the
-# position, and not the wheel angles: the wheels are symmetric about their axes)
-_MASS_MATRIX_COORDS = (3, 4, 5, 9)
-_FD_STEP = 1e-6  # central-difference step of the lift-off Jacobian's configuration columns
 _FOOT_V = 9
 # Pinocchio's configuration from the manifold state: position, quaternion x y z w, wheels, foot
 _PIN_Q = np.array([0, 1, 2, 4, 5, 6, 3, 7, 8, 9, 10])
@@ -221,14 +217,17 @@ class HopperDynamics:
             pin.computeImpulseDynamicsDerivatives(self.model, self.data, self._contacts, self._contact_data, 0.0, self._prox)
             d[NV:, :NV] = self.data.ddq_dq
             d[NV:, NV:] = self.data.ddq_dv + np.eye(NV)  # Pinocchio gives d(v+ - v-)/dv- (checked by the tests)
-        else:  # the lock's projection, and its change with the configuration by central differences
-            d[NV:, NV:] = np.eye(NV) - np.outer(self._lock_column(q)[1], self._lock)
-            for i in _MASS_MATRIX_COORDS:
-                e = np.zeros(NV)
-                e[i] = _FD_STEP
-                hi = self._jump_velocity(edge, pin.integrate(self.model, q, e), v)
-                lo = self._jump_velocity(edge, pin.integrate(self.model, q, -e), v)
-                d[NV:, i] = (hi - lo) / (2.0 * _FD_STEP)
+        else:  # the lock's projection v+ = v - col(q) v_foot, col = w / w_foot with w = M^-1 e_foot
+            m_inv, col = self._lock_column(q)
+            d[NV:, NV:] -= col[:, None] * self._lock
+            # and its change with the configuration: M w = e gives dw/dq = -M^-1 d(M w)/dq at w held,
+            # d(M w)/dq = RNEA's dtau/dq at (q, 0, w) less gravity's (Pinocchio's, in the Lie algebra)
+            w = m_inv[:, _FOOT_V]
+            dmw = pin.computeRNEADerivatives(self.model, self.data, q, np.zeros(NV), w)[0].copy()
+            dmw -= pin.computeGeneralizedGravityDerivatives(self.model, self.data, q)
+            dw = -m_inv @ dmw
+            dcol = (dw - col[:, None] * dw[_FOOT_V]) / w[_FOOT_V]
+            d[NV:, :NV] = -dcol * v[_FOOT_V]
         return np.concatenate([x[:11], v_plus]), d
 
 
