@@ -166,13 +166,15 @@ class HopperDynamics:
         for every knot of every SQP iteration: the numpy work around Pinocchio's is kept to a
         few whole-block operations (it was twice Pinocchio's own time).
         """
-        q, v = self.configuration(x), x[11:]
-        tau = self._tau(mode, x, u)
+        q, v = x[_PIN_Q], x[11:]
+        tau = np.zeros(NV)
+        tau[_WHEEL_V] = u
         jac = self._jac_template.copy()  # p_dot = v, xi_dot = omega (eq. 5.19), theta_dot, l_dot
         lower = jac[NV:]  # d a / d(dq, dv)
         b = np.zeros((STATE_DIM, INPUT_DIM))
         if mode == STANCE:
-            a = pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox).copy()
+            tau[_FOOT_V] = -self.spring_k * x[10] - self.spring_c * x[11 + _FOOT_V]  # the spring pushes the foot
+            z_dot = np.concatenate([v, pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox)])
             da_dq, da_dv, da_dtau = pin.computeConstraintDynamicsDerivatives(
                 self.model, self.data, self._contacts, self._contact_data, self._prox)[:3]
             lower[:, :NV] = da_dq
@@ -182,13 +184,13 @@ class HopperDynamics:
             lower[:, _FOOT_V] -= self.spring_k * foot
             lower[:, NV + _FOOT_V] -= self.spring_c * foot
             b[NV:] = da_dtau[:, _WHEEL_V]
-        elif mode == FLIGHT:
+        elif mode == FLIGHT:  # the cable holds the spring
             # the lock's force enters as a generalized force: differentiate ABA there, then
             # project (the lock row is constant, so d a = P d a_free with P = I - col e')
             m_inv, col = self._lock_column(q)
             a_free = pin.aba(self.model, self.data, q, v, tau)
-            a = a_free - col * a_free[_FOOT_V]
-            tau[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]  # tau is ours: the locked torque
+            z_dot = np.concatenate([v, a_free - col * a_free[_FOOT_V]])
+            tau[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]  # the locked torque
             pin.computeABADerivatives(self.model, self.data, q, v, tau)
             lower[:, :NV] = self.data.ddq_dq
             lower[:, NV:] = self.data.ddq_dv
@@ -196,7 +198,7 @@ class HopperDynamics:
             b[NV:] = m_inv[:, _WHEEL_V] - col[:, None] * m_inv[_FOOT_V, _WHEEL_V]
         else:
             raise ValueError(f"unknown mode {mode!r}")
-        return np.concatenate([v, a]), jac, b
+        return z_dot, jac, b
 
     # --- jumps ---------------------------------------------------------------------------------
 

@@ -119,19 +119,29 @@ def condense(a: np.ndarray, b: np.ndarray, c: np.ndarray, z0: np.ndarray, flow: 
 
 @nb.njit(cache=True)
 def _cholesky_solve(m: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, bool]:
-    """``m^-1 rhs`` by Cholesky (m symmetric); False when ``m`` is not positive definite."""
+    """``m^-1 rhs`` by Cholesky (m symmetric); False when ``m`` is not positive definite. Scalar
+    loops: at this size (tens) a BLAS call per row costs more than its arithmetic."""
     n = m.shape[0]
     low = np.zeros((n, n))
     for j in range(n):
-        d = m[j, j] - low[j, :j] @ low[j, :j]
+        d = m[j, j]
+        for p in range(j):
+            d -= low[j, p] * low[j, p]
         if not d > 0.0:
             return rhs.copy(), False
-        low[j, j] = math.sqrt(d)
+        ljj = math.sqrt(d)
+        low[j, j] = ljj
         for i in range(j + 1, n):
-            low[i, j] = (m[i, j] - low[i, :j] @ low[j, :j]) / low[j, j]
+            acc = m[i, j]
+            for p in range(j):
+                acc -= low[i, p] * low[j, p]
+            low[i, j] = acc / ljj
     y = np.empty(n)
     for i in range(n):
-        y[i] = (rhs[i] - low[i, :i] @ y[:i]) / low[i, i]
+        acc = rhs[i]
+        for p in range(i):
+            acc -= low[i, p] * y[p]
+        y[i] = acc / low[i, i]
     x = np.empty(n)
     for i in range(n - 1, -1, -1):
         acc = y[i]
