@@ -38,11 +38,9 @@ NV = STATE_DIM // 2  # velocity coordinates: 3 linear, 3 angular, 3 wheels, 1 fo
 MANIFOLD_DIM = STATE_DIM + 1  # the quaternion takes four numbers for three directions
 _WHEEL_V = slice(6, 9)
 _SLIDES = ("gmpc_x", "gmpc_y", "gmpc_z")  # massless bodies and slides that carry the torso
-# the configuration coordinates the mass matrix depends on: the attitude and the foot (not the
-# position, and not the wheel angles: the wheels are symmetric about their axes)
-_MASS_MATRIX_COORDS = (3, 4, 5, 9)
-_FD_STEP = 1e-6  # central-difference step of the lift-off Jacobian's configuration columns
 _FOOT_V = 9
+# Pinocchio's configuration from the manifold state: position, quaternion x y z w, wheels, foot
+_PIN_Q = np.array([0, 1, 2, 4, 5, 6, 3, 7, 8, 9, 10])
 # Pinocchio's constrained solvers: exact (no proximal regularization) in one iteration
 _PROX = (1e-12, 1e-12, 0.0, 1)
 
@@ -113,7 +111,7 @@ class HopperDynamics:
     @staticmethod
     def configuration(x: np.ndarray) -> np.ndarray:
         """Pinocchio's ``q`` (quaternion ``x, y, z, w``) from the manifold state."""
-        return np.concatenate([x[0:3], x[4:7], x[3:4], x[7:11]])
+        return x[_PIN_Q]
 
     @staticmethod
     def state(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -164,39 +162,43 @@ class HopperDynamics:
     def flow(self, mode: str, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(z_dot, A, B)`` at ``x``, ``u``: eq. 5.20 for the attitude, plain Jacobians else.
 
-        ``A`` is d z_dot / d(dp, eta, dtheta, dl, dv), ``B`` d z_dot / du.
+        ``A`` is d z_dot / d(dp, eta, dtheta, dl, dv), ``B`` d z_dot / du. The MPC calls this
+        for every knot of every SQP iteration: the numpy work around Pinocchio's is kept to a
+        few whole-block operations (it was twice Pinocchio's own time).
         """
-        q, v = self.configuration(x), x[11:]
-        tau = self._tau(mode, x, u)
+        q, v = x[_PIN_Q], x[11:]
+        tau = np.zeros(NV)
+        tau[_WHEEL_V] = u
         jac = self._jac_template.copy()  # p_dot = v, xi_dot = omega (eq. 5.19), theta_dot, l_dot
+        lower = jac[NV:]  # d a / d(dq, dv)
+        b = np.zeros((STATE_DIM, INPUT_DIM))
         if mode == STANCE:
-            a = pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox).copy()
+            tau[_FOOT_V] = -self.spring_k * x[10] - self.spring_c * x[11 + _FOOT_V]  # the spring pushes the foot
+            z_dot = np.concatenate([v, pin.constraintDynamics(self.model, self.data, q, v, tau, self._contacts, self._contact_data, self._prox)])
             da_dq, da_dv, da_dtau = pin.computeConstraintDynamicsDerivatives(
                 self.model, self.data, self._contacts, self._contact_data, self._prox)[:3]
-            jac[NV:, :NV] = da_dq
-            jac[NV:, NV:] = da_dv
+            lower[:, :NV] = da_dq
+            lower[:, NV:] = da_dv
             # the spring's force on the foot joint: -k l - c l_dot
-            jac[NV:, _FOOT_V] -= self.spring_k * da_dtau[:, _FOOT_V]
-            jac[NV:, NV + _FOOT_V] -= self.spring_c * da_dtau[:, _FOOT_V]
-            wheels = da_dtau[:, _WHEEL_V]
-        elif mode == FLIGHT:
+            foot = da_dtau[:, _FOOT_V]
+            lower[:, _FOOT_V] -= self.spring_k * foot
+            lower[:, NV + _FOOT_V] -= self.spring_c * foot
+            b[NV:] = da_dtau[:, _WHEEL_V]
+        elif mode == FLIGHT:  # the cable holds the spring
             # the lock's force enters as a generalized force: differentiate ABA there, then
             # project (the lock row is constant, so d a = P d a_free with P = I - col e')
             m_inv, col = self._lock_column(q)
             a_free = pin.aba(self.model, self.data, q, v, tau)
-            a = a_free - col * a_free[_FOOT_V]
-            tau_locked = tau.copy()
-            tau_locked[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]
-            pin.computeABADerivatives(self.model, self.data, q, v, tau_locked)
-            dq, dv = self.data.ddq_dq, self.data.ddq_dv
-            jac[NV:, :NV] = dq - np.outer(col, dq[_FOOT_V])
-            jac[NV:, NV:] = dv - np.outer(col, dv[_FOOT_V])
-            wheels = m_inv[:, _WHEEL_V] - np.outer(col, m_inv[_FOOT_V, _WHEEL_V])
+            z_dot = np.concatenate([v, a_free - col * a_free[_FOOT_V]])
+            tau[_FOOT_V] -= a_free[_FOOT_V] / m_inv[_FOOT_V, _FOOT_V]  # the locked torque
+            pin.computeABADerivatives(self.model, self.data, q, v, tau)
+            lower[:, :NV] = self.data.ddq_dq
+            lower[:, NV:] = self.data.ddq_dv
+            lower -= col[:, None] * lower[_FOOT_V]  # broadcasting: np.outer's checks cost more than the product
+            b[NV:] = m_inv[:, _WHEEL_V] - col[:, None] * m_inv[_FOOT_V, _WHEEL_V]
         else:
             raise ValueError(f"unknown mode {mode!r}")
-        b = np.zeros((STATE_DIM, INPUT_DIM))
-        b[NV:, :] = wheels
-        return np.concatenate([v, a]), jac, b
+        return z_dot, jac, b
 
     # --- jumps ---------------------------------------------------------------------------------
 
@@ -217,14 +219,17 @@ class HopperDynamics:
             pin.computeImpulseDynamicsDerivatives(self.model, self.data, self._contacts, self._contact_data, 0.0, self._prox)
             d[NV:, :NV] = self.data.ddq_dq
             d[NV:, NV:] = self.data.ddq_dv + np.eye(NV)  # Pinocchio gives d(v+ - v-)/dv- (checked by the tests)
-        else:  # the lock's projection, and its change with the configuration by central differences
-            d[NV:, NV:] = np.eye(NV) - np.outer(self._lock_column(q)[1], self._lock)
-            for i in _MASS_MATRIX_COORDS:
-                e = np.zeros(NV)
-                e[i] = _FD_STEP
-                hi = self._jump_velocity(edge, pin.integrate(self.model, q, e), v)
-                lo = self._jump_velocity(edge, pin.integrate(self.model, q, -e), v)
-                d[NV:, i] = (hi - lo) / (2.0 * _FD_STEP)
+        else:  # the lock's projection v+ = v - col(q) v_foot, col = w / w_foot with w = M^-1 e_foot
+            m_inv, col = self._lock_column(q)
+            d[NV:, NV:] -= col[:, None] * self._lock
+            # and its change with the configuration: M w = e gives dw/dq = -M^-1 d(M w)/dq at w held,
+            # d(M w)/dq = RNEA's dtau/dq at (q, 0, w) less gravity's (Pinocchio's, in the Lie algebra)
+            w = m_inv[:, _FOOT_V]
+            dmw = pin.computeRNEADerivatives(self.model, self.data, q, np.zeros(NV), w)[0].copy()
+            dmw -= pin.computeGeneralizedGravityDerivatives(self.model, self.data, q)
+            dw = -m_inv @ dmw
+            dcol = (dw - col[:, None] * dw[_FOOT_V]) / w[_FOOT_V]
+            d[NV:, :NV] = -dcol * v[_FOOT_V]
         return np.concatenate([x[:11], v_plus]), d
 
 

@@ -40,7 +40,7 @@ READS = ("state", "reference")
 PUBLISHER = "control"  # the control service owns the process and its topic
 REPORT_PERIOD_S = 0.5  # [s] between reports to the control service
 SOLVE_WINDOW = 1000  # solve times kept for the reported percentiles
-START_TIMEOUT_S = 60.0  # [s] Pinocchio model, QP setup, Zenoh
+START_TIMEOUT_S = 60.0  # [s] Pinocchio model, QP setup (a cold numba cache: its kernels compile, ~15 s on a loaded machine), Zenoh
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,6 +23,7 @@ from onboard.contracts.params.base import (CAN_NODES, FOOT_TORQUE_PEAK, LOOP_HZ_
 from onboard.contracts.params.estimation import EstimatorParams
 from onboard.contracts.params.high_level import PerceptionParams, PlannerParams
 from onboard.contracts.params.low_level import ControlParams, GeometricMpcParams
+from onboard.contracts.params.low_level import GMPC_THESIS_KNOTS
 from onboard.contracts.params.platform import (ArcherFirmwareParams, CameraParams, HardwareParams, MessagingParams, MocapParams, RecorderParams,
                                                SafetyLimits, ViewParams)
 from onboard.contracts.params.platform import CameraOverheadParams
@@ -35,6 +36,7 @@ __all__ = [  # the one place for parameters: every layer's section, and what wor
     "CameraParams",
     "EstimatorParams", "ControlParams", "GeometricMpcParams", "PlannerParams", "PerceptionParams", "TwinParams",
     "CameraOverheadParams",
+    "GMPC_THESIS_KNOTS",
 ]
 
 # Fields a running control loop cannot take between two ticks: they shape the loop process

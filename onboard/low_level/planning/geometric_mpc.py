@@ -16,10 +16,15 @@ Per solve:
 2. SQP (eq. 5.26): each iteration linearizes the hybrid dynamics along the last iterate
    (the first along a rollout of the linearization itself with zero torque), discretizes
    each flow knot exactly with the matrix exponential of the affine system (eq. 5.24) and
-   each jump by its momentum-transfer Jacobian (eq. 5.25), and solves the QP. The QP is set
-   up once; an iteration updates values only (never the sparsity pattern). The second
-   iteration starts from the first's answer (its linearization point); OSQP also warm starts
-   from its last iterate (PIQP, an interior-point method, starts afresh by design).
+   each jump by its momentum-transfer Jacobian (eq. 5.25), and solves the QP. By default
+   (backend "condensed") the QP is condensed onto its inputs: the states are the dynamics'
+   own rollout ``z = z_free + S u``, which leaves 3 inputs per flow knot and their torque box,
+   a dense QP that an active-set method solves exactly (:mod:`box_qp`); the exponentials and
+   the condensing run compiled (:mod:`gmpc_kernels`). PIQP and OSQP solve the same QP in its
+   sparse form (480 variables, 420 equalities), set up once and updated by value (never the
+   sparsity pattern); PIQP is the cross-check and takes the QP when the tilt rows are on.
+   The second iteration starts from the first's answer (its linearization point); OSQP also
+   warm starts from its last iterate (PIQP, an interior-point method, starts afresh by design).
 3. Every answer is checked (solver status, finiteness, dynamics residual, input bounds)
    before it may be used; :class:`GmpcSolution.ok` is that verdict.
 
@@ -39,11 +44,11 @@ from typing import Protocol
 import numpy as np
 import osqp
 import piqp
-import scipy.linalg
 import scipy.sparse as sp
 
 from onboard.geometry import quaternion as qt
 from onboard.contracts.params import GeometricMpcParams
+from onboard.low_level.planning import box_qp, gmpc_kernels
 
 STATE_DIM = 20
 INPUT_DIM = 3
@@ -58,6 +63,8 @@ VEL, OMEGA, WHEEL_RATE, FOOT_RATE = slice(10, 13), slice(13, 16), slice(16, 19),
 
 _PIQP_OK = "PIQP_SOLVED"
 _OSQP_OK = "solved"
+# active-set guesses of the condensed QP: each one factorization; on these QPs 2-4 (a cycle ends here)
+_ACTIVE_SET_MAX_ITER = 30
 
 
 class HybridDynamics(Protocol):
@@ -218,8 +225,12 @@ def _blocks(n_knots: int) -> tuple[np.ndarray, np.ndarray]:
 class GeometricMpc:
     """The FTOCP of eq. 5.26 over ``params.horizon`` knots, solved in SQP fashion.
 
-    ``torque_limit`` [N m]: the input set ``U`` (a box). ``backend``: "osqp" or "piqp"
-    (default ``params.backend``).
+    ``torque_limit`` [N m]: the input set ``U`` (a box). ``backend``: "condensed", "piqp" or
+    "osqp" (default ``params.backend``). "condensed" eliminates the states through the
+    dynamics (``z = z_free + S u``, the dynamics' exact solution for any inputs) and solves the
+    dense QP on the inputs alone (:mod:`onboard.low_level.planning.box_qp`): 60 variables and
+    their box instead of 480 variables and 420 equalities. It has no general inequalities, so
+    with the tilt rows (``params.tilt_max_plan > 0``) the QP goes to PIQP.
     """
 
     def __init__(self, dynamics: HybridDynamics, params: GeometricMpcParams, torque_limit: float, backend: str | None = None) -> None:
@@ -228,8 +239,10 @@ class GeometricMpc:
         self.dyn = dynamics
         self.p = params
         self.backend = backend or params.backend
-        if self.backend not in ("osqp", "piqp"):
+        if self.backend not in ("osqp", "piqp", "condensed"):
             raise ValueError(f"unknown backend {self.backend!r}")
+        if self.backend == "condensed" and params.tilt_max_plan > 0.0:
+            self.backend = "piqp"
         self.limit = float(torque_limit)
         n, nz, nu = params.horizon, STATE_DIM, INPUT_DIM
         self.n = n
@@ -258,9 +271,24 @@ class GeometricMpc:
         self.u_lo = np.full(n * nu, -self.limit)
         self.u_hi = np.full(n * nu, self.limit)
         self._solver = None
+        # the flows' continuous linearization (eq. 5.23) per knot, discretized in one call
+        self._a_c, self._b_c = np.zeros((n, nz, nz)), np.zeros((n, nz, nu))
+        self._f, self._h = np.zeros((n, nz)), np.zeros(n)
         self._fill(np.zeros((n, nz, nz)), np.zeros((n, nz, nu)), np.zeros((n, nz)))
         self._build_tilt_rows()
         self._setup()
+        if self.backend == "condensed":
+            self._compile()
+
+    def _compile(self) -> None:
+        """One solve of a still robot in the air, its answer dropped: numba compiles the kernels
+        at their first call (seconds; loaded from its on-disk cache after), here rather than in
+        the first solve that counts."""
+        x = np.zeros(STATE_DIM + 1)
+        x[2], x[3] = 1.0, 1.0
+        p = self.p
+        knots = mode_schedule(FLIGHT, 2.0 * p.flight_step_s, p, 2.0 * p.flight_step_s, p.horizon * p.stance_step_s)
+        self.solve(x, knots, np.zeros((self.n + 1, STATE_DIM)))
 
     @staticmethod
     def state_weights(p: GeometricMpcParams) -> np.ndarray:
@@ -325,6 +353,8 @@ class GeometricMpc:
 
     def _setup(self) -> None:
         q = np.zeros(self.nvar)
+        if self.backend == "condensed":
+            return
         if self.backend == "osqp":
             # the input rows below the dynamics; in each column A_eq's entries come first, in
             # their own order, so they sit at the stacked matrix's rows < neq
@@ -387,52 +417,54 @@ class GeometricMpc:
         res = self._solver.result
         return (np.array(res.x) if status == _PIQP_OK else None), status, int(res.info.iter)
 
+    def _solve_condensed(self, z0: np.ndarray, knots: list[Knot], a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                         q_lin: np.ndarray) -> tuple[np.ndarray | None, str, int]:
+        """The same QP with the states eliminated: ``z = z_free + S u`` over the flow knots'
+        inputs (a jump's input is zero), ``S`` built knot by knot (``S_k+1 = A_k S_k + [B_k]``),
+        then ``min 1/2 u'(S'P_z S + P_u)u + (S'(P_z z_free + q_z))'u`` in the torque box."""
+        n, nz, nu = self.n, STATE_DIM, INPUT_DIM
+        flow = np.array([not knot.is_jump for knot in knots])
+        flows = np.flatnonzero(flow)
+        z_free, s_flat, h, g = gmpc_kernels.condense(a, b, c, z0, flow, self._p_diag[: self._u0], q_lin)
+        h[np.diag_indices(h.shape[0])] += self._p_diag[self._u0 :].reshape(n, nu)[flows].ravel()
+        lo = self.u_lo.reshape(n, nu)[flows].ravel()
+        hi = self.u_hi.reshape(n, nu)[flows].ravel()
+        res = box_qp.solve(h, g, lo, hi, self.p.eps, min(self.p.max_qp_iter, _ACTIVE_SET_MAX_ITER))
+        if res.status != box_qp.SOLVED:
+            return None, res.status, res.iterations
+        u = np.zeros((n, nu))
+        u[flows] = res.x.reshape(-1, nu)
+        z = z_free.ravel() + s_flat @ res.x
+        return np.concatenate([z, u.ravel()]), res.status, res.iterations
+
     # --- linearization -----------------------------------------------------------------------
 
-    def _linearize(self, knot: Knot, x: np.ndarray, z: np.ndarray, u: np.ndarray) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-        """A jump's ``(D, 0, E)`` (eq. 5.25), or a flow's augmented matrix ``[A B C; 0]``
-        (eq. 5.23, times the knot's duration) and two Nones to be exponentiated."""
-        nz, nu = STATE_DIM, INPUT_DIM
-        if knot.is_jump:
-            x_plus, d = self.dyn.jump(knot.kind, x)
-            z_plus = np.concatenate([z[:10], x_plus[11:]])  # the attitude does not jump
-            return d, np.zeros((nz, nu)), z_plus - d @ z
-        f, a, b = self.dyn.flow(knot.kind, x, u)
-        aug = np.zeros((nz + nu + 1, nz + nu + 1))
-        aug[:nz, :nz] = a * knot.h
-        aug[:nz, nz : nz + nu] = b * knot.h
-        aug[:nz, -1] = (f - a @ z - b @ u) * knot.h  # eq. 5.23's C
-        return None, aug, np.empty(0)
-
-    @staticmethod
-    def _exponentiate(aug: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(A_d, B_d, C_d)`` of eq. 5.24 from the matrix exponential of the augmented system
-        (exact for the affine model; batched over a leading axis)."""
-        nz, nu = STATE_DIM, INPUT_DIM
-        e = scipy.linalg.expm(aug)
-        return e[..., :nz, :nz], e[..., :nz, nz : nz + nu], e[..., :nz, -1]
-
     def _discretize_all(self, knots: list[Knot], q0, z_bar, u_bar, a, b, c, rollout: bool) -> bool:
-        """Fill ``a, b, c`` along ``(z_bar, u_bar)``; with ``rollout`` each knot's point is
-        the previous knot's prediction (sequential), else all flows exponentiate at once."""
-        flows, augs = [], []
+        """Fill ``a, b, c`` along ``(z_bar, u_bar)``: a jump's ``(D, 0, E)`` (eq. 5.25), a flow's
+        exact discretization of eq. 5.23 (eq. 5.24). With ``rollout`` each knot's point is the
+        previous knot's prediction (sequential), else all flows exponentiate in one compiled call."""
+        flows = []
+        a_c, b_c, f, h = self._a_c, self._b_c, self._f, self._h
         for k, knot in enumerate(knots):
             x_k = retract(z_bar[k], q0)
-            if not np.all(np.isfinite(x_k)):
+            if not np.isfinite(x_k).all():
                 return False
-            d, aug, e = self._linearize(knot, x_k, z_bar[k], u_bar[k])
-            if d is not None:
-                a[k], b[k], c[k] = d, aug, e
-            elif rollout:
-                a[k], b[k], c[k] = self._exponentiate(aug)
+            if knot.is_jump:
+                x_plus, d = self.dyn.jump(knot.kind, x_k)
+                z_plus = np.concatenate([z_bar[k, :10], x_plus[11:]])  # the attitude does not jump
+                a[k], b[k], c[k] = d, 0.0, z_plus - d @ z_bar[k]
+                if rollout:
+                    z_bar[k + 1] = z_plus
+                continue
+            f[k], a_c[k], b_c[k] = self.dyn.flow(knot.kind, x_k, u_bar[k])
+            h[k] = knot.h
+            if rollout:
+                gmpc_kernels.rollout_step(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k], z_bar[k + 1])
             else:
                 flows.append(k)
-                augs.append(aug)
-            if rollout:
-                z_bar[k + 1] = a[k] @ z_bar[k] + b[k] @ u_bar[k] + c[k]
         if flows:
-            a[flows], b[flows], c[flows] = self._exponentiate(np.array(augs))
-        return bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(c)))
+            gmpc_kernels.discretize_many(a_c, b_c, f, z_bar, u_bar, h, np.array(flows), a, b, c)
+        return bool(np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all())
 
     def solve(self, x0: np.ndarray, knots: list[Knot], z_ref: np.ndarray) -> GmpcSolution:
         """Solve from the measured manifold state ``x0`` (21) along ``knots`` toward ``z_ref``
@@ -468,9 +500,12 @@ class GeometricMpc:
             # the first linearization point: the linearized model's own rollout at zero torque
             if not self._discretize_all(knots, q0, z_bar, u_bar, a, b, c, rollout=it == 0):
                 return refuse("non-finite linearization", iters)
-            self._fill(a, b, c)
             self._set_start_and_bounds(z0, knots)
-            y, status, count = self._solve_qp(q_cost)
+            if self.backend == "condensed":
+                y, status, count = self._solve_condensed(z0, knots, a, b, c, q_lin)
+            else:
+                self._fill(a, b, c)
+                y, status, count = self._solve_qp(q_cost)
             iters.append(count)
             if y is None:
                 return refuse(status, iters)
@@ -478,7 +513,9 @@ class GeometricMpc:
                 return refuse("non-finite solution", iters)
             z_bar = y[: self._u0].reshape(n + 1, nz)
             u_bar = y[self._u0 :].reshape(n, nu)
-        resid = float(np.abs(self.A_eq @ y - self.b_eq).max())
+        # eq. 5.26a-c at the answer, whichever solver gave it: z_0 = z(t), z_k+1 = A z_k + B u_k + C
+        predicted = np.einsum("kij,kj->ki", a, z_bar[:-1]) + np.einsum("kij,kj->ki", b, u_bar) + c
+        resid = float(max(np.abs(z_bar[0] - z0).max(), np.abs(z_bar[1:] - predicted).max()))
         tol = self.p.residual_tol
         if resid > tol:
             return refuse(f"dynamics residual {resid:.2e}", iters, resid)
