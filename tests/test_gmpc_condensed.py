@@ -16,7 +16,7 @@ from onboard.contracts.params import GMPC_THESIS_KNOTS, GeometricMpcParams, with
 from onboard.low_level.planning import box_qp, gmpc_kernels
 from onboard.low_level.planning import geometric_mpc as gm
 from robot_description.hopper_dynamics import HopperDynamics, stance_half_period
-from tests.test_geometric_mpc import VARIANT, _problem, _qp_objective, _qp_point
+from test_geometric_mpc import VARIANT, _problem, _qp_objective, _qp_point
 
 COST_AGREEMENT_EPS = 10  # relative solver tolerances, as between OSQP and PIQP (tests/test_geometric_mpc.py)
 

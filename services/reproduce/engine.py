@@ -179,6 +179,8 @@ def run_one(spec: dict) -> dict:
         result = runner.run()
         if clock is not None:
             record["planner_timing"] = clock.summary()
+            if graph.graph is not None:  # what the timings were taken on
+                record["planner_timing"].update(graph_nodes=int(graph.graph.n_nodes), graph_edges=int(graph.graph.n_edges))
         record["report"] = result.metrics
         record["target"] = list(runner.scenario.target())
         record["end_com"] = list(result.trace.com[-1]) if result.trace.com else None  # where a fall ended the run

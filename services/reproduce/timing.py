@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from services.reproduce.engine import Context
-from services.reproduce.items import ItemResult, Row, item, verdict
+from services.reproduce.items import MEASURED, ItemResult, Row, item, verdict
 
 THESIS_GMPC_RATE_HZ = 100.0  # line 2235 and Table 5.3: solved at 100 Hz
 THESIS_GMPC_P99_MS = 5.0  # the issue's margin at that rate (half the period, on one core)
@@ -32,24 +32,43 @@ def _gmpc_args(**changes: Any) -> argparse.Namespace:
     return args
 
 
-@item("table5.3", "The geometric MPC: horizon, knots, and its solve time at 100 Hz", "§5.3, Table 5.3, lines 2235-2265",
-      "The geometric MPC (horizon 20, two SQP iterations) solves at 100 Hz.")
+@item("table5.3", "The geometric MPC at Table 5.3's settings: horizon, knots, and its solve time at 100 Hz",
+      "§5.3, Table 5.3, lines 2219-2265",
+      "The geometric MPC (horizon 20, two SQP iterations, knots of 0.01 s in flight and 0.001 s in stance) solves at 100 Hz.")
 def table_5_3(ctx: Context) -> ItemResult:
+    from onboard.contracts.params.low_level import GMPC_THESIS_KNOTS
     from services.bench import gmpc as bench
 
     duration = 2.0 if ctx.quick else 10.0
     load_before = _load()
-    res = bench.measure(_gmpc_args(duration=duration))
-    p50, p99 = res["solve_ms_p50"], res["solve_ms_p99"]
-    rows = [Row("horizon (knots) and SQP iterations", "20 and 2 (Table 5.3)", f"{res['horizon']} and {res['sqp_iterations']}",
-                verdict(res["horizon"] == 20 and res["sqp_iterations"] == 2)),
-            Row("solve time, every attempt, p50 / p99", f"fits 100 Hz (p99 <= {THESIS_GMPC_P99_MS} ms asked)",
-                f"{p50:.1f} / {p99:.1f} ms (CPU p50 {res['solve_cpu_ms_p50']:.1f} ms)", verdict(p99 <= THESIS_GMPC_P99_MS)),
-            Row("rate one core sustains at the p99", f"{THESIS_GMPC_RATE_HZ:.0f} Hz", f"{res['rate_hz_at_p99']:.0f} Hz",
-                verdict(res["rate_hz_at_p99"] >= THESIS_GMPC_RATE_HZ))]
-    notes = [f"archer bench gmpc --duration {duration} (scenario {res['scenario']}, variant {res['variant']}, backend "
-             f"{res['backend']}, {res['variables']} variables, {res['solves']} solves); load average before {load_before}, "
-             f"after {_load()}. Full result: {res}."]
+    thesis = bench.measure(_gmpc_args(duration=duration, thesis_settings=True, shadow=True))
+    stack = bench.measure(_gmpc_args(duration=duration))
+    closed = bench.measure(_gmpc_args(duration=duration, thesis_settings=True))
+    load_after = _load()
+
+    def times(res: dict) -> str:
+        return (f"CPU p50 / p99 {res['solve_cpu_ms_p50']:.2f} / {res['solve_cpu_ms_p99']:.2f} ms; wall {res['solve_ms_p50']:.1f} / "
+                f"{res['solve_ms_p99']:.1f} ms ({res['solves']} solves, backend {res['backend']})")
+
+    rows = [Row("horizon, SQP iterations and knots", "20, 2, 0.01 s flight, 0.001 s stance (Table 5.3)",
+                f"{thesis['horizon']}, {thesis['sqp_iterations']}, {GMPC_THESIS_KNOTS['flight_step_s']} s, "
+                f"{GMPC_THESIS_KNOTS['stance_step_s']} s (GMPC_THESIS_KNOTS)",
+                verdict(thesis["horizon"] == 20 and thesis["sqp_iterations"] == 2)),
+            Row("solve time at the thesis's knots, every attempt", f"fits 100 Hz (p99 <= {THESIS_GMPC_P99_MS:g} ms asked)",
+                times(thesis), verdict(thesis["solve_ms_p99"] <= THESIS_GMPC_P99_MS)),
+            Row("solve time at the stack's knots (0.04 s flight, 0.01 s stance), every attempt", "-", times(stack), MEASURED),
+            Row("closed loop at the thesis's knots (square, 15 N m wheels)", "tracks (Fig. 5.12)",
+                f"falls: {closed['falls']} in {duration:g} s" + ("" if not closed["falls"] else " (see the note)"),
+                verdict(closed["falls"] == 0))]
+    notes = [f"archer bench gmpc --duration {duration:g} --thesis-settings --shadow (the thesis-knot MPC timed on the states of a "
+             "run the stack's knots drive), then without --thesis-settings, then --thesis-settings in closed loop; scenario "
+             f"square, variant sim15nm. Load average before {load_before}, after {load_after}: on a shared 2-core machine the "
+             "wall time includes waiting for a core, the CPU time is the solve's own.",
+             "With 20 knots the thesis's 0.01 s flight and 0.001 s stance knots see 0.2 s of a 0.31 s flight and 20 ms of a 68 ms "
+             "stance: on the twin the robot falls within 2 s with either QP solver (the same fall times and tracking to four "
+             "digits), so the cause is the horizon those knots span, not the solver; the stack keeps 0.04 s / 0.01 s knots "
+             "(README, Geometric MPC).",
+             f"Full results: thesis knots {thesis}; stack knots {stack}."]
     return ItemResult(rows, [], notes)
 
 
