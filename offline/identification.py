@@ -13,13 +13,17 @@ stated uncertainty added in quadrature:
   differentiated: ``J (Delta w + a.Delta omega) = k int tau - b Delta theta - c int sign(w)``.
   Gives the torque constant ``k`` (relative to the nominal 1), the viscous drag ``b``
   [N m s/rad] and the Coulomb friction ``c`` [N m]. All three scale with ``J``: its relative
-  uncertainty (``wheel_inertia_sigma``, what the spin-down test states) is added.
+  uncertainty (``wheel_inertia_sigma``, what the spin-down test states) is added. A delay ``d``
+  of the drives (beyond the stack's own tick) enters to first order as ``-k d Delta tau``: fitted
+  too, it gives ``actuator_delay``.
 - **balance point** (touchdowns): the robot stands where its foot lands under its CoM; at each
   touchdown the horizontal world offset of the true CoM from the foot's sphere centre,
   ``R (c_nom + d - p_foot)``, is a neutral-point term ``a v`` (Raibert; ``v`` the CoM's horizontal
   velocity). Linear in the CoM's offset from the spine ``d = (d_x, d_y)`` [m, body frame] and
-  ``a``. The attitude is the IMU's: a mount error ``e`` reads as ``L e`` of CoM offset
-  (``imu_mount_sigma``, what the mount calibration states, added as ``L`` x it).
+  ``a``. Without motion capture the attitude is the IMU's: a mount error ``e`` reads as ``L e``
+  of CoM offset (``imu_mount_sigma``, what the mount calibration states, added as ``L`` x it);
+  with it (``pose`` recorded) the estimate's attitude is the markers'. The touchdown model's own
+  error (``com_model_sigma``, measured on single-factor twins) is added too.
 
 Pure: numpy only, no I/O; the command (``services/cli/identify.py``) reads the recording.
 Frames: body = torso frame; world z up. SI units.
@@ -58,6 +62,9 @@ class IdentifyOptions:
     wheel_torque_max: float = 1.5  # [N m] the safety clamp the command went through (SafetyLimits)
     wheel_inertia_sigma: float = 0.03  # relative 1-sigma of the MJCF's wheel spin inertia (spin-down test)
     imu_mount_sigma: float = 0.0035  # [rad] 1-sigma of the IMU mount per axis (level-plate calibration)
+    # [m] the balance-point model's own error, added to the CoM offset's: single-factor twins (seed 0,
+    # 3 mm offset) read 0.13-0.19 mm off the truth, 0.33 mm with 2 ms of pose latency
+    com_model_sigma: float = 0.0003
     min_windows: int = 30  # per wheel
     min_touchdowns: int = 10
 
@@ -94,6 +101,7 @@ class Series:
     quat: np.ndarray  # (q, 4) body -> world [w, x, y, z]
     velocity: np.ndarray  # (q, 3) CoM velocity [m/s]
     t_touchdown: np.ndarray  # (r,)
+    has_pose: bool = False  # motion capture recorded: the estimate's attitude is the markers', not the IMU mount's
 
 
 def series_from_messages(by_topic: dict[str, Sequence]) -> Series:
@@ -119,6 +127,7 @@ def series_from_messages(by_topic: dict[str, Sequence]) -> Series:
         quat=np.array([s.quat for s in states], dtype=float),
         velocity=np.array([s.velocity for s in states], dtype=float),
         t_touchdown=_seconds(stamps(touchdowns)),
+        has_pose=bool(by_topic.get("pose")),
     )
     for name in ("wheel_pos", "wheel_vel", "gyro", "wheel_torque", "quat", "velocity"):
         if not np.all(np.isfinite(getattr(out, name))):
@@ -157,8 +166,13 @@ def least_squares(a: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 
 
 def wheel_regression(s: Series, robot: RobotParams, wheel: int, opt: IdentifyOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Rows ``[int tau, -Delta theta, -int sign(w)]`` and ``Delta w + a.Delta omega`` (times J by the
-    caller), one per window of ``opt.window_s`` after ``opt.settle_s``."""
+    """Rows ``[int tau, -Delta tau, -Delta theta, -int sign(w)]`` and ``Delta w + a.Delta omega``
+    (times J by the caller), one per window of ``opt.window_s`` after ``opt.settle_s``.
+
+    ``-Delta tau`` (the command acting just before each end) is a delay's first-order term: a
+    command reaching the motor ``d`` late integrates to ``int tau - d Delta tau``, so its
+    coefficient is ``k d``. Left out, a millisecond of drive delay biased the yaw wheel's
+    viscous and Coulomb terms by 4 sigma (the dither's torque changes correlate with the speed)."""
     t = s.t_joints
     t0 = min(s.t_state[0] if len(s.t_state) else t[0], t[0]) + opt.settle_s
     axis = np.asarray(robot.wheel_axes[wheel], dtype=float)
@@ -183,17 +197,20 @@ def wheel_regression(s: Series, robot: RobotParams, wheel: int, opt: IdentifyOpt
             clamped = np.any(np.abs(tau[max(ca - 1, 0):cb]) >= limit)
             if not clamped:
                 i_tau = float(np.interp(tb, s.t_cmd, cum_tau) - np.interp(ta, s.t_cmd, cum_tau))
-                rows.append((i_tau, -(theta[end] - theta[start]), -(cum_sign[end] - cum_sign[start])))
+                d_tau = tau[cb - 1] - tau[max(ca - 1, 0)]  # the commands acting just before tb and ta
+                rows.append((i_tau, -d_tau, -(theta[end] - theta[start]), -(cum_sign[end] - cum_sign[start])))
                 ys.append((w[end] - w[start]) + (omega_axis[end] - omega_axis[start]))
         start = end + 1  # endpoints not shared: each window's speed noise its own
-    return np.array(rows, dtype=float).reshape(-1, 3), np.array(ys, dtype=float)
+    return np.array(rows, dtype=float).reshape(-1, 4), np.array(ys, dtype=float)
 
 
 def fit_wheels(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOptions()) -> tuple[dict[str, list[Estimate]], int]:
-    """Per wheel: ``wheel_torque_constant`` (k - 1), ``wheel_viscous``, ``wheel_coulomb``."""
+    """Per wheel: ``wheel_torque_constant`` (k - 1), ``wheel_viscous``, ``wheel_coulomb``; and the
+    drives' ``actuator_delay`` [s], the three wheels' estimates combined (inverse-variance)."""
     j = robot.wheel_spin_inertia
     out: dict[str, list[Estimate]] = {"wheel_torque_constant": [], "wheel_viscous": [], "wheel_coulomb": []}
     fewest = 1 << 30
+    delays: list[tuple[float, float]] = []
     for wheel in range(3):
         a, y = wheel_regression(s, robot, wheel, opt)
         if len(y) < opt.min_windows:
@@ -203,10 +220,13 @@ def fit_wheels(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOpt
         x, cov, _ = least_squares(a, j * y)
         sd = np.sqrt(np.diag(cov))
         js = opt.wheel_inertia_sigma  # each value is J times what the window sees: J's own error scales it
-        k, b, c = x
+        k, kd, b, c = x
+        delays.append((kd / k, sd[1] / abs(k)))  # the delay is a ratio of two J-scaled values: J cancels
         out["wheel_torque_constant"].append(Estimate(k - 1.0, math.hypot(sd[0], js * k), ""))
-        out["wheel_viscous"].append(Estimate(b, math.hypot(sd[1], js * b), "N m s/rad"))
-        out["wheel_coulomb"].append(Estimate(c, math.hypot(sd[2], js * c), "N m"))
+        out["wheel_viscous"].append(Estimate(b, math.hypot(sd[2], js * b), "N m s/rad"))
+        out["wheel_coulomb"].append(Estimate(c, math.hypot(sd[3], js * c), "N m"))
+    w = np.array([1.0 / sd_d ** 2 for _, sd_d in delays])
+    out["actuator_delay"] = [Estimate(float(np.sum(w * [d for d, _ in delays]) / np.sum(w)), float(1.0 / math.sqrt(np.sum(w))), "s")]
     return out, fewest
 
 
@@ -241,10 +261,12 @@ def fit_com_offset(s: Series, robot: RobotParams, opt: IdentifyOptions = Identif
             rows.append((rot[ax, 0], rot[ax, 1], -v[ax]))
             ys.append(-r[ax])
     x, cov, _ = least_squares(np.array(rows), np.array(ys))
-    mount = (robot.com_offset_body[2] + lever) * opt.imu_mount_sigma  # a mount error e reads as L e of offset
+    # a mount error e reads as L e of offset, unless motion capture gives the estimate its attitude
+    mount = 0.0 if s.has_pose else (robot.com_offset_body[2] + lever) * opt.imu_mount_sigma
     sd = np.sqrt(np.diag(cov))
-    return {"com_x": [Estimate(float(x[0]), math.hypot(sd[0], mount), "m")],
-            "com_y": [Estimate(float(x[1]), math.hypot(sd[1], mount), "m")]}, len(tds)
+    floor = math.hypot(mount, opt.com_model_sigma)
+    return {"com_x": [Estimate(float(x[0]), math.hypot(sd[0], floor), "m")],
+            "com_y": [Estimate(float(x[1]), math.hypot(sd[1], floor), "m")]}, len(tds)
 
 
 def identify(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOptions()) -> Identified:
