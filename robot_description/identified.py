@@ -22,6 +22,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from robot_description import params as rd
 from robot_description.params import RobotParams
 
 SECTION = "identified"
@@ -76,6 +77,13 @@ def load(path: str | Path) -> dict[str, Parameter]:
             raise ValueError(f"{path}: [{SECTION}.{name}] needs finite value and sigma of the same length")
         out[name] = Parameter(tuple(float(v) for v in values), tuple(float(v) for v in sigmas), str(entry.get("unit", "")))
     return out
+
+
+def robot_params(variant: str, path: str = "") -> RobotParams:
+    """The variant's parameters, as identified in ``path`` ("": the MJCF's): what the estimator reads
+    (``[estimator] identified``)."""
+    robot = rd.robot_params(variant)
+    return apply(robot, load(path)) if path else robot
 
 
 def apply(robot: RobotParams, params: dict[str, Parameter]) -> RobotParams:

@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--first-seed", type=int, default=0, help="--validate: seeds first..first+N-1")
     parser.add_argument("--duration", type=float, default=20.0, help="--validate: routine length [s]")
     parser.add_argument("--estimator", choices=("kalman", "truth"), default="kalman", help="--validate: the stack's estimator")
+    parser.add_argument("--tracking", default="", metavar="SCENARIO,...",
+                        help="--validate: also run these scenarios per seed on the nominal twin, on the drawn twin with the "
+                             "nominal stack, and on it with the identified estimator ([estimator] identified)")
     parser.add_argument("--json", action="store_true", help="print one JSON object (last stdout line)")
 
 
@@ -117,6 +120,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tracking_summary(values: dict[str, list]) -> dict:
+    """Means over the seeds (RMS tracking, goal error), total falls."""
+    def mean(k: str) -> float:
+        vs = [v for v in values.get(k, []) if v is not None]
+        return float(np.mean(vs)) if vs else math.nan
+    return {"rms_tracking_error_m": mean("rms_tracking_error_m"), "final_goal_error_m": mean("final_goal_error_m"),
+            "falls": int(sum(int(v or 0) for v in values.get("falls", [])))}
+
+
 # --- validation on twins with hidden drawn errors -------------------------------------------------
 
 
@@ -154,7 +166,33 @@ def identify_twin(seed: int, profile: str | None, args: argparse.Namespace, reco
     return result, truth_of(runner, robot), res.metrics
 
 
+TRACKING_ARMS = ("nominal", "drawn", "identified")
+TRACKING_METRICS = ("rms_tracking_error_m", "final_goal_error_m", "falls")
+
+
+def tracking(seed: int, scenario: str, profile: str, result: idf.Identified, args: argparse.Namespace, tmp: Path) -> dict:
+    """The scenario on the nominal twin, on the drawn twin with the nominal stack, and on it with the identified estimator."""
+    from onboard.contracts.params import EstimatorParams, with_overrides
+    from sim_twin import lockstep as ls
+
+    path = tmp / f"identified_{seed}.toml"
+    path.write_text(ident.dumps(as_parameters(result), {"variant": args.variant, "seed": seed}))
+    out = {}
+    for arm in TRACKING_ARMS:
+        cfg = ls.RunConfig(scenario=scenario, seed=seed, variant=args.variant, estimator=args.estimator,
+                           model_error=None if arm == "nominal" else profile,
+                           estimator_params=with_overrides(EstimatorParams(), {"identified": str(path)}) if arm == "identified" else None)
+        metrics = ls.run(cfg).metrics
+        out[arm] = {k: metrics.get(k) for k in TRACKING_METRICS}
+    return out
+
+
 def validate(args: argparse.Namespace) -> int:
+    import tempfile
+
+    scenarios = [s for s in args.tracking.split(",") if s]
+    tmp = Path(tempfile.mkdtemp(prefix="archer_identify_"))
+    track: dict[str, dict[str, dict[str, list]]] = {s: {a: defaultdict(list) for a in TRACKING_ARMS} for s in scenarios}
     rows: list[dict] = []
     z: dict[str, list[float]] = defaultdict(list)  # (identified - truth) / sigma
     err: dict[str, list[float]] = defaultdict(list)
@@ -168,6 +206,11 @@ def validate(args: argparse.Namespace) -> int:
             print(f"seed {seed}: {exc}", file=sys.stderr)
             continue
         row = {"seed": seed, "falls": metrics.get("falls"), "identified": report(result), "truth": truth}
+        for scenario in scenarios:
+            row[scenario] = tracking(seed, scenario, args.profile, result, args, tmp)
+            for arm, vals in row[scenario].items():
+                for k, v in vals.items():
+                    track[scenario][arm][k].append(v)
         rows.append(row)
         for name in PARAM_ORDER:
             for e, t in zip(result.params[name], truth[name]):
@@ -175,7 +218,8 @@ def validate(args: argparse.Namespace) -> int:
                 err[name].append(abs(e.value - t))
                 sig[name].append(e.sigma)
         if not args.json:
-            print(json.dumps({"seed": seed, **{n: [round(v, 2) for v in z[n][-len(truth[n]):]] for n in PARAM_ORDER}}), flush=True)
+            print(json.dumps({"seed": seed, **{n: [round(v, 2) for v in z[n][-len(truth[n]):]] for n in PARAM_ORDER},
+                              **{s: row[s] for s in scenarios}}), flush=True)
     summary = {}
     for name in PARAM_ORDER:
         zs = np.abs(np.array(z[name]))
@@ -185,7 +229,8 @@ def validate(args: argparse.Namespace) -> int:
                          "within_1sigma": float(np.mean(zs <= 1.0)), "within_2sigma": float(np.mean(zs <= 2.0)),
                          "max_abs_z": float(np.max(zs))}
     out = {"profile": args.profile, "seeds": args.validate, "estimator": args.estimator, "duration_s": args.duration,
-           "failed": failed, "falls": sum(int(r["falls"] or 0) for r in rows), "summary": summary}
+           "failed": failed, "falls": sum(int(r["falls"] or 0) for r in rows), "summary": summary,
+           "tracking": {s: {a: _tracking_summary(v) for a, v in arms.items()} for s, arms in track.items()}}
     if args.json:
         print(json.dumps(out))
     else:
@@ -194,4 +239,9 @@ def validate(args: argparse.Namespace) -> int:
         for name, s in summary.items():
             print(f"{name:24s} {s['n']:3d} {s['mean_abs_error']:11.3g} {s['mean_sigma']:11.3g} {s['within_1sigma']:9.0%} "
                   f"{s['within_2sigma']:9.0%} {s['max_abs_z']:8.2f}")
+        for scenario, arms in out["tracking"].items():
+            print(f"\n{scenario}: {'twin / stack':28s} {'RMS tracking':>13s} {'goal error':>11s} {'falls':>6s}")
+            for arm, s in arms.items():
+                label = {"nominal": "nominal / nominal", "drawn": f"{args.profile} / nominal", "identified": f"{args.profile} / identified"}[arm]
+                print(f"{'':{len(scenario) + 1}s} {label:28s} {s['rms_tracking_error_m']:13.4f} {s['final_goal_error_m']:11.4f} {s['falls']:6d}")
     return 0 if not failed and math.isfinite(sum(len(v) for v in z.values())) else 1
