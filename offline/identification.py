@@ -193,11 +193,11 @@ def wheel_regression(s: Series, robot: RobotParams, wheel: int, opt: IdentifyOpt
             break
         ta, tb = t[start], t[end]
         if ta >= s.t_cmd[0] and tb <= s.t_cmd[-1]:
-            ca, cb = np.searchsorted(s.t_cmd, [ta, tb], side="right")
-            clamped = np.any(np.abs(tau[max(ca - 1, 0):cb]) >= limit)
+            ca, cb = np.searchsorted(s.t_cmd, [ta, tb], side="left") - 1  # the commands acting just before ta and tb
+            clamped = np.any(np.abs(tau[max(ca, 0):cb + 1]) >= limit)
             if not clamped:
                 i_tau = float(np.interp(tb, s.t_cmd, cum_tau) - np.interp(ta, s.t_cmd, cum_tau))
-                d_tau = tau[cb - 1] - tau[max(ca - 1, 0)]  # the commands acting just before tb and ta
+                d_tau = tau[cb] - tau[max(ca, 0)]
                 rows.append((i_tau, -d_tau, -(theta[end] - theta[start]), -(cum_sign[end] - cum_sign[start])))
                 ys.append((w[end] - w[start]) + (omega_axis[end] - omega_axis[start]))
         start = end + 1  # endpoints not shared: each window's speed noise its own
