@@ -17,8 +17,9 @@ lockstep runner (and the real-time twin) apply that draw:
 A profile is a TOML file, ``[factors]`` with one entry per factor: a number (that value, every
 seed: a one-factor sweep) or a table ``{mean = M, spread = S, dist = "uniform" | "normal"}``
 (uniform: M +- S; normal: std S), or a list of fixed values, one per draw (per wheel: what
-``archer identify`` writes, beside an ``[identified]`` table this module ignores). Relative factors (kind ``rel``) are fractions of the MJCF's value
-(0.1: +10 %), absolute ones are in the factor's unit. Shipped profiles live in
+``archer identify`` writes, beside an ``[identified]`` table this module ignores). Relative
+factors (kind ``rel``) are fractions of the MJCF's value (0.1: +10 %), absolute ones are in the
+factor's unit. Shipped profiles live in
 ``sim_twin/model_errors/NAME.toml``; ``--model-error`` also takes a path or an inline list
 ``name=value;name=value``.
 """
