@@ -146,3 +146,18 @@ def test_bad_recordings_get_a_clear_error(tmp_path, capsys) -> None:
     short = idf.series_from_messages({**good, "joints": [_joints(i * 1_000_000) for i in range(1, 200)]})
     with pytest.raises(idf.IdentificationError, match="usable windows"):
         idf.identify(short, rd.robot_params())
+
+
+def test_routine_excitation_is_bounded_and_the_profile_reads_per_wheel_values(tmp_path) -> None:
+    from onboard.low_level.tracking.excitation import heading_swing, wheel_dither
+
+    t = np.linspace(0.0, 20.0, 20001)
+    dither = np.array([wheel_dither(x, 0.2) for x in t])
+    assert np.all(np.abs(dither) <= 0.2 + 1e-12) and np.all(np.abs(dither).max(axis=0) > 0.15)
+    assert abs(heading_swing(1.25, 0.5, 5.0) - 0.5) < 1e-12 and heading_swing(3.0, 0.5, 0.0) == 0.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[factors]\nwheel_viscous = [0.001, 0.002]\n")
+    with pytest.raises(ValueError, match="a list of 3 numbers"):
+        me.load_profile(str(bad))
+    with pytest.raises(ValueError, match="no \\[identified\\] table"):
+        ident.load(bad)
