@@ -31,6 +31,7 @@ Frames: body = torso frame; world z up. SI units.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -65,6 +66,9 @@ class IdentifyOptions:
     # [m] the balance-point model's own error, added to the CoM offset's: single-factor twins (seed 0,
     # 3 mm offset) read 0.13-0.19 mm off the truth, 0.33 mm with 2 ms of pose latency
     com_model_sigma: float = 0.0003
+    sprung_mass_sigma: float = 0.01  # relative 1-sigma of the MJCF's sprung mass (weighed)
+    cable_slack_min: float = 0.002  # [m] spring fit: the cable this slack at least (its stretch and the spool's play)
+    min_stance_samples: int = 500
     min_windows: int = 30  # per wheel
     min_touchdowns: int = 10
 
@@ -102,9 +106,15 @@ class Series:
     velocity: np.ndarray  # (q, 3) CoM velocity [m/s]
     t_touchdown: np.ndarray  # (r,)
     has_pose: bool = False  # motion capture recorded: the estimate's attitude is the markers', not the IMU mount's
+    # the spring fit's (None: not recorded, or no foot sensor): at the joints' stamps
+    foot_pos: np.ndarray | None = None  # (n,) compression [m]
+    foot_vel: np.ndarray | None = None  # (n,) compression rate [m/s]
+    cable_slack: np.ndarray | None = None  # (n,) foot_pos - r * spool angle [m]: > 0, the cable is slack
+    foot_contact: np.ndarray | None = None  # (n,) bool
+    accel: np.ndarray | None = None  # (m, 3) specific force at the IMU, body frame [m/s^2], at t_imu
 
 
-def series_from_messages(by_topic: dict[str, Sequence]) -> Series:
+def series_from_messages(by_topic: dict[str, Sequence], spool_radius: float = 0.015) -> Series:
     """Arrays from decoded messages by topic name (each message's own ``stamp_ns``)."""
     missing = [t for t in REQUIRED_TOPICS if not by_topic.get(t) and t != "phase"]
     if missing:
@@ -129,8 +139,14 @@ def series_from_messages(by_topic: dict[str, Sequence]) -> Series:
         t_touchdown=_seconds(stamps(touchdowns)),
         has_pose=bool(by_topic.get("pose")),
     )
-    for name in ("wheel_pos", "wheel_vel", "gyro", "wheel_torque", "quat", "velocity"):
-        if not np.all(np.isfinite(getattr(out, name))):
+    sensed = [j for j in joints if j.foot_sensed]
+    if len(sensed) == len(joints) and all(s.accel_sensed for s in imu):
+        out = dataclasses.replace(
+            out, foot_pos=np.array([j.foot_pos for j in joints]), foot_vel=np.array([j.foot_vel for j in joints]),
+            cable_slack=np.array([j.foot_pos for j in joints]) - spool_radius * np.array([j.foot_motor_pos for j in joints]),
+            foot_contact=np.array([j.foot_contact for j in joints]), accel=np.array([s.accel for s in imu], dtype=float))
+    for name in ("wheel_pos", "wheel_vel", "gyro", "wheel_torque", "quat", "velocity", "foot_pos", "foot_vel", "accel"):
+        if getattr(out, name) is not None and not np.all(np.isfinite(getattr(out, name))):
             raise IdentificationError(f"recording: non-finite {name} samples")
     return out
 
@@ -269,6 +285,31 @@ def fit_com_offset(s: Series, robot: RobotParams, opt: IdentifyOptions = Identif
             "com_y": [Estimate(float(x[1]), math.hypot(sd[1], floor), "m")]}, len(tds)
 
 
+def fit_spring(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOptions()) -> tuple[dict[str, list[Estimate]], int]:
+    """``spring_stiffness`` (relative to the MJCF's), from stance samples with the cable slack: the
+    sprung body's specific force along the spine is the spring's push, ``m_s f_z = k x + c xdot + f_0``
+    (``f_0``: the accelerometer's bias). The damping ``c`` is fitted but not reported: a time offset
+    ``d`` between the accelerometer and the foot encoder reads as ``-k d`` of damping (the twin's
+    accelerometer lags its encoders by a physics step or two: ``c`` came out -11.6 N s/m with none
+    drawn, k x 1 ms), and no routine here separates the two."""
+    assert s.foot_pos is not None and s.foot_vel is not None and s.cable_slack is not None
+    assert s.foot_contact is not None and s.accel is not None
+    t = s.t_joints
+    t0 = (s.t_state[0] if len(s.t_state) else t[0]) + opt.settle_s
+    fz = np.interp(t, s.t_imu, s.accel[:, 2])
+    use = (t >= t0) & s.foot_contact & (s.cable_slack > opt.cable_slack_min) & (s.foot_pos < 0.95 * robot.foot_travel)
+    n = int(np.count_nonzero(use))
+    if n < opt.min_stance_samples:
+        raise IdentificationError(f"{n} stance samples with the cable slack (needs {opt.min_stance_samples})")
+    a = np.column_stack((s.foot_pos[use], s.foot_vel[use], np.ones(n)))
+    x, cov, _ = least_squares(a, robot.sprung_mass * fz[use])
+    sd = np.sqrt(np.diag(cov))
+    k0 = robot.spring_stiffness
+    ms = opt.sprung_mass_sigma  # both scale with the sprung mass the force is computed from
+    k_rel = x[0] / k0
+    return {"spring_stiffness": [Estimate(k_rel - 1.0, math.hypot(sd[0] / k0, ms * k_rel), "")]}, n
+
+
 def identify(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOptions()) -> Identified:
     """Every fit on one recording."""
     out = Identified()
@@ -277,4 +318,8 @@ def identify(s: Series, robot: RobotParams, opt: IdentifyOptions = IdentifyOptio
     out.params.update(com)
     out.params.update(wheels)
     out.counts = {"wheel_windows": n_windows, "touchdowns": n_td}
+    if s.foot_pos is not None:
+        spring, n_stance = fit_spring(s, robot, opt)
+        out.params.update(spring)
+        out.counts["stance_samples"] = n_stance
     return out

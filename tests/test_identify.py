@@ -102,6 +102,7 @@ def test_identify_end_to_end_on_a_lockstep_recording(tmp_path, capsys) -> None:
         assert abs(v - 0.001) <= 2.0 * s and s < 3e-4
     for v, s in zip(got["wheel_torque_constant"]["value"], got["wheel_torque_constant"]["sigma"]):
         assert abs(v) <= 2.0 * s
+    assert abs(got["spring_stiffness"]["value"][0]) <= 2.0 * got["spring_stiffness"]["sigma"][0] < 0.03  # none drawn
     params = ident.load(out)
     robot = ident.apply(rd.robot_params(), params)
     assert robot.com_offset_body[0] - rd.robot_params().com_offset_body[0] == pytest.approx(got["com_x"]["value"][0], abs=1e-6)

@@ -27,7 +27,7 @@ from offline import identification as idf
 from robot_description import identified as ident
 from robot_description import params as rd
 
-PARAM_ORDER = ("com_x", "com_y", "wheel_torque_constant", "wheel_viscous", "wheel_coulomb", "actuator_delay")
+PARAM_ORDER = ("com_x", "com_y", "wheel_torque_constant", "wheel_viscous", "wheel_coulomb", "actuator_delay", "spring_stiffness")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"IMU mount 1-sigma [rad], added to the CoM offset's as lever x it (default {d.imu_mount_sigma})")
     parser.add_argument("--com-model-sigma", type=float, default=d.com_model_sigma,
                         help=f"the balance-point model's own error [m], added to the CoM offset's (default {d.com_model_sigma})")
+    parser.add_argument("--sprung-mass-sigma", type=float, default=d.sprung_mass_sigma,
+                        help=f"relative 1-sigma of the MJCF's sprung mass, added to the spring stiffness's (default {d.sprung_mass_sigma})")
     parser.add_argument("--validate", type=int, default=None, metavar="N", help="identify N twins with hidden drawn errors instead")
     parser.add_argument("--profile", default="calibrated", help="--validate: the model-error profile drawn per seed")
     parser.add_argument("--first-seed", type=int, default=0, help="--validate: seeds first..first+N-1")
@@ -60,6 +62,7 @@ def options(args: argparse.Namespace) -> idf.IdentifyOptions:
     robot = rd.robot_params(args.variant)
     return idf.IdentifyOptions(window_s=args.window, settle_s=args.settle, wheel_inertia_sigma=args.wheel_inertia_sigma,
                                imu_mount_sigma=args.imu_mount_sigma, com_model_sigma=args.com_model_sigma,
+                               sprung_mass_sigma=args.sprung_mass_sigma,
                                wheel_torque_max=min(rd.safety_limits_for(SafetyLimits(), robot).wheel_torque_max, robot.wheel_torque_peak))
 
 
@@ -100,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     robot = rd.robot_params(args.variant)
     try:
-        series = idf.series_from_messages(read_recording(args.recording))
+        series = idf.series_from_messages(read_recording(args.recording), robot.spool_radius)
         result = idf.identify(series, robot, options(args))
     except idf.IdentificationError as exc:
         print(f"archer identify: {exc}", file=sys.stderr)
@@ -145,6 +148,7 @@ def truth_of(runner, robot: rd.RobotParams) -> dict[str, list[float]]:
         "wheel_viscous": [max(0.0, draw.get("wheel_viscous", i)) for i in range(3)],
         "wheel_coulomb": [max(0.0, draw.get("wheel_coulomb", i)) for i in range(3)],
         "actuator_delay": [runner.delay_ticks * runner.tick_ns / 1e9],  # the runner queues whole ticks
+        "spring_stiffness": [max(me.REL_FLOOR, draw.get("spring_stiffness"))],
     }
 
 
@@ -162,7 +166,7 @@ def identify_twin(seed: int, profile: str | None, args: argparse.Namespace, reco
     for topic, _, msg in res.messages:
         by_topic[topic].append(msg)
     robot = rd.robot_params(args.variant)
-    result = idf.identify(idf.series_from_messages(by_topic), robot, options(args))
+    result = idf.identify(idf.series_from_messages(by_topic, robot.spool_radius), robot, options(args))
     return result, truth_of(runner, robot), res.metrics
 
 
@@ -213,12 +217,12 @@ def validate(args: argparse.Namespace) -> int:
                     track[scenario][arm][k].append(v)
         rows.append(row)
         for name in PARAM_ORDER:
-            for e, t in zip(result.params[name], truth[name]):
+            for e, t in zip(result.params.get(name, ()), truth[name]):
                 z[name].append((e.value - t) / e.sigma)
                 err[name].append(abs(e.value - t))
                 sig[name].append(e.sigma)
         if not args.json:
-            print(json.dumps({"seed": seed, **{n: [round(v, 2) for v in z[n][-len(truth[n]):]] for n in PARAM_ORDER},
+            print(json.dumps({"seed": seed, **{n: [round(v, 2) for v in z[n][-len(truth[n]):]] for n in PARAM_ORDER if z[n]},
                               **{s: row[s] for s in scenarios}}), flush=True)
     summary = {}
     for name in PARAM_ORDER:
