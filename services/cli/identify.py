@@ -3,8 +3,8 @@
 The routine: hop in place with ``[control] identify = true`` for ~20 s (``archer run control`` on the
 robot; on the twin ``archer sim --scenario hop-in-place --duration 20 --config identify.toml --record
 F.mcap``), recorded by the flight recorder. The fits (:mod:`offline.identification`) give each
-wheel's torque constant, viscous and Coulomb drag and the CoM's offset from the spine, each with a
-1-sigma uncertainty; ``--out`` writes them as an identified robot (:mod:`robot_description.identified`:
+wheel's torque constant, viscous and Coulomb drag, the drives' delay, the spring's stiffness and the
+CoM's offset from the spine, each with a 1-sigma uncertainty; ``--out`` writes them as an identified robot (:mod:`robot_description.identified`:
 the stack reads it, and ``archer sim --model-error FILE`` builds the twin from it).
 
 ``archer identify --validate N [--profile calibrated]``: N twins with hidden drawn errors, each runs
