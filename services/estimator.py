@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 
 from onboard.estimation.estimator import StateEstimator
 from onboard.contracts.params import EstimatorParams, restart_changes
-from robot_description.params import robot_params
+from robot_description import identified
 from services.runtime.realtime import DeadlineLoop, make_realtime_from
 from services.runtime.service import Service, fence
 
@@ -80,7 +80,7 @@ class EstimatorService(Service):
         self.log.info("estimator loop scheduling", extra={"fields": applied})
 
     def _build(self, p: EstimatorParams) -> None:
-        self.est = StateEstimator(p, robot_params(p.robot))
+        self.est = StateEstimator(p, identified.robot_params(p.robot, p.identified))
         self._rejected_seen = 0  # the estimator's rejections already added to the status counters
         self._rejections_seen: dict[str, int] = {}
 

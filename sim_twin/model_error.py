@@ -16,8 +16,10 @@ lockstep runner (and the real-time twin) apply that draw:
 
 A profile is a TOML file, ``[factors]`` with one entry per factor: a number (that value, every
 seed: a one-factor sweep) or a table ``{mean = M, spread = S, dist = "uniform" | "normal"}``
-(uniform: M +- S; normal: std S). Relative factors (kind ``rel``) are fractions of the MJCF's value
-(0.1: +10 %), absolute ones are in the factor's unit. Shipped profiles live in
+(uniform: M +- S; normal: std S), or a list of fixed values, one per draw (per wheel: what
+``archer identify`` writes, beside an ``[identified]`` table this module ignores). Relative
+factors (kind ``rel``) are fractions of the MJCF's value (0.1: +10 %), absolute ones are in the
+factor's unit. Shipped profiles live in
 ``sim_twin/model_errors/NAME.toml``; ``--model-error`` also takes a path or an inline list
 ``name=value;name=value``.
 """
@@ -88,6 +90,7 @@ class Spread:
     mean: float = 0.0
     spread: float = 0.0
     dist: str = "uniform"
+    values: tuple[float, ...] = ()  # fixed values, one per draw (per wheel, per axis): an identified robot
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,13 @@ def _spread(name: str, value: object) -> Spread:
         raise ValueError(f"model error: unknown factor {name!r}; known: {', '.join(FACTORS)}")
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         s = Spread(float(value))
+    elif isinstance(value, list):  # one fixed value per draw (archer identify writes the wheels' so)
+        count = FACTORS[name].count
+        if len(value) != count or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise ValueError(f"model error {name}: a list of {count} numbers, got {value!r}")
+        s = Spread(float(value[0]), values=tuple(float(v) for v in value))
+        if not all(math.isfinite(v) for v in s.values):
+            raise ValueError(f"model error {name}: values finite")
     elif isinstance(value, dict):
         extra = set(value) - {"mean", "spread", "dist"}
         if extra:
@@ -127,8 +137,9 @@ def load_profile(text: str | None) -> Profile:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
         table = doc.get("factors", {})
-        if not isinstance(table, dict) or set(doc) - {"factors"}:
-            raise ValueError(f"model error profile {path}: one table [factors]")
+        # [identified]: what archer identify measured, with its uncertainties (robot_description.identified)
+        if not isinstance(table, dict) or set(doc) - {"factors", "identified"}:
+            raise ValueError(f"model error profile {path}: one table [factors] (and [identified])")
         return Profile(path.stem, {k: _spread(k, v) for k, v in table.items()})
     if "=" not in text:
         known = sorted(p.stem for p in PROFILES_DIR.glob("*.toml"))
@@ -257,7 +268,9 @@ def draw(profile: Profile, seed: int) -> Draw:
         s = profile.factors.get(name)
         if s is None:
             continue
-        if s.dist == "normal":
+        if s.values:
+            vals = np.array(s.values)
+        elif s.dist == "normal":
             vals = s.mean + s.spread * rng.standard_normal(spec.count)
         else:
             vals = s.mean + s.spread * rng.uniform(-1.0, 1.0, spec.count)

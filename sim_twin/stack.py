@@ -29,6 +29,7 @@ import numpy as np
 from onboard.contracts import messages as m
 from onboard.contracts.params import SafetyLimits
 from onboard.contracts.topics import TOPICS
+from robot_description import identified
 from robot_description import params as rd
 from sim_twin.scenarios import Scenario
 
@@ -136,7 +137,8 @@ class KalmanEstimator:
         from onboard.estimation.estimator import StateEstimator
         from onboard.contracts.params import EstimatorParams
 
-        self.est = StateEstimator(params or EstimatorParams(), robot)
+        params = params or EstimatorParams()
+        self.est = StateEstimator(params, identified.apply(robot, identified.load(params.identified)) if params.identified else robot)
         self.feed = self.est.feed  # the loop calls the estimator's own entry point: a frame less a message
 
     def estimate(self, now_ns: int, data: mujoco.MjData) -> m.StateEstimate:

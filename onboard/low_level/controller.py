@@ -62,6 +62,7 @@ from onboard.low_level.tracking import attitude_control as ac
 from onboard.geometry import quaternion as qt
 from onboard.low_level.planning import zdp, zdp_policy
 from onboard.low_level.planning.balance import BalancePoint
+from onboard.low_level.tracking.excitation import heading_swing, wheel_dither
 from onboard.low_level.tracking.flip import FlipLimits, FlipManoeuvre
 from onboard.low_level.tracking.foot_control import FootPhysics, HopRegulator
 from onboard.contracts.messages import (AttitudeSetpoint, ComReference, JointSensors, MidLevelSetpoint, PhaseEvent, SafetyEvent, StateEstimate,
@@ -185,6 +186,8 @@ class LowLevelController:
         self._phase_events: list[PhaseEvent] = []
         self._g = robot.gravity
         self._yaw_ref = 0.0
+        self._yaw_home = 0.0  # the heading it armed with (the identification routine swings about it)
+        self._arm_ns = 0
         self._hold: tuple[float, float] | None = None  # hop-in-place point [m]
         self._was_armed = False
         self._flown = False  # attitude mode: a flight since it armed
@@ -318,6 +321,8 @@ class LowLevelController:
             flip.cancel()
             self._was_armed = True
             self._yaw_ref = qt.yaw_of(state.quat)
+            self._yaw_home = self._yaw_ref
+            self._arm_ns = now_ns
             self._hold = (state.position[0], state.position[1])
             self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
             self._flown = False
@@ -339,7 +344,10 @@ class LowLevelController:
             self.eta = (0.0, 0.0)
             self.q_des = qt.from_axis_yaw((0.0, 0.0, 1.0), self._yaw_ref)
             return self.q_des
-        if ref is not None and ref.yaw is not None:
+        if self.p.identify:  # the identification routine swings the heading (tracking/excitation.py)
+            swing = heading_swing((now_ns - self._arm_ns) / NS, self.p.identify_yaw, self.p.identify_yaw_period_s)
+            self._yaw_ref = turn_toward(self._yaw_ref, self._yaw_home + swing, self.p.yaw_rate_max / self.p.rate_hz)
+        elif ref is not None and ref.yaw is not None:
             self._yaw_ref = turn_toward(self._yaw_ref, ref.yaw, self.p.yaw_rate_max / self.p.rate_hz)
         g = self._g
         px, py, pz = state.position
@@ -490,6 +498,9 @@ class LowLevelController:
             foot = max(-self._foot_max, min(self._foot_max, foot))
         else:
             foot = 0.0
+        if self.p.identify:  # the identification routine's known dither, both phases (tracking/excitation.py)
+            d0, d1, d2 = wheel_dither((now_ns - self._arm_ns) / NS, self.p.identify_torque)
+            wheel = (wheel[0] + d0, wheel[1] + d1, wheel[2] + d2)
         wm = self._wheel_max
         w0, w1, w2 = wheel
         if w0 > wm or w0 < -wm or w1 > wm or w1 < -wm or w2 > wm or w2 < -wm:

@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("services.cli.plan", "plan offline in a scene (JSON): Bezier graph path, clearance, timings"),
     "goal": ("services.cli.plan", "send the robot a goal position X Y [m]"),
     "reproduce": ("services.cli.reproduce", "regenerate the thesis's ARCHER figures and tables and compare them with its numbers (report.md)"),
+    "identify": ("services.cli.identify", "fit the robot's wheel torque constants and drag, spring stiffness and CoM offset from a recording of the identification routine, with uncertainties; --validate N on drawn twins"),
     "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),
 }
 

@@ -27,6 +27,8 @@ class EstimatorParams(_Section, section="estimator"):
     rt_priority: RtPriority = 75  # SCHED_FIFO priority of the estimator's loop thread (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop thread is pinned to (-1: no pinning)
     robot: Name = "indoor"  # MJCF variant the robot's parameters are read from (robot_description/models)
+    # archer identify's file (robot_description/identified.py): the CoM where the robot's own was measured; "": the MJCF's
+    identified: str = ""
     input_queue: Annotated[int, within(1, 65536)] = 256  # sensor messages of each input topic buffered between two ticks (Zenoh ring buffer); the oldest dropped beyond
     # Pose sensor (motion capture / tracking camera), fused with its latency compensated.
     pose_delay_s: Annotated[float, within(0.0, 0.25)] = 0.025  # [s] fusion horizon: covers the pose sensor's latency (0.25 s attitude history)

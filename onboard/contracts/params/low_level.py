@@ -97,6 +97,13 @@ class ControlParams(_Section, section="control"):
     balance_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] CoM speed at the touchdown
     balance_ref_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] reference speed at the touchdown
     balance_settle_hops: Annotated[int, within(1, 100)] = 3  # touchdowns in a row that slow before one counts
+    # identification routine (onboard/low_level/tracking/excitation.py, archer identify): while hopping in
+    # place, a known dither on every wheel's command and a heading swing, so that a recording tells each
+    # wheel's torque constant from its drag. Off on the robot unless the lab runs the routine.
+    identify: bool = False
+    identify_torque: Annotated[float, within(0.0, 0.5)] = 0.2  # [N m] dither amplitude per wheel
+    identify_yaw: Annotated[float, within(0.0, 1.5)] = 0.5  # [rad] heading swing amplitude
+    identify_yaw_period_s: Annotated[float, above(0.0, 60.0)] = 5.0  # [s]
     # hot standby (services/control.py): a primary on this host whose armed command stream stopped this long
     # (a hang: its token outlives it by the link's lease) is killed, so that the standby takes over [s]; 0: never.
     # Above the worst stall of a loaded machine (~65 ms measured): a false fence costs a takeover and a restart
