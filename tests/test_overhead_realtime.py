@@ -162,3 +162,43 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
         if not left or gone.wait(0.1):
             break
     assert left == [], left
+
+
+def test_archer_emulate_overhead_streams_the_twins_view_to_the_camera_pipeline() -> None:
+    """``archer emulate overhead --twin kicked``: a client told where to look by the JSON line reads the
+    twin's view with ``cv2.VideoCapture``; the camera pipeline calibrates on it and finds the obstacles."""
+    from onboard.contracts.params import CameraOverheadParams
+    from services.camera_overhead import ObstacleCamera
+    from sim_twin import scenarios as sc
+
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "emulate", "overhead", "--twin", "kicked", "--rate", "4"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        line = json.loads(proc.stdout.readline())  # type: ignore[union-attr]
+        assert line["device"] == "overhead" and line["url"].startswith("http://127.0.0.1:")
+        cap = cv2.VideoCapture(line["url"], cv2.CAP_FFMPEG,
+                               [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, CAPTURE_TIMEOUT_MS, cv2.CAP_PROP_READ_TIMEOUT_MSEC, CAPTURE_TIMEOUT_MS])
+        try:
+            ok, frame = cap.read()
+        finally:
+            cap.release()
+        assert ok and frame.shape == (720, 960, 3)
+        msg = ObstacleCamera(CameraOverheadParams()).step(frame, 0.0, 0)
+        assert len(msg.polytopes) == len(sc.make("kicked", 0).obstacles)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 0, err
+    final = json.loads(err.strip().splitlines()[-1])["final"]
+    assert final["clients"] >= 1 and final["frames_published"] >= 1
+
+
+def test_archer_emulate_overhead_needs_one_source(capsys) -> None:
+    from services.cli.main import main
+
+    assert main(["emulate", "overhead"]) == 2
+    assert "one of --twin SCENARIO or --video FILE" in capsys.readouterr().err
+    assert main(["emulate", "overhead", "--video", "/nonexistent/lab.mp4"]) == 2
