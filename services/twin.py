@@ -35,7 +35,6 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from types import SimpleNamespace
 from typing import Any
 
 import mujoco
@@ -371,32 +370,24 @@ class ScenarioReferenceService(Service):
 
 
 class OverheadTwinService(TwinService):
-    """The twin with the indoor lab's overhead camera (issue 28): at ``rate_hz`` of wall time, its
-    rendered view of the scene as it is now (:mod:`sim_twin.overhead_camera`: obstacles where they
-    have been moved, the robot where it stands) goes to ``stream``, an MJPEG server
-    (:class:`drivers.camera_overhead.emulator.MjpegServer`) built by the caller, which the
-    ``camera_overhead`` service reads through ``cv2.VideoCapture`` as it reads a lab's IP camera.
-
-    The frames are rendered on a thread of their own, off the physics loop (OpenCV and numpy release
-    the GIL while they draw); each frame's capture time (stack clock, taken when the scene is
-    sampled) is kept in ``frame_stamps_ns`` for the run's latency figures.
-    """
+    """The twin with the indoor lab's overhead camera (issue 28): at ``rate_hz`` of wall time it samples
+    the scene as it is now (where the obstacles have been moved, where the robot stands), stamped on the
+    stack's clock, and hands it to ``stream`` (:class:`services.cli.overhead_realtime.SceneStream`),
+    whose own process draws the frame and serves it as an IP camera's MJPEG stream, which the
+    ``camera_overhead`` service reads through ``cv2.VideoCapture``. Drawing a frame takes tens of
+    milliseconds of a core: not in this process, whose loop runs at the twin's real-time priority
+    and whose GIL a drawing thread would hold."""
 
     def __init__(self, *args: Any, stream: Any, rate_hz: float, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.stream = stream
         self.camera_rate_hz = rate_hz
-        self.frame_stamps_ns: list[int] = []
-        self.render_ms: list[float] = []
         self.camera_error: BaseException | None = None
         self._camera_stop = threading.Event()
         self._camera_thread: threading.Thread | None = None
 
     async def setup(self) -> None:
         await super().setup()
-        from sim_twin import overhead_camera as oc
-
-        self.renderer = oc.OverheadRenderer(oc.default_camera(), oc.default_markers(), seed=self.params["twin"].seed)
         self._root_qp = int(self.model.joint(rd.ROOT_JOINT).qposadr[0])
         self._camera_thread = threading.Thread(target=self._camera_loop, name="twin-overhead-camera", daemon=True)
 
@@ -406,15 +397,10 @@ class OverheadTwinService(TwinService):
         try:
             while not self._camera_stop.wait(max(0.0, next_t - time.monotonic())):
                 next_t = max(next_t + period, time.monotonic())
-                stamp = self.clock.now_ns()
-                # the scene as sampled now: the loop thread moves the obstacles meanwhile
-                scene = SimpleNamespace(obstacles=self.scenario.obstacles, offsets=self.scenario.offsets.copy())
+                # the loop thread moves the obstacles meanwhile: a copy, as they are now
+                offsets = self.scenario.offsets.copy()
                 robot_xy = (float(self.data.qpos[self._root_qp]), float(self.data.qpos[self._root_qp + 1]))
-                tic = time.perf_counter()
-                frame = self.renderer.render(scene, robot_xy)  # type: ignore[arg-type]
-                self.stream.publish(frame)
-                self.render_ms.append((time.perf_counter() - tic) * 1e3)
-                self.frame_stamps_ns.append(stamp)
+                self.stream.send(self.clock.now_ns(), offsets, robot_xy)
         except BaseException as exc:  # reported by main(): the twin goes to error
             self.camera_error = exc
 
@@ -427,18 +413,10 @@ class OverheadTwinService(TwinService):
                 await asyncio.wait({physics}, timeout=STATUS_POLL_S)
                 if self.camera_error is not None:
                     self.fail(f"overhead camera: {self.camera_error!r}")
-                    raise RuntimeError("the twin's overhead camera crashed") from self.camera_error
+                    raise RuntimeError("the twin's overhead camera failed") from self.camera_error
             physics.result()
         finally:
             physics.cancel()
             await asyncio.gather(physics, return_exceptions=True)
             self._camera_stop.set()
             await asyncio.to_thread(self._camera_thread.join, 2.0)
-
-    def summary(self) -> dict[str, Any]:
-        out = super().summary()
-        r = sorted(self.render_ms)
-        out["overhead_stream"] = {"frames": len(self.frame_stamps_ns), **dict(self.stream.counts),
-                                  "render_ms_p50": round(r[len(r) // 2], 2) if r else None,
-                                  "render_ms_p99": round(r[min(len(r) - 1, int(0.99 * len(r)))], 2) if r else None}
-        return out

@@ -12,12 +12,14 @@ obstacles arriving on the bus.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import tempfile
 import threading
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from drivers.camera_overhead.emulator import MjpegServer
@@ -41,16 +43,103 @@ def twin_camera_overrides(source: str) -> dict[str, Any]:
             "marker_size": markers[0].size, "names_file": ""}
 
 
+# the drawing process stands for the camera's own hardware, which takes nothing from the robot's computer:
+# the default priority (not the twin's real time, nor niced below the stack), so that it streams near its rate
+RENDER_NICE = 0
+RENDER_START_TIMEOUT_S = 120.0  # [s] for the drawing process to import OpenCV and bind its port, loaded machine
+
+
+def _render_main(conn: Any, obstacles: Any, seed: int, host: str) -> None:
+    """The drawing process: scenes from the twin in, frames out on the MJPEG server; gone when the
+    twin's end of the pipe is (the parent's death included)."""
+    import numpy as np  # noqa: F401 (the scenes' offsets)
+
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:  # spawned by the twin's real-time process
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    os.setpriority(os.PRIO_PROCESS, 0, max(RENDER_NICE, os.getpriority(os.PRIO_PROCESS, 0)))  # never above the caller's
+    renderer = oc.OverheadRenderer(oc.default_camera(), oc.default_markers(), seed=seed)
+    server = MjpegServer(host).start()
+    stamps: list[int] = []
+    render_ms: list[float] = []
+    skipped = 0
+    try:
+        conn.send(server.url)
+        while True:
+            try:
+                item = conn.recv()
+                while item is not None and conn.poll():  # behind: the newest scene only
+                    item = conn.recv()
+                    skipped += 1
+            except EOFError:
+                return
+            if item is None:
+                break
+            stamp, offsets, robot_xy = item
+            tic = time.perf_counter()
+            frame = renderer.render(SimpleNamespace(obstacles=obstacles, offsets=offsets), robot_xy)  # type: ignore[arg-type]
+            server.publish(frame)
+            render_ms.append((time.perf_counter() - tic) * 1e3)
+            stamps.append(stamp)
+        r = sorted(render_ms)
+        conn.send({"stamps_ns": stamps, "summary": {
+            **dict(server.counts), "scenes_skipped": skipped,
+            "render_ms_p50": round(r[len(r) // 2], 2) if r else None,
+            "render_ms_p99": round(r[min(len(r) - 1, int(0.99 * len(r)))], 2) if r else None}})
+    finally:
+        server.stop()
+
+
+class SceneStream:
+    """The twin's overhead camera as an IP camera: a process of its own draws each scene the twin
+    sends (:meth:`send`) and serves it on ``url``. ``finish`` stops it and returns the capture stamps
+    of the frames it served and its counters."""
+
+    def __init__(self, scenario: Any, seed: int, host: str = LOOPBACK) -> None:
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process with Zenoh's and MuJoCo's threads
+        self._conn, child = ctx.Pipe()
+        self._send_lock = threading.Lock()
+        self._proc = ctx.Process(target=_render_main, args=(child, list(scenario.obstacles), seed, host),
+                                 name="archer-overhead-camera", daemon=True)
+        self._proc.start()
+        child.close()
+        if not self._conn.poll(RENDER_START_TIMEOUT_S):
+            self._proc.kill()
+            raise RuntimeError("the twin's overhead camera process did not start")
+        self.url: str = self._conn.recv()
+        self._result: dict[str, Any] | None = None
+
+    def send(self, stamp_ns: int, offsets: Any, robot_xy: tuple[float, float]) -> None:
+        with self._send_lock:
+            self._conn.send((stamp_ns, offsets, robot_xy))
+
+    def finish(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        if self._result is None:
+            self._result = {"stamps_ns": [], "summary": {}}
+            try:
+                with self._send_lock:
+                    self._conn.send(None)
+                if self._conn.poll(timeout_s):
+                    self._result = self._conn.recv()
+            except (OSError, EOFError):
+                pass
+            self._conn.close()
+            self._proc.join(timeout=timeout_s)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join()
+        return self._result
+
+
 class OverheadRig:
-    """The MJPEG server the twin streams to, bound before the stack starts, and the config file that
+    """The twin's camera process and its MJPEG server, started before the stack, and the config file that
     points the ``camera_overhead`` service at it (and the planner at a world with nothing unseen, as
     the lab profile does: the camera sees the whole floor)."""
 
-    def __init__(self, config: str | None, toml: Any) -> None:
+    def __init__(self, config: str | None, toml: Any, scenario: Any, seed: int) -> None:
         self.params = load_params(config, ("camera_overhead",))["camera_overhead"]
-        self.server = MjpegServer(LOOPBACK).start()
+        self.stream = SceneStream(scenario, seed)
         user = tomllib.loads(Path(config).read_text()) if config else {}
-        user["camera_overhead"] = {**user.get("camera_overhead", {}), **twin_camera_overrides(self.server.url)}
+        user["camera_overhead"] = {**user.get("camera_overhead", {}), **twin_camera_overrides(self.stream.url)}
         user["planner"] = {**user.get("planner", {}), "require_seen": False}
         fd, self.config_path = tempfile.mkstemp(prefix="archer-overhead-", suffix=".toml")
         with os.fdopen(fd, "w") as f:
@@ -66,7 +155,7 @@ class OverheadRig:
         return self.params.rate_hz
 
     def close(self) -> None:
-        self.server.stop()
+        self.stream.finish()
         if os.path.exists(self.config_path):
             os.unlink(self.config_path)
 

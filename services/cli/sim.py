@@ -461,7 +461,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         if rig is not None:
             twin = FirmwareTwinService(**twin_kwargs, board=rig.board, natnet_server=rig.natnet, mocap=rig.mocap)
         elif overhead is not None:
-            twin = OverheadTwinService(**twin_kwargs, stream=overhead.server, rate_hz=overhead.rate_hz)
+            twin = OverheadTwinService(**twin_kwargs, stream=overhead.stream, rate_hz=overhead.rate_hz)
         else:
             twin = TwinService(**twin_kwargs)
         local = [twin]
@@ -554,9 +554,10 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
         out.update(planner_counts)
-        if probe is not None:
+        if probe is not None and overhead is not None:
             probe.close()
-            out["overhead"] = {**probe.report(twin.frame_stamps_ns), "camera": camera_status}
+            served = overhead.stream.finish()
+            out["overhead"] = {**probe.report(served["stamps_ns"]), "camera": camera_status, "stream": served["summary"]}
         if scenario.flip_requests_s:
             out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
@@ -573,7 +574,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     overhead = None
     try:
         if overhead_wanted:
-            overhead = OverheadRig(services_config, _toml)
+            overhead = OverheadRig(services_config, _toml, scenario, args.seed)
             services_config = overhead.config_path
         if view:
             view_config = _ViewConfig(services_config, args.view_port, args.variant)
