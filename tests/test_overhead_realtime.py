@@ -152,10 +152,11 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     assert cam["messages"] > 0 and cam["obstacles_p50"] > 0, cam
     assert cam["other_sources"] == [], cam  # the twin's ground truth stayed off the bus
     assert cam["latency_ms_p50"] is not None and cam["latency_ms_p50"] > 0.0
-    assert metrics["overhead_stream"]["frames"] > 0 and metrics["overhead_stream"]["clients"] >= 1
+    assert cam["stream"]["frames_published"] > 0 and cam["stream"]["clients"] >= 1, cam  # through the HTTP stream
+    assert 0.0 < cam["camera"]["calibration_rms_px"] < 1.5, cam  # the floor calibrated on the twin's markers
     assert metrics["planner_plans"] >= 1, metrics
     assert metrics["collisions_by_robot"] == 0, metrics
-    assert len(children) >= 4  # router, estimator, control, planner, camera_overhead
+    assert len(children) >= 6  # router, estimator, control, planner, camera_overhead, the twin's camera
     gone = threading.Event()
     for _ in range(100):  # the run has stopped its services; a straggler's parent-death signal is bounded too
         left = [cmd for pid, cmd in children.items() if _cmdline(pid) == cmd]
