@@ -185,8 +185,10 @@ class ObstacleProbe:
         self._sub.undeclare()
 
     def report(self, frame_stamps_ns: list[int]) -> dict[str, Any]:
-        """The camera's messages: how many, their rate (first to last), obstacles per message, and the
-        latency from the capture of the frame each came from to its arrival here.
+        """The camera's messages: how many, their rate (first to last), obstacles per message, the
+        latency from the capture of the frame each came from (the twin's scene sampled, then drawn,
+        encoded, streamed) to its arrival here, and the camera service's part of it (frame received
+        to arrival here).
 
         A message's stamp is when the camera service received its frame; that frame is the newest one
         captured before it (the stream carries each frame as soon as it is encoded, never a backlog:
@@ -202,6 +204,7 @@ class ObstacleProbe:
             if k >= 0:
                 latencies.append((arrived - frame_stamps_ns[k]) / 1e6)
         latencies.sort()
+        in_service = sorted((arrived - stamp) / 1e6 for arrived, stamp, _, _ in got)  # frame received -> here
         counts = sorted(a[2] for a in got)
 
         def pct(xs: list[float], q: float) -> float | None:
@@ -212,4 +215,5 @@ class ObstacleProbe:
                 "obstacles_p50": counts[len(counts) // 2] if counts else 0, "obstacles_max": counts[-1] if counts else 0,
                 "latency_ms_p50": pct(latencies, 0.5), "latency_ms_p99": pct(latencies, 0.99),
                 "latency_ms_max": round(latencies[-1], 1) if latencies else None,
+                "service_latency_ms_p50": pct(in_service, 0.5), "service_latency_ms_p99": pct(in_service, 0.99),
                 "other_sources": others, "rejected": self.rejected}
