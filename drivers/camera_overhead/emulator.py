@@ -1,8 +1,9 @@
 """An IP camera's MJPEG stream, emulated: JPEG frames served over HTTP as ``multipart/x-mixed-replace``
 (what most network cameras stream and ``cv2.VideoCapture`` reads through its FFmpeg backend from an
 ``http://`` URL), so that the ``camera_overhead`` service reads emulated frames through the same
-``VideoCapture`` path as a lab's camera. The twin publishes its rendered overhead view here in a
-real-time run; ``archer emulate overhead`` serves a scenario's frames or a video file.
+``VideoCapture`` path as a lab's camera. In a real-time run the twin's camera process serves its
+rendered overhead view here (``services/cli/overhead_realtime.py``); ``archer emulate overhead`` serves
+a scenario's frames or a video file.
 
 Every client gets the newest frame when it connects, then each frame as it is published (a slow
 client skips frames rather than falling behind, as a camera's server does). Each part carries its
