@@ -140,7 +140,7 @@ class CameraOverheadService(Service):
     def _read(self) -> None:
         p: CameraOverheadParams = self.params["camera_overhead"]
         source = source_of(p)
-        t0 = time.monotonic()
+        t0 = self.clock.now_ns()  # the tracks' time: each frame's receipt (not when it was processed)
         try:
             while not self._stop.is_set():
                 try:
@@ -160,7 +160,7 @@ class CameraOverheadService(Service):
         except BaseException as exc:  # reported by main(); the service goes to error
             self.reader_error = exc
 
-    def _frames_from(self, src: VideoSource, p: CameraOverheadParams, t0: float) -> None:
+    def _frames_from(self, src: VideoSource, p: CameraOverheadParams, t0: int) -> None:
         """Frames at the service's rate until the source gives none (or the service stops): a file's
         frames one after the other, a camera's newest frame when one is due."""
         if is_live(source_of(p)):
@@ -175,7 +175,7 @@ class CameraOverheadService(Service):
             next_t = max(next_t + period, time.monotonic())
             self._process(frame, self.clock.now_ns(), t0)
 
-    def _live_frames(self, src: VideoSource, p: CameraOverheadParams, t0: float) -> None:
+    def _live_frames(self, src: VideoSource, p: CameraOverheadParams, t0: int) -> None:
         period = 1.0 / p.rate_hz
         grabber = LatestFrame(src, self.clock.now_ns)
         dropped = 0
@@ -199,12 +199,13 @@ class CameraOverheadService(Service):
         finally:
             grabber.close()
 
-    def _process(self, frame: np.ndarray, stamp: int, t0: float) -> None:
-        """One frame's obstacles published, stamped with its receive time."""
+    def _process(self, frame: np.ndarray, stamp: int, t0: int) -> None:
+        """One frame's obstacles published, stamped with its receive time; the tracks advance to it (a
+        frame that waited for a busy CPU still moves them by its own interval, not the wait's)."""
         self._frames += 1
         tic = time.perf_counter()
         try:
-            msg = self.camera.step(frame, time.monotonic() - t0, stamp)
+            msg = self.camera.step(frame, (stamp - t0) / 1e9, stamp)
         except CalibrationError:
             self.count("rejected.not_calibrated")
             return

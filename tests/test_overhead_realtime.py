@@ -22,7 +22,7 @@ from drivers.camera_overhead.emulator import MjpegServer
 from services.camera_overhead import is_live
 
 CAPTURE_TIMEOUT_MS = 30_000  # a loaded 2-core machine: the stream's open and each read, bounded
-REALTIME_SIM_TIMEOUT_S = 420.0  # a 20 s run: the planner's kernels, start-up and shutdown on a loaded machine
+REALTIME_SIM_TIMEOUT_S = 420.0  # a 25 s run: the planner's kernels, start-up and shutdown on a loaded machine
 
 
 def _cmdline(pid: int) -> str | None:
@@ -126,7 +126,7 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     from services.runtime.zenoh_session import free_endpoint
 
     argv = [sys.executable, "-m", "services.cli.main", "sim", "--scenario", "kicked", "--mode", "realtime",
-            "--obstacles-from", "overhead", "--duration", "20", "--endpoint", free_endpoint(),
+            "--obstacles-from", "overhead", "--duration", "25", "--endpoint", free_endpoint(),
             "--namespace", "archer/overheadrt", "--json", "--quiet", "--keep-going"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     children: dict[int, str] = {}

@@ -530,8 +530,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                 status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
                 if status is not None:
                     planner_counts = {f"planner_{k}": int(status.extra[k]) for k in PLANNER_COUNTS if k in status.extra}
-                    if overhead is not None:  # what it refused of the camera's world, and why
-                        camera_status["planner_rejected"] = {k: v for k, v in status.counters.items() if k.startswith("rejected")}
+                    if overhead is not None:  # how the planner fared on the camera's world (what it refused, and why)
+                        camera_status["planner_counters"] = dict(status.counters)
                         camera_status["planner_last_error"] = status.last_error
         finally:
             run_ended = time.monotonic()  # what the stop itself does is no failure
