@@ -2,7 +2,8 @@
 thesis 7.2, Fig. 7.7: the lab's overhead ZED 2, 20 obstacles tracked at 4 Hz).
 
 Subscribes: nothing. Reads: frames from ``camera_overhead.source`` through ``cv2.VideoCapture`` (any
-UVC camera by index, or a video file, read at the service's rate) on a reader thread
+UVC camera by index, a network stream such as an IP camera's ``http://`` MJPEG, or a video file, read
+at the service's rate) on a reader thread
 (:mod:`drivers.camera_overhead`). Computes: the floor homography from the ArUco markers at their
 known poses (on the first frame that shows ``min_markers`` of them; frames before that are counted
 ``rejected.not_calibrated``), then per frame the obstacles' blobs as convex floor polygons, tracked
@@ -24,8 +25,9 @@ import numpy as np
 
 from drivers.camera_overhead import tracking as tk
 from drivers.camera_overhead.calibration import CalibrationError, FloorCalibration, Lens, Marker
-from drivers.camera_overhead.device import CameraError, VideoSource
+from drivers.camera_overhead.device import CameraError, LatestFrame, VideoSource
 from onboard.contracts import messages as m
+from onboard.geometry.polygons import validate_polygon
 from onboard.contracts.params import CameraOverheadParams
 from services.runtime.service import Service
 
@@ -40,6 +42,25 @@ def markers_of(p: CameraOverheadParams) -> list[Marker]:
 
 def source_of(p: CameraOverheadParams) -> int | str:
     return int(p.source) if p.source.isdigit() else p.source
+
+
+# a live frame this early (in periods) still counts as the due one: a stream at the service's own rate
+# (an IP camera set to it, the twin's) arrives with jitter around the due times, never all late
+LIVE_TOLERANCE = 0.5
+
+
+STREAM_RETRY_S = 1.0  # [s] between tries to open a network stream that gives nothing
+STREAM_STALL_S = 1.0  # [s] a live source's wait for a new frame before the loop looks again
+
+
+def is_stream(source: int | str) -> bool:
+    """A network stream (an IP camera's ``http://`` MJPEG, ``rtsp://``): it may not be up yet, or drop."""
+    return isinstance(source, str) and "://" in source
+
+
+def is_live(source: int | str) -> bool:
+    """A camera (an index, or a network stream) rather than a file."""
+    return isinstance(source, int) or is_stream(source)
 
 
 def tracker_of(p: CameraOverheadParams) -> tk.Tracker:
@@ -105,6 +126,8 @@ class CameraOverheadService(Service):
         if p.names_file:
             with open(p.names_file, encoding="utf-8") as f:
                 self.camera.seed(json.load(f)["obstacles"])
+        # the polygon kernels (numba) loaded before READY, not on the first frame: ~0.6 s, seconds under load
+        await asyncio.to_thread(validate_polygon, [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
         self._pub = self.publisher("polytopes")
         self._published = self.rate("polytopes")
         self._stop = threading.Event()
@@ -116,38 +139,79 @@ class CameraOverheadService(Service):
 
     def _read(self) -> None:
         p: CameraOverheadParams = self.params["camera_overhead"]
-        period = 1.0 / p.rate_hz
+        source = source_of(p)
+        t0 = self.clock.now_ns()  # the tracks' time: each frame's receipt (not when it was processed)
         try:
-            with VideoSource(source_of(p), p.crop_left) as src:
-                t0 = time.monotonic()
-                next_t = t0
-                while not self._stop.is_set():
-                    frame = src.read()
-                    if frame is None:
-                        self.source_ended = True
-                        return
-                    now = time.monotonic()
-                    if now < next_t:  # a camera faster than the rate: this frame is skipped
-                        if not isinstance(source_of(p), int):  # a file is read at the rate, not skipped through
-                            self._stop.wait(next_t - now)
-                        else:
-                            continue
-                    next_t = max(next_t + period, time.monotonic())
-                    self._frames += 1
-                    stamp = self.clock.now_ns()
-                    tic = time.perf_counter()
-                    try:
-                        msg = self.camera.step(frame, time.monotonic() - t0, stamp)
-                    except CalibrationError:
-                        self.count("rejected.not_calibrated")
-                        continue
-                    self._latency_ms = (time.perf_counter() - tic) * 1e3
-                    self._pub.put(msg)
-                    self._published.tick()
-        except CameraError as exc:
-            self.reader_error = exc
+            while not self._stop.is_set():
+                try:
+                    with VideoSource(source, p.crop_left) as src:
+                        self._frames_from(src, p, t0)
+                except CameraError:
+                    if not is_stream(source):
+                        raise
+                    # a network camera not streaming (yet, or any more): tried again, as it comes back
+                    self.count("source.unavailable")
+                    self._stop.wait(STREAM_RETRY_S)
+                    continue
+                if not is_stream(source):
+                    self.source_ended = True
+                    return
+                self.count("source.stream_ended")  # read again from a new connection
         except BaseException as exc:  # reported by main(); the service goes to error
             self.reader_error = exc
+
+    def _frames_from(self, src: VideoSource, p: CameraOverheadParams, t0: int) -> None:
+        """Frames at the service's rate until the source gives none (or the service stops): a file's
+        frames one after the other, a camera's newest frame when one is due."""
+        if is_live(source_of(p)):
+            self._live_frames(src, p, t0)
+            return
+        period = 1.0 / p.rate_hz
+        next_t = time.monotonic()
+        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+            frame = src.read()
+            if frame is None:
+                return
+            next_t = max(next_t + period, time.monotonic())
+            self._process(frame, self.clock.now_ns(), t0)
+
+    def _live_frames(self, src: VideoSource, p: CameraOverheadParams, t0: int) -> None:
+        period = 1.0 / p.rate_hz
+        grabber = LatestFrame(src, self.clock.now_ns)
+        dropped = 0
+        try:
+            next_t = time.monotonic()
+            # woken a little early, it takes the first new frame: a camera at the service's own rate
+            # (its frames jittering around the due times) is processed frame by frame, as each arrives
+            while not self._stop.wait(max(0.0, next_t - LIVE_TOLERANCE * period - time.monotonic())):
+                got = grabber.take(STREAM_STALL_S)
+                if grabber.dropped > dropped:  # frames the camera sent that were not due
+                    self.count("source.frames_skipped", grabber.dropped - dropped)
+                    dropped = grabber.dropped
+                if got is None:
+                    if grabber.error is not None:
+                        raise grabber.error
+                    if grabber.ended:
+                        return
+                    continue  # nothing new yet: a stalled camera
+                next_t = max(next_t + period, time.monotonic() - LIVE_TOLERANCE * period)
+                self._process(got[0], got[1], t0)
+        finally:
+            grabber.close()
+
+    def _process(self, frame: np.ndarray, stamp: int, t0: int) -> None:
+        """One frame's obstacles published, stamped with its receive time; the tracks advance to it (a
+        frame that waited for a busy CPU still moves them by its own interval, not the wait's)."""
+        self._frames += 1
+        tic = time.perf_counter()
+        try:
+            msg = self.camera.step(frame, (stamp - t0) / 1e9, stamp)
+        except CalibrationError:
+            self.count("rejected.not_calibrated")
+            return
+        self._latency_ms = (time.perf_counter() - tic) * 1e3
+        self._pub.put(msg)
+        self._published.tick()
 
     async def main(self) -> None:
         self._reader.start()

@@ -33,6 +33,7 @@ scenario's own CoM reference (as ``archer sim --planner scenario`` does in locks
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from typing import Any
 
@@ -366,3 +367,56 @@ class ScenarioReferenceService(Service):
                 await asyncio.wait_for(self.stopping.wait(), REFERENCE_PERIOD_S)
             except asyncio.TimeoutError:
                 pass
+
+
+class OverheadTwinService(TwinService):
+    """The twin with the indoor lab's overhead camera (issue 28): at ``rate_hz`` of wall time it samples
+    the scene as it is now (where the obstacles have been moved, where the robot stands), stamped on the
+    stack's clock, and hands it to ``stream`` (:class:`services.cli.overhead_realtime.SceneStream`),
+    whose own process draws the frame and serves it as an IP camera's MJPEG stream, which the
+    ``camera_overhead`` service reads through ``cv2.VideoCapture``. Drawing a frame takes tens of
+    milliseconds of a core: not in this process, whose loop runs at the twin's real-time priority
+    and whose GIL a drawing thread would hold."""
+
+    def __init__(self, *args: Any, stream: Any, rate_hz: float, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.stream = stream
+        self.camera_rate_hz = rate_hz
+        self.camera_error: BaseException | None = None
+        self._camera_stop = threading.Event()
+        self._camera_thread: threading.Thread | None = None
+
+    async def setup(self) -> None:
+        await super().setup()
+        self._root_qp = int(self.model.joint(rd.ROOT_JOINT).qposadr[0])
+        self._camera_thread = threading.Thread(target=self._camera_loop, name="twin-overhead-camera", daemon=True)
+
+    def _camera_loop(self) -> None:
+        period = 1.0 / self.camera_rate_hz
+        next_t = time.monotonic()
+        try:
+            while not self._camera_stop.wait(max(0.0, next_t - time.monotonic())):
+                next_t = max(next_t + period, time.monotonic())
+                # the loop thread moves the obstacles meanwhile: a copy, as they are now
+                offsets = self.scenario.offsets.copy()
+                robot_xy = (float(self.data.qpos[self._root_qp]), float(self.data.qpos[self._root_qp + 1]))
+                self.stream.send(self.clock.now_ns(), offsets, robot_xy)
+        except BaseException as exc:  # reported by main(): the twin goes to error
+            self.camera_error = exc
+
+    async def main(self) -> None:
+        assert self._camera_thread is not None
+        self._camera_thread.start()
+        physics = asyncio.create_task(super().main())
+        try:
+            while not physics.done():
+                await asyncio.wait({physics}, timeout=STATUS_POLL_S)
+                if self.camera_error is not None:
+                    self.fail(f"overhead camera: {self.camera_error!r}")
+                    raise RuntimeError("the twin's overhead camera failed") from self.camera_error
+            physics.result()
+        finally:
+            physics.cancel()
+            await asyncio.gather(physics, return_exceptions=True)
+            self._camera_stop.set()
+            await asyncio.to_thread(self._camera_thread.join, 2.0)

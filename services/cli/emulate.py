@@ -1,4 +1,4 @@
-"""``archer emulate drives|teensy|archer-firmware|natnet|realsense``: run an emulated device in this process.
+"""``archer emulate drives|teensy|archer-firmware|natnet|realsense|overhead``: run an emulated device in this process.
 
 Prints ONE JSON line on stdout telling a client how to connect, then serves until
 SIGINT/SIGTERM. Only loopback TCP or UDP, or pseudo-terminals, nothing else. The counters
@@ -27,6 +27,8 @@ go to stderr as one JSON line: ``{"final": ...}`` on exit and, for the drives, a
 
 - ``realsense``: a D435 through librealsense's software device with the ``camera`` service
   reading it, on the twin (:mod:`services.cli.emulate_realsense`); needs ``--twin``.
+- ``overhead``: the lab's overhead camera as an IP camera's MJPEG stream over HTTP on 127.0.0.1,
+  the twin's rendered view of ``--twin SCENARIO`` or a ``--video FILE`` (:mod:`services.cli.emulate_overhead`).
 
 ``--twin SCENARIO`` puts the MuJoCo twin behind the emulated devices (:class:`TwinPlant`):
 the torques the emulated motors apply drive the twin's actuators, and the twin's
@@ -151,7 +153,7 @@ class TwinPlant:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware", "natnet", "realsense"))
+    parser.add_argument("device", choices=("drives", "teensy", "archer-firmware", "natnet", "realsense", "overhead"))
     parser.add_argument("--node-ids", help="comma-separated CANopen node ids (default: hardware.node_ids)")
     parser.add_argument("--port", type=int, default=0,
                         help="drives: TCP port, archer-firmware: UDP port, natnet: UDP command port, on 127.0.0.1 (default: a free one)")
@@ -164,6 +166,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, help="natnet: frames per second, 100-240 (default: mocap.rate_hz)")
     parser.add_argument("--latency", type=float, help="natnet: capture to transmit [s] (default: mocap.latency_s)")
     parser.add_argument("--truth", help="natnet: write every frame's true pose to this file (JSON lines)")
+    parser.add_argument("--video", help="overhead: stream this video file's frames (looped) instead of --twin's view")
     parser.add_argument("--twin", metavar="SCENARIO", help="put the MuJoCo twin running SCENARIO behind the devices")
     parser.add_argument("--endpoint", default=None, help="realsense: the Zenoh endpoint its camera service joins")
     parser.add_argument("--namespace", default=None, help="realsense: the key namespace (default archer/robot0)")
@@ -403,6 +406,10 @@ def run(args: argparse.Namespace) -> int:
         return _run_archer_firmware(args)
     if args.device == "natnet":
         return _run_natnet(args)
+    if args.device == "overhead":  # --rate: frames per second (default camera_overhead.rate_hz); --port: its HTTP port
+        from services.cli import emulate_overhead
+
+        return emulate_overhead.run(args, _stop_on_signal())
     if args.device == "realsense":
         from services.cli import emulate_realsense
 

@@ -90,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(in real time: the perception service)")
     parser.add_argument("--obstacles-from", choices=("truth", "overhead"), default="truth",
                         help="lockstep: the planner's world from the ground truth, or from the twin's rendered overhead "
-                             "view through the camera_overhead pipeline at camera_overhead.rate_hz")
+                             "view through the camera_overhead pipeline at camera_overhead.rate_hz; realtime: the twin "
+                             "streams that view (MJPEG over HTTP, 127.0.0.1) to the camera_overhead service")
     parser.add_argument("--sensing", choices=("mocap", "onboard"), default="mocap",
                         help="onboard: no motion capture (outdoors); the estimator keeps an odometry frame from the IMU "
                              "and leg kinematics, and the run reports its drift per metre (lockstep)")
@@ -386,13 +387,15 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.contracts.topics import namespace
-    from services.twin import FirmwareTwinService, ScenarioReferenceService, TwinService
+    from services.twin import FirmwareTwinService, OverheadTwinService, ScenarioReferenceService, TwinService
+    from services.cli.overhead_realtime import ObstacleProbe, OverheadRig
 
     if args.estimator != "kalman" or args.controller != "lowlevel":
         raise ValueError("realtime mode runs the estimator and control services: --estimator kalman --controller lowlevel only")
     if args.record or args.plot:
         raise ValueError("--record and --plot are lockstep options (the flight recorder service records real-time runs)")
     params = load_params(args.config)
+    overhead_wanted = getattr(args, "obstacles_from", "truth") == "overhead"  # the camera service makes the world
     scenario = sc.make(args.scenario, args.seed, args.obstacles, sc.cruise_speed_for(rd.robot_params(args.variant)))
     duration = args.duration if args.duration is not None else scenario.default_duration_s
     if not (duration > 0 and math.isfinite(duration)):
@@ -400,7 +403,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     twin_params = with_overrides(params["twin"], {
         "scenario": args.scenario, "seed": args.seed, "variant": args.variant,
         "obstacles": -1 if args.obstacles is None else args.obstacles, "noise": params["twin"].noise and not args.no_noise,
-        "publish_obstacles": args.perception == "truth"})
+        "publish_obstacles": args.perception == "truth" and not overhead_wanted})
     endpoint = args.endpoint or default_endpoint()
     ns = args.namespace or namespace()
     if endpoint_in_use(endpoint) and not args.join:
@@ -416,6 +419,11 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             if planner != "graph":
                 raise ValueError("--perception depth feeds the graph planner; use --planner graph or auto")
             wanted.append("perception")  # the world from the twin's depth camera, not its ground truth
+        if overhead_wanted:
+            if planner != "graph" or args.perception != "truth":
+                raise ValueError("--obstacles-from overhead feeds the graph planner instead of perception: "
+                                 "use --planner graph or auto and --perception truth")
+            wanted.append("camera_overhead")
         if firmware:
             wanted = [*FIRMWARE_SERVICES, *wanted]
     else:
@@ -452,6 +460,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         twin_kwargs = {"ns": ns, "endpoint": endpoint, "params": {"twin": twin_params, "safety": params["safety"]}}
         if rig is not None:
             twin = FirmwareTwinService(**twin_kwargs, board=rig.board, natnet_server=rig.natnet, mocap=rig.mocap)
+        elif overhead is not None:
+            twin = OverheadTwinService(**twin_kwargs, stream=overhead.stream, rate_hz=overhead.rate_hz)
         else:
             twin = TwinService(**twin_kwargs)
         local = [twin]
@@ -463,8 +473,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         # are up, as a robot is switched on under a running stack.
         units = [n for n in wanted if process_of(n) in SERVICES]
         units = (["router"] if units and not endpoint_in_use(endpoint) else []) + units
-        sup = Supervisor(sim_specs(units, endpoint, ns, view_config.path if view_config is not None else
-                                   rig.config_path if rig is not None else args.config))
+        sup = Supervisor(sim_specs(units, endpoint, ns, view_config.path if view_config is not None else services_config))
         wall0 = time.perf_counter()
         twin_started = time.monotonic()
         cpu0: tuple[dict[str, float], float] | None = None
@@ -472,6 +481,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         planner_counts: dict[str, int] = {}
         flip_errors: list[str] = []  # one per flip request sent ("" when the control service took it)
         flip_counts: dict[str, int] = {}
+        probe = None
+        camera_status: dict[str, Any] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -489,6 +500,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                     break
                 await asyncio.sleep(0.02)
             tasks += [asyncio.create_task(s.run()) for s in local[1:]]
+            if overhead is not None and twin.session is not None:
+                probe = ObstacleProbe(twin.session, ns)
             wall0 = time.perf_counter()
             twin_started = time.monotonic()
             cpu0 = sup.cpu_seconds(), time.process_time()
@@ -508,10 +521,18 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                 status = await asyncio.to_thread(query_status, twin.session, ns, "control")
                 if status is not None:
                     flip_counts = {k: int(status.extra[k]) for k in ("flips", "flips_dropped", "flips_refused") if k in status.extra}
+            if "camera_overhead" in units:  # what the camera made of the frames
+                status = await asyncio.to_thread(query_status, twin.session, ns, "camera_overhead")
+                if status is not None:
+                    camera_status = {"state": status.state, "last_error": status.last_error, **status.counters,
+                                     **{k: round(v, 3) for k, v in status.extra.items()}}
             if "planner" in units:  # how it planned, as the lockstep runner reports it
                 status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
                 if status is not None:
                     planner_counts = {f"planner_{k}": int(status.extra[k]) for k in PLANNER_COUNTS if k in status.extra}
+                    if overhead is not None:  # how the planner fared on the camera's world (what it refused, and why)
+                        camera_status["planner_counters"] = dict(status.counters)
+                        camera_status["planner_last_error"] = status.last_error
         finally:
             run_ended = time.monotonic()  # what the stop itself does is no failure
             if cpu0 is not None:
@@ -536,6 +557,10 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             for e in sup.events if e.what not in ROUTINE_UNIT_EVENTS and e.t < run_ended
         ]
         out.update(planner_counts)
+        if probe is not None and overhead is not None:
+            probe.close()
+            served = overhead.stream.finish()
+            out["overhead"] = {**probe.report(served["stamps_ns"]), "camera": camera_status, "stream": served["summary"]}
         if scenario.flip_requests_s:
             out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
@@ -547,15 +572,22 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         return out
 
     rig = FirmwareRig(args.config, args.variant) if firmware else None
+    services_config = rig.config_path if rig is not None else args.config
     view_config = None
+    overhead = None
     try:
+        if overhead_wanted:
+            overhead = OverheadRig(services_config, _toml, scenario, args.seed)
+            services_config = overhead.config_path
         if view:
-            view_config = _ViewConfig(rig.config_path if rig is not None else args.config, args.view_port, args.variant)
+            view_config = _ViewConfig(services_config, args.view_port, args.variant)
             print(f"archer sim: live view on ws://127.0.0.1:{view_config.port} (Foxglove: open connection)", file=sys.stderr)
         return asyncio.run(main())
     finally:
         if view_config is not None:
             view_config.close()
+        if overhead is not None:
+            overhead.close()
         if rig is not None:
             rig.close()
 
