@@ -96,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
             failed.append(f"{it.name}: {type(exc).__name__}: {exc}")
             continue
         result.wall_s = time.perf_counter() - start
+        result.commit = report.commit()
         path.write_text(json.dumps(result.to_json(), indent=1))
         if not args.quiet:
             print(f"[{k}/{len(chosen)}] {it.name}: {result.verdict} ({result.wall_s:.0f} s)", file=sys.stderr, flush=True)

@@ -32,6 +32,7 @@ class ItemResult:
     notes: list[str] = field(default_factory=list)  # how it was measured; why it differs
     runs: int = 0  # lockstep runs behind the rows
     wall_s: float = 0.0
+    commit: str = ""  # the code that measured it
 
     @property
     def verdict(self) -> str:
@@ -46,7 +47,7 @@ class ItemResult:
     @staticmethod
     def from_json(data: dict[str, Any]) -> ItemResult:
         return ItemResult(rows=[Row(**r) for r in data["rows"]], figures=data["figures"], notes=data["notes"],
-                          runs=data["runs"], wall_s=data["wall_s"])
+                          runs=data["runs"], wall_s=data["wall_s"], commit=data.get("commit", ""))
 
 
 @dataclass(frozen=True)

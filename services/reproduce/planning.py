@@ -228,7 +228,9 @@ def cut_qp(ctx: Context) -> ItemResult:
     nodes = THESIS_NODES if not ctx.quick else 1000
     side = math.sqrt(nodes / NODES_PER_M2)
     rng = np.random.default_rng(0)
-    graph = bg.build_graph(bg.spec_from_params(PlannerParams(nodes=nodes), (0.0, 0.0, side, side), nodes=nodes, seed=0))
+    # the world and graph of archer bench planner (Table 7.1's row): no rest lattice, about 10 edges a node
+    params = PlannerParams(nodes=nodes, rest_grid=_bench_args().rest_grid)
+    graph = bg.build_graph(bg.spec_from_params(params, (0.0, 0.0, side, side), nodes=nodes, seed=0))
     polys = random_obstacles(rng, THESIS_OBSTACLES if not ctx.quick else 100, side)
     margin = 0.2
     hulls = graph.hulls
