@@ -48,7 +48,6 @@ import scipy.sparse as sp
 
 from onboard.geometry import quaternion as qt
 from onboard.contracts.params import GeometricMpcParams
-from onboard.low_level.planning import box_qp, gmpc_kernels
 
 STATE_DIM = 20
 INPUT_DIM = 3
@@ -236,6 +235,12 @@ class GeometricMpc:
     def __init__(self, dynamics: HybridDynamics, params: GeometricMpcParams, torque_limit: float, backend: str | None = None) -> None:
         if not torque_limit > 0.0:
             raise ValueError("torque_limit must be positive")
+        # numba's kernels load with the MPC, not with this module: the module's constants are the robot
+        # description's too, and a process that never builds an MPC (the ZDP control loop) runs under
+        # MemoryDenyWriteExecute, which numba's compiled code cannot load under
+        from onboard.low_level.planning import box_qp, gmpc_kernels
+
+        self._box_qp, self._kernels = box_qp, gmpc_kernels
         self.dyn = dynamics
         self.p = params
         self.backend = backend or params.backend
@@ -425,12 +430,12 @@ class GeometricMpc:
         n, nz, nu = self.n, STATE_DIM, INPUT_DIM
         flow = np.array([not knot.is_jump for knot in knots])
         flows = np.flatnonzero(flow)
-        z_free, s_flat, h, g = gmpc_kernels.condense(a, b, c, z0, flow, self._p_diag[: self._u0], q_lin)
+        z_free, s_flat, h, g = self._kernels.condense(a, b, c, z0, flow, self._p_diag[: self._u0], q_lin)
         h[np.diag_indices(h.shape[0])] += self._p_diag[self._u0 :].reshape(n, nu)[flows].ravel()
         lo = self.u_lo.reshape(n, nu)[flows].ravel()
         hi = self.u_hi.reshape(n, nu)[flows].ravel()
-        res = box_qp.solve(h, g, lo, hi, self.p.eps, min(self.p.max_qp_iter, _ACTIVE_SET_MAX_ITER))
-        if res.status != box_qp.SOLVED:
+        res = self._box_qp.solve(h, g, lo, hi, self.p.eps, min(self.p.max_qp_iter, _ACTIVE_SET_MAX_ITER))
+        if res.status != self._box_qp.SOLVED:
             return None, res.status, res.iterations
         u = np.zeros((n, nu))
         u[flows] = res.x.reshape(-1, nu)
@@ -459,11 +464,11 @@ class GeometricMpc:
             f[k], a_c[k], b_c[k] = self.dyn.flow(knot.kind, x_k, u_bar[k])
             h[k] = knot.h
             if rollout:
-                gmpc_kernels.rollout_step(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k], z_bar[k + 1])
+                self._kernels.rollout_step(a_c[k], b_c[k], f[k], z_bar[k], u_bar[k], knot.h, a[k], b[k], c[k], z_bar[k + 1])
             else:
                 flows.append(k)
         if flows:
-            gmpc_kernels.discretize_many(a_c, b_c, f, z_bar, u_bar, h, np.array(flows), a, b, c)
+            self._kernels.discretize_many(a_c, b_c, f, z_bar, u_bar, h, np.array(flows), a, b, c)
         return bool(np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all())
 
     def solve(self, x0: np.ndarray, knots: list[Knot], z_ref: np.ndarray) -> GmpcSolution:
