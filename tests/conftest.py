@@ -6,7 +6,16 @@ from services.runtime.process_env import prepare_environment
 
 prepare_environment()  # as the archer entry point does, before a test module loads numba
 
+import os  # noqa: E402
+
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# The suite's property tests draw the same examples on every run (CI's verdict is the code's, not
+# the draw's); HYPOTHESIS_PROFILE=explore searches afresh each run, for a developer hunting cases.
+settings.register_profile("ci", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 from services.runtime.zenoh_session import free_endpoint, open_session  # noqa: E402
 

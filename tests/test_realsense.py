@@ -280,7 +280,9 @@ def test_recorded_twin_views_through_the_camera_and_perception_services(zenoh_ro
     path = str(tmp_path / "sidewalk.db3")
     emu = SoftwareD435(rs, cfg, Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy), record_to=path)
     try:
-        for i in range(3):
+        # six frames for the three views asked: a loaded host may pair one depth frame with no colour
+        # (counted depth_without_color) or skip one (an overrun); the chain is what is under test
+        for i in range(6):
             emu.push(frame.depth, frame.rgb, 100.0 + i * 1000.0 / 30)
             assert emu.wait(5000) is not None
     finally:
