@@ -137,29 +137,17 @@ class GridMaze(Scenario):
         """The walls left standing, consecutive collinear pieces merged into one box each."""
         c, t = self.CELL, self.THICK / 2
         out = []
-        for i in range(vertical.shape[0]):  # the wall at x = (i + 1) c, along y
-            j = 0
-            while j < vertical.shape[1]:
-                if not vertical[i, j]:
-                    j += 1
-                    continue
-                k = j
-                while k < vertical.shape[1] and vertical[i, k]:
-                    k += 1
-                out.append(_box((i + 1) * c, (j + k) * c / 2, t, (k - j) * c / 2 + t))
-                j = k
-        for j in range(horizontal.shape[1]):  # the wall at y = (j + 1) c, along x
-            i = 0
-            while i < horizontal.shape[0]:
-                if not horizontal[i, j]:
-                    i += 1
-                    continue
-                k = i
-                while k < horizontal.shape[0] and horizontal[k, j]:
-                    k += 1
-                out.append(_box((i + k) * c / 2, (j + 1) * c, (k - i) * c / 2 + t, t))
-                i = k
+        for i, line in enumerate(vertical):  # the wall at x = (i + 1) c, along y
+            out += [_box((i + 1) * c, (j + k) * c / 2, t, (k - j) * c / 2 + t) for j, k in _standing(line)]
+        for j, line in enumerate(horizontal.T):  # the wall at y = (j + 1) c, along x
+            out += [_box((i + k) * c / 2, (j + 1) * c, (k - i) * c / 2 + t, t) for i, k in _standing(line)]
         return out
 
     def world_summary(self) -> dict:
         return {**super().world_summary(), "cells": self.COLUMNS * self.ROWS, "cell_m": self.CELL}
+
+
+def _standing(line: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, end)`` of each run of True in ``line``."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], line, [False]]).astype(np.int8)))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))

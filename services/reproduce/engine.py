@@ -223,6 +223,19 @@ def campaign(ctx: Context, item: str, specs: list[dict]) -> list[dict]:
     return [done[spec_key(s)] for s in specs]
 
 
+def bench_args(bench: Any, **changes: Any) -> Any:
+    """``archer bench``'s defaults for ``bench`` (a services.bench module), with ``changes``: the items
+    measure through the benches' own functions, with the arguments a user would give them."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args([])
+    for name, value in changes.items():
+        setattr(args, name, value)
+    return args
+
+
 def report_of(record: dict) -> dict:
     """A record's report, or an empty one for a run that failed (it counts as not reaching its goal)."""
     return record.get("report") or {}

@@ -226,7 +226,7 @@ def _stair_falls(group: list[dict]) -> str:
                "Most falls follow a landing by an edge: the ZDP places the foot by the CoM's velocity, blind to the terrain."))
 
 
-def _impact_panel(ax: Any, impacts: list[dict], k_lqr: float | None, title: str) -> None:
+def _impact_panel(ax: Any, impacts: list[dict], title: str) -> None:
     if not impacts:
         return
     cmd = np.array([[i["cmd_x"], i["cmd_y"]] for i in impacts])
@@ -273,7 +273,7 @@ def fig_5_22(ctx: Context) -> ItemResult:
         ax.set_xlabel("t [s]")
         ax.set_ylabel("distance to the goal [m]")
         ax.set_title(f"{name}, 2 m step: {sum(map(succeeded, group))}/{len(group)} reached")
-    _impact_panel(axes[2], impacts, None, f"impact angle over {len(impacts)} hops (ZDP)")
+    _impact_panel(axes[2], impacts, f"impact angle over {len(impacts)} hops (ZDP)")
     figures = [save(fig, ctx.out, "fig5_22.png")]
     rms, corr = impact_agreement(impacts) if impacts else (math.nan, math.nan)
     lqr_fail = sum(1 for r in lqr if not succeeded(r))

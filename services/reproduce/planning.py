@@ -4,7 +4,6 @@ thesis's scale (Figs. 7.5, 7.6, Table 7.1, the Cut-QP) and replanning as the sce
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import math
 import sys
@@ -15,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from services.reproduce.engine import Context, campaign, report_of, run_spec, succeeded
+from services.reproduce.engine import Context, bench_args, campaign, report_of, run_spec, succeeded
 from services.reproduce.figures import draw_obstacles, pyplot, save, trace_arrays
 from services.reproduce.hopping import _falls, _path_panel, _rate
 from services.reproduce.items import MEASURED, ItemResult, Row, item, verdict
@@ -140,17 +139,6 @@ def fig_6_7(ctx: Context) -> ItemResult:
                       runs=len(records))
 
 
-def _bench_args(**changes: Any) -> argparse.Namespace:
-    from services.bench import planner as bench
-
-    parser = argparse.ArgumentParser()
-    bench.add_arguments(parser)
-    args = parser.parse_args([])
-    for k, v in changes.items():
-        setattr(args, k, v)
-    return args
-
-
 THESIS_NODES, THESIS_OBSTACLES = 5000, 500
 THESIS_CUT_MS = {"cpu": 5920.0, "gpu": 72.0}  # Table 7.1, line 3194
 THESIS_HYPERPLANES_MS = {"cpu": 6.24, "gpu": 0.61}
@@ -194,7 +182,7 @@ def table_7_1(ctx: Context) -> ItemResult:
     out = {}
     for threads in sorted({1, threads_all}):
         numba.set_num_threads(threads)
-        out[threads] = bench.measure(_bench_args(nodes=nodes, obstacles=obstacles, repeat=5, queries=3, refines=6))
+        out[threads] = bench.measure(bench_args(bench, nodes=nodes, obstacles=obstacles, repeat=5, queries=3, refines=6))
     numba.set_num_threads(threads_all)
     hyper_ms, segments = _separating_ms(nodes, obstacles, 20)
     one, many = out[1], out[threads_all]
@@ -223,13 +211,14 @@ def cut_qp(ctx: Context) -> ItemResult:
     from onboard.geometry import polygons as pg
     from onboard.high_level.planning import bezier_graph as bg
     from onboard.high_level.tracking import collision as col
+    from services.bench import planner as bench
     from services.bench.planner import NODES_PER_M2, random_obstacles
 
     nodes = THESIS_NODES if not ctx.quick else 1000
     side = math.sqrt(nodes / NODES_PER_M2)
     rng = np.random.default_rng(0)
     # the world and graph of archer bench planner (Table 7.1's row): no rest lattice, about 10 edges a node
-    params = PlannerParams(nodes=nodes, rest_grid=_bench_args().rest_grid)
+    params = PlannerParams(nodes=nodes, rest_grid=bench_args(bench).rest_grid)
     graph = bg.build_graph(bg.spec_from_params(params, (0.0, 0.0, side, side), nodes=nodes, seed=0))
     polys = random_obstacles(rng, THESIS_OBSTACLES if not ctx.quick else 100, side)
     margin = 0.2

@@ -3,13 +3,11 @@ cost of one iteration of Algorithm 2 (line 2776). Timed on this machine, every a
 
 from __future__ import annotations
 
-import argparse
 import os
-from typing import Any
 
 import numpy as np
 
-from services.reproduce.engine import Context
+from services.reproduce.engine import Context, bench_args
 from services.reproduce.items import MEASURED, ItemResult, Row, item, verdict
 
 THESIS_GMPC_RATE_HZ = 100.0  # line 2235 and Table 5.3: solved at 100 Hz
@@ -21,17 +19,6 @@ def _load() -> str:
     return " ".join(f"{v:.1f}" for v in os.getloadavg())
 
 
-def _gmpc_args(**changes: Any) -> argparse.Namespace:
-    from services.bench import gmpc as bench
-
-    parser = argparse.ArgumentParser()
-    bench.add_arguments(parser)
-    args = parser.parse_args([])
-    for k, v in changes.items():
-        setattr(args, k, v)
-    return args
-
-
 @item("table5.3", "The geometric MPC at Table 5.3's settings: horizon, knots, and its solve time at 100 Hz",
       "§5.3, Table 5.3, lines 2219-2265",
       "The geometric MPC (horizon 20, two SQP iterations, knots of 0.01 s in flight and 0.001 s in stance) solves at 100 Hz.")
@@ -41,9 +28,9 @@ def table_5_3(ctx: Context) -> ItemResult:
 
     duration = 2.0 if ctx.quick else 10.0
     load_before = _load()
-    thesis = bench.measure(_gmpc_args(duration=duration, thesis_settings=True, shadow=True))
-    stack = bench.measure(_gmpc_args(duration=duration))
-    closed = bench.measure(_gmpc_args(duration=duration, thesis_settings=True))
+    thesis = bench.measure(bench_args(bench, duration=duration, thesis_settings=True, shadow=True))
+    stack = bench.measure(bench_args(bench, duration=duration))
+    closed = bench.measure(bench_args(bench, duration=duration, thesis_settings=True))
     load_after = _load()
 
     def times(res: dict) -> str:
