@@ -1,13 +1,13 @@
 """Lockstep trace at each touchdown (docs/model_error.md): the stack's estimate, the true CoM, the commanded and
-achieved impact tilt, with the CoM D off the spine. Usage: python docs/model_error_trace.py SCENARIO D BALANCE_KI
+achieved impact tilt, with the CoM D off the spine. Usage: python docs/model_error_trace.py SCENARIO D BALANCE_GAIN
 """
 import sys
 import numpy as np
 from sim_twin import lockstep as ls
 from onboard.contracts.params import ControlParams
-scen, off, ki = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+scen, off, gain = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
 cfg = ls.RunConfig(scenario=scen, seed=0, estimator="kalman", model_error=f"com_x={off}",
-                   control_params=ControlParams(balance_ki=ki))
+                   control_params=ControlParams(balance_gain=gain))
 r = ls.LockstepRunner(cfg)
 plug = r.controller; ctrl = plug.ctrl
 inner = plug.step
@@ -19,12 +19,12 @@ def step(now_ns, state, ref, joints=None, *a):
     if ph != "flight" and prev[0] == "flight":
         d = r.data; com, _ = r.truth.com(d)
         w, x, y, z = d.qpos[3:7]
-        rows.append((now_ns / 1e9, state.position[0], com[0], ctrl.reference_at_impact[0], ctrl.eta[0], 2 * (x * z + w * y), com[0] - d.xpos[foot][0], ctrl.balance.bx))
+        rows.append((now_ns / 1e9, state.position[0], com[0], ctrl.reference_at_impact[0], ctrl.eta[0], 2 * (x * z + w * y), com[0] - d.xpos[foot][0], ctrl.balance.beta_x))
     prev[0] = ph
     return out
 plug.step = step
 res = r.run()
 a = np.array(rows)
 last = a[a[:, 0] > a[-1, 0] - 5.0].mean(axis=0)
-print(f"{scen} offset={off} ki={ki}: goal_err={res.metrics['final_goal_error_m']} falls={res.metrics['falls']} | last 5 s mean at touchdown: "
-      f"est_x={last[1]:+.4f} true_x={last[2]:+.4f} ref_x={last[3]:+.4f} eta_cmd={last[4]:+.4f} tilt={last[5]:+.4f} com-foot={last[6]:+.4f} lean_learnt={last[7]:+.4f}")
+print(f"{scen} offset={off} gain={gain}: goal_err={res.metrics['final_goal_error_m']} falls={res.metrics['falls']} | last 5 s mean at touchdown: "
+      f"est_x={last[1]:+.4f} true_x={last[2]:+.4f} ref_x={last[3]:+.4f} eta_cmd={last[4]:+.4f} tilt={last[5]:+.4f} com-foot={last[6]:+.4f} beta={last[7]:+.4f}")

@@ -80,20 +80,58 @@ def test_imu_mount_misalignment_turns_what_the_imu_reads() -> None:
     assert abs(b.quat[0]) == pytest.approx(math.cos(math.pi / 4))
 
 
-def test_balance_point_integrates_bounded_in_the_heading_frame_and_resets() -> None:
-    bp = BalancePoint(k_pos=-0.2, lever=0.35, ki=0.5, tilt_max=0.05)
-    bp.update(0.1, 0.0, math.pi / 2)  # an error along world x is the heading frame's -y
-    assert (bp.bx, bp.by) == pytest.approx((0.0, 0.01))
-    assert bp.lean(math.pi / 2) == pytest.approx((-0.01, 0.0))  # back in the world: lean against the error
-    assert bp.offset(math.pi / 2) == pytest.approx((0.0035, 0.0))
-    for _ in range(100):
-        bp.update(1.0, 1.0, 0.0)
-    assert math.hypot(bp.bx, bp.by) == pytest.approx(0.05)  # anti-windup
+A_VEL, B_VEL, LEVER = 1.16, 3.85, 0.36  # the hop map's velocity row and the lever, about ARCHER's
+
+
+def _hop(bp: BalancePoint, beta: tuple[float, float], eta: tuple[float, float], v: tuple[float, float], yaw: float = 0.0) -> tuple[float, float]:
+    """One touchdown landing with ``eta`` at ``v``; returns the next touchdown's velocity for a lean disturbance ``beta``."""
+    bp.on_touchdown(v[0], v[1], eta[0], eta[1], yaw, True)
+    return A_VEL * v[0] + B_VEL * (eta[0] + beta[0]), A_VEL * v[1] + B_VEL * (eta[1] + beta[1])
+
+
+def test_balance_point_observes_a_constant_lean_while_moving_in_the_heading_frame() -> None:
+    beta = (0.03, -0.01)  # world: a CoM ~1.1 cm forward and 0.4 cm right of the spine
+    bp = BalancePoint(A_VEL, B_VEL, LEVER, gain=0.2, innovation_max=0.05, tilt_max=0.1, speed_max=1.0)
+    rng = np.random.default_rng(0)
+    v = (0.0, 0.0)
+    yaw = math.pi / 2
+    for _ in range(40):  # the robot walks about at up to ~0.3 m/s: leans drawn, not a policy
+        eta = tuple(rng.uniform(-0.05, 0.05, 2))
+        v = _hop(bp, beta, eta, v, yaw)
+        v = (max(-0.3, min(0.3, v[0])), max(-0.3, min(0.3, v[1])))  # the next touchdown's own start
+        bp.on_touchdown(v[0], v[1], 0.0, 0.0, yaw, False)  # only pairs inside one chain count
+    assert bp.updates == 0  # every pair was broken: nothing learnt from unrelated touchdowns
+    v = (0.1, -0.2)
+    for i in range(30):  # a policy that keeps the speed bounded, and a dither
+        eta = (-0.3 * v[0] + 0.02 * math.sin(i), -0.3 * v[1] - 0.03 * math.cos(i))
+        v = _hop(bp, beta, eta, v, yaw)
+    assert bp.updates == 29  # 30 touchdowns in one chain: 29 pairs
+    assert (bp.beta_x, bp.beta_y) == pytest.approx((-0.01, -0.03), abs=1e-9)  # world x is the heading frame's -y
+    assert bp.lean(yaw) == pytest.approx((-0.03, 0.01), abs=1e-9)  # back in the world: the lean cancels it
+    assert bp.offset(yaw) == pytest.approx((LEVER * 0.03, -LEVER * 0.01), abs=1e-9)
+
+
+def test_balance_point_bounds_a_push_and_its_lean_and_resets() -> None:
+    bp = BalancePoint(A_VEL, B_VEL, LEVER, gain=0.2, innovation_max=0.03, tilt_max=0.05, speed_max=1.0)
+    v = (0.0, 0.0)
+    for _ in range(10):
+        v = _hop(bp, (0.0, 0.0), (0.0, 0.0), v)
+    assert (bp.beta_x, bp.beta_y) == (0.0, 0.0)
+    bp.on_touchdown(0.0, 0.0, 0.0, 0.0, 0.0, True)
+    bp.on_touchdown(0.8, 0.0, 0.0, 0.0, 0.0, True)  # a push: 0.21 rad observed in one hop
+    assert (bp.updates, bp.clipped) == (10, 1)  # 12 touchdowns, the first (the drop from standing) not a hop: 10 pairs
+    assert bp.beta_x == pytest.approx(0.2 * 0.03)  # moved by gain x innovation_max only
+    bp.on_touchdown(1.5, 0.0, 0.0, 0.0, 0.0, True)  # faster than the linearization: not observed
+    assert bp.updates == 10
+    for _ in range(200):
+        _hop(bp, (0.2, 0.2), (-0.2, -0.2), (0.0, 0.0))
+    assert math.hypot(bp.beta_x, bp.beta_y) == pytest.approx(0.05)  # bounded
     bp.reset()
-    assert (bp.bx, bp.by) == (0.0, 0.0)
-    off = BalancePoint(-0.2, 0.35, 0.0, 0.05)
-    off.update(1.0, 1.0, 0.0)
-    assert (off.bx, off.by, off.updates) == (0.0, 0.0, 0)
+    assert (bp.beta_x, bp.beta_y) == (0.0, 0.0)
+    off = BalancePoint(A_VEL, B_VEL, LEVER, gain=0.0, innovation_max=0.03, tilt_max=0.05, speed_max=1.0)
+    for _ in range(3):
+        _hop(off, (0.03, 0.0), (0.0, 0.0), (0.0, 0.0))
+    assert (off.beta_x, off.beta_y, off.updates) == (0.0, 0.0, 0)
 
 
 def test_a_com_off_the_spine_is_found_online() -> None:
@@ -102,7 +140,7 @@ def test_a_com_off_the_spine_is_found_online() -> None:
     error = "com_x=0.0106;com_y=-0.0106"
     on = run(RunConfig(scenario="hop-in-place", estimator="kalman", seed=2, duration_s=20.0, model_error=error))
     off = run(RunConfig(scenario="hop-in-place", estimator="kalman", seed=2, duration_s=20.0, model_error=error,
-                        control_params=ControlParams(balance_ki=0.0)))
+                        control_params=ControlParams(balance_gain=0.0)))
     assert on.metrics["falls"] == 0 and off.metrics["falls"] == 0
     assert on.metrics["final_goal_error_m"] < 0.01
     assert off.metrics["final_goal_error_m"] > 0.10

@@ -77,7 +77,6 @@ from onboard.contracts.reference import sample_reference
 NS = 1_000_000_000
 POLICIES = ("zdp", "lqr", "raibert", "mlp")
 SPOOL_VEL_FILTER = 0.3  # first-order filter weight of the differenced spool speed (1 kHz)
-BALANCE_CLIPPED = 0.9  # share of ControlParams.pos_err_max past which the policy's position action counts as clipped
 
 
 class RobotLike(Protocol):
@@ -169,9 +168,9 @@ class LowLevelController:
                 raise ValueError(f"ZDP network must map 4 -> 2, got {self._mlp.n_in} -> {self._mlp.n_out}")
         safety = safety or SafetyLimits()
         self.flip = FlipManoeuvre(self._flip_limits(safety), params)
-        s_eta = self.design.linear.s_eta  # the ZDP's position gain, whatever policy flies: the integral's scale
-        self.balance = BalancePoint(0.5 * float(s_eta[0, 0] + s_eta[1, 1]), hopper.com_to_pivot(self.design.preload_nominal),
-                                    params.balance_ki, params.balance_tilt_max)
+        lin = self.design.linear  # the hop map's velocity row, whatever policy flies: the observer's model
+        self.balance = BalancePoint(float(lin.a_zz[2, 2]), float(lin.a_zeta[2, 0]), hopper.com_to_pivot(self.design.preload_nominal),
+                                    params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
         self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)
@@ -207,7 +206,6 @@ class LowLevelController:
         self._mid_checked: MidLevelSetpoint | None = None  # the last setpoint checked, and its verdict
         self._mid_ok = False
         self._lifted_off = False  # a lift-off this tick: the flip decides once the flight is predicted
-        self._standing_hops = 0  # touchdowns in a row at rest on a reference at rest (the balance point learns)
 
     def _tune(self, params: ControlParams, safety: SafetyLimits) -> None:
         """What the gains and limits set directly: cheap enough for between two ticks."""
@@ -221,7 +219,7 @@ class LowLevelController:
         self._foot_max = min(safety.foot_torque_max, self.robot.foot_torque_peak)
         self.flip.configure(self._flip_limits(safety), params)
         if hasattr(self, "balance"):  # built after the first _tune
-            self.balance.configure(params.balance_ki, params.balance_tilt_max)
+            self.balance.configure(params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
@@ -328,7 +326,6 @@ class LowLevelController:
             self._flown = False
             self.phase.reset()
             self.balance.reset()
-            self._standing_hops = 0
         return True
 
     def _phase_update(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> None:
@@ -513,21 +510,14 @@ class LowLevelController:
     def _on_event(self, now_ns: int, ev: PhaseEvent, s: StateEstimate, ref: ComReference | None) -> None:
         com_valid = not self.supervisor.attitude_only  # else no impact error, no hop-energy learning from the CoM
         if ev.event == "touchdown":
+            yaw = qt.yaw_of(s.quat)
+            lean = qt.body_z(s.quat)  # the lean it lands with, whoever commanded it (the ZDP, the geometric MPC)
+            self.balance.on_touchdown(s.velocity[0], s.velocity[1], lean[0], lean[1], yaw, com_valid and self.flip.state == "idle")
             if com_valid:
-                rx, ry, rvx, rvy = self._target(now_ns, s, ref, 0.0)
-                yaw = qt.yaw_of(s.quat)
+                rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
                 dx, dy = self.balance.offset(yaw)
                 ex, ey = s.position[0] + dx - rx, s.position[1] + dy - ry
                 err = math.hypot(ex, ey)
-                vx, vy = s.velocity[0], s.velocity[1]
-                # at rest off the reference, or walking away from it with the ZDP's position error clipped
-                # (a CoM so far off that the clipped proportional lean cannot hold it: the robot walks off)
-                walking_off = err >= BALANCE_CLIPPED * self.p.pos_err_max and ex * vx + ey * vy > 0.0
-                standing = (math.hypot(rvx, rvy) <= self.p.balance_ref_speed_max
-                            and (math.hypot(vx, vy) <= self.p.balance_speed_max or walking_off))
-                self._standing_hops = self._standing_hops + 1 if standing else 0
-                if self._standing_hops >= self.p.balance_settle_hops and self.flip.state == "idle":
-                    self.balance.update(ex, ey, yaw)
                 self.last_impact_error = err
                 self.tube_monitor.record_impact(err, qt.angle_between(s.quat, self.q_des))
             self.foot.on_touchdown(s.foot_pos)

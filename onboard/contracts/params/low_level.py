@@ -86,17 +86,15 @@ class ControlParams(_Section, section="control"):
     flip_settle_s: Annotated[float, within(0.0, 0.5)] = 0.06  # [s] the turn ends this long before the predicted touchdown
     flip_torque_share: Annotated[float, above(0.0, 1.0)] = 0.7  # share of a wheel's torque limit the turn's feed-forward may take
     flip_pump_hops: Annotated[int, within(1, 50)] = 10  # hops to raise the flight before the request is dropped
-    # the balance point (onboard.low_level.planning.balance): integral action on the zero dynamics. A CoM
-    # off the spine needs a constant lean at impact that the ZDP's proportional law only makes from a
-    # standing position error (~14x the offset); each touchdown's position error is integrated, in the
-    # body's heading frame, into that lean, and the lean gives the CoM offset back to the position used
-    balance_ki: Annotated[float, within(0.0, 1.0)] = 0.15  # share of the ZDP's position gain integrated per hop (0: off)
-    balance_tilt_max: Annotated[float, within(0.0, 0.3)] = 0.1  # [rad] bound on the learnt lean (anti-windup; 0.1: ~3.5 cm of CoM)
-    # learn only while standing: a moving reference's lag or a push's transient is not a balance point
-    # (on the square's last corner, learning from the overshoot's turnaround left 5 cm at the end)
-    balance_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] CoM speed at the touchdown
-    balance_ref_speed_max: Annotated[float, within(0.0, 2.0)] = 0.05  # [m/s] reference speed at the touchdown
-    balance_settle_hops: Annotated[int, within(1, 100)] = 3  # touchdowns in a row that slow before one counts
+    # the balance point (onboard.low_level.planning.balance): a disturbance observer on the hop map. A CoM
+    # off the spine acts as a constant extra lean at impact that the ZDP's proportional law only answers
+    # with a standing position error (~14x the offset); each pair of touchdowns observes that lean from the
+    # policy's own linearized hop map, in the body's heading frame, standing or moving; the controller
+    # cancels it and moves the position the policy sees by the CoM offset it implies
+    balance_gain: Annotated[float, within(0.0, 1.0)] = 0.2  # share of each hop's innovation taken (0: off)
+    balance_innovation_max: Annotated[float, above(0.0, 0.3)] = 0.03  # [rad] a push or a stumble moves the estimate by at most gain x this
+    balance_tilt_max: Annotated[float, within(0.0, 0.3)] = 0.1  # [rad] bound on the observed lean (0.1: ~3.6 cm of CoM)
+    balance_speed_max: Annotated[float, above(0.0, 3.0)] = 1.0  # [m/s] faster touchdowns are outside the hop map's linearization
     # identification routine (onboard/low_level/tracking/excitation.py, archer identify): while hopping in
     # place, a known dither on every wheel's command and a heading swing, so that a recording tells each
     # wheel's torque constant from its drag. Off on the robot unless the lab runs the routine.

@@ -1,22 +1,32 @@
-"""The balance point: integral action on the zero dynamics (thesis 5.5's policy, made type 1).
+"""The balance point: a disturbance observer on the hop-to-hop map (thesis 5.5's policy, made type 1).
 
 The Zero Dynamics Policy chooses the impact attitude from the impact state's error,
 ``eta = S_eta (z - z_ref)``: a proportional law. A robot whose CoM lies a distance ``d`` off
 its spine must land leaning by ``-d / L`` (``L``: CoM to foot pivot along the spine) for the foot
 to come down under its CoM; the proportional law makes that lean only from a standing position
-error ``d / (L k_p)``, about 14 ``d`` with the ZDP's ``k_p`` of ~0.21 rad/m and ``L`` ~0.34 m (and
+error ``d / (L k_p)``, about 14 ``d`` with the ZDP's ``k_p`` of ~0.21 rad/m and ``L`` ~0.36 m (and
 the estimate, which places the CoM where the MJCF says, is ``d`` off besides).
 
-:class:`BalancePoint` integrates each touchdown's position error into a lean ``b`` held in the
-body's heading frame (the offset turns with the body), added to the policy's attitude:
-``b += k_i k_p e`` with ``k_p`` the ZDP's own position gain, so ``k_i`` is the share of the
-proportional action integrated per hop. At the fixed point the foot lands under the CoM and
-``b = -d / L``, so ``-L b`` is the CoM's offset from the spine: the position the policy sees is
-corrected by it, and the robot stands with its true CoM, not the estimate's, on the reference.
-The lean is bounded by ``tilt_max`` (anti-windup) and reset when the controller arms.
+The policy's own design linearizes the impact-to-impact map, per horizontal axis
+``v' = a v + b eta`` (velocity at the next touchdown from this touchdown's velocity and impact
+lean; ``a`` ~1.16, ``b`` ~3.85 m/s/rad for ARCHER). A CoM offset acts as a constant extra lean
+``beta = d / L``: ``v' = a v + b (eta + beta)``. :class:`BalancePoint` observes
+``beta = (v' - a v) / b - eta`` at every pair of touchdowns, whatever the robot is doing (standing,
+walking a square, crossing a forest), and filters it per hop (the running mean over the first ``1 / gain`` hops after a reset, so the first
+hops converge fast, then a fixed gain that follows a change) with an innovation clipped to
+``innovation_max`` (a push or a stumble moves the estimate by a bounded step). ``eta`` is the lean
+the body lands with (measured, not commanded): the observer never sees its own correction, so it
+converges at its own rate whatever flies the robot (the ZDP, the geometric MPC). The controller adds ``-beta`` to the policy's lean and moves the position
+the policy sees by the CoM offset ``L beta``, so the robot stands with its true CoM, not the
+estimate's, on the reference.
 
-Frames: world z up; ``b`` and the offset in the heading frame (x forward, y left, z up); world
-values rotated by the heading ``yaw``. Units: rad, m. Scalar floats only (runs in the 1 kHz loop).
+Anything that acts as a constant lean is learnt too: a floor slope, an attitude bias (IMU mount).
+The hop map cannot tell those from a CoM offset, so their share of ``L beta`` moves where the robot
+stands (~6 mm per degree); the lean itself is right.
+
+``beta`` is held in the body's heading frame (the offset turns with the body), bounded by
+``tilt_max`` and reset when the controller arms. Frames: world z up; heading frame x forward,
+y left. Units: rad, m, m/s. Scalar floats only (runs in the 1 kHz loop).
 """
 
 from __future__ import annotations
@@ -25,52 +35,75 @@ import math
 
 
 class BalancePoint:
-    """The learnt lean at impact and the CoM offset it implies (module docstring)."""
+    """The observed lean disturbance and the CoM offset it implies (module docstring)."""
 
-    def __init__(self, k_pos: float, lever: float, ki: float, tilt_max: float) -> None:
-        """``k_pos`` [rad/m]: the policy's impact tilt per position error (negative: lean back
-        toward the reference); ``lever`` [m]: CoM to foot pivot along the spine at impact."""
-        self.k_pos = k_pos
+    def __init__(self, a_vel: float, b_vel: float, lever: float, gain: float, innovation_max: float,
+                 tilt_max: float, speed_max: float) -> None:
+        """``a_vel``, ``b_vel``: the hop map's velocity row (per axis); ``lever`` [m]: CoM to foot
+        pivot along the spine at impact; ``gain``: share of each hop's innovation taken (0: off);
+        ``speed_max`` [m/s]: faster touchdowns are outside the linearization and not observed."""
+        self.a_vel = a_vel
+        self.b_vel = b_vel
         self.lever = lever
-        self.ki = ki
-        self.tilt_max = tilt_max
-        self.bx = 0.0  # learnt lean, heading frame [rad]
-        self.by = 0.0
-        self.updates = 0
+        self.configure(gain, innovation_max, tilt_max, speed_max)
+        self.beta_x = 0.0  # observed lean disturbance, heading frame [rad]
+        self.beta_y = 0.0
+        self.updates = 0  # hops observed
+        self.clipped = 0  # of those, hops whose innovation was clipped (a push, a stumble, convergence)
+        self._last: tuple[float, float, float, float] | None = None  # last touchdown's (vx, vy, eta_x, eta_y)
+        self._observed = 0  # hops observed since the reset
+        self._touchdowns = 0  # touchdowns since the reset
 
-    def configure(self, ki: float, tilt_max: float) -> None:
-        self.ki = ki
+    def configure(self, gain: float, innovation_max: float, tilt_max: float, speed_max: float) -> None:
+        self.gain = gain
+        self.innovation_max = innovation_max
         self.tilt_max = tilt_max
-        self._clip()
+        self.speed_max = speed_max
+        self.beta_x, self.beta_y = _clip(getattr(self, "beta_x", 0.0), getattr(self, "beta_y", 0.0), tilt_max)
 
     def reset(self) -> None:
-        self.bx = self.by = 0.0
-
-    def _clip(self) -> None:
-        n = math.hypot(self.bx, self.by)
-        if n > self.tilt_max:
-            s = self.tilt_max / n if n > 0.0 else 0.0
-            self.bx *= s
-            self.by *= s
+        self.beta_x = self.beta_y = 0.0
+        self._last = None
+        self._observed = 0
+        self._touchdowns = 0
 
     def lean(self, yaw: float) -> tuple[float, float]:
-        """The learnt lean in world axes [rad] (added to the policy's ``eta``)."""
+        """The lean that cancels the disturbance, world axes [rad] (added to the policy's ``eta``)."""
         c, s = math.cos(yaw), math.sin(yaw)
-        return c * self.bx - s * self.by, s * self.bx + c * self.by
+        return -(c * self.beta_x - s * self.beta_y), -(s * self.beta_x + c * self.beta_y)
 
     def offset(self, yaw: float) -> tuple[float, float]:
         """The CoM's horizontal offset from where the estimate puts it, world axes [m]."""
-        ax, ay = self.lean(yaw)
-        return -self.lever * ax, -self.lever * ay
-
-    def update(self, ex: float, ey: float, yaw: float) -> None:
-        """One touchdown's position error (world, m, already corrected by :meth:`offset`)."""
-        if self.ki <= 0.0:
-            return
         c, s = math.cos(yaw), math.sin(yaw)
-        hx, hy = c * ex + s * ey, -s * ex + c * ey  # into the heading frame
-        g = self.ki * self.k_pos
-        self.bx += g * hx
-        self.by += g * hy
-        self._clip()
+        return self.lever * (c * self.beta_x - s * self.beta_y), self.lever * (s * self.beta_x + c * self.beta_y)
+
+    def on_touchdown(self, vx: float, vy: float, eta_x: float, eta_y: float, yaw: float, usable: bool) -> None:
+        """One touchdown: its CoM velocity (world, m/s), the lean it lands with (the body z axis's
+        horizontal part, world) and the heading. ``usable``: the CoM is trusted and the hop was an ordinary one (no
+        flip); an unusable touchdown breaks the chain of pairs."""
+        last = self._last
+        ordinary = usable and self._touchdowns > 0 and math.hypot(vx, vy) <= self.speed_max
+        self._touchdowns += 1  # the first after arming ends the drop from standing, not a hop
+        self._last = (vx, vy, eta_x, eta_y) if ordinary else None
+        if last is None or not usable or self.gain <= 0.0 or self._last is None:
+            return
+        ox = (vx - self.a_vel * last[0]) / self.b_vel - last[2]
+        oy = (vy - self.a_vel * last[1]) / self.b_vel - last[3]
+        c, s = math.cos(yaw), math.sin(yaw)
+        ix, iy = c * ox + s * oy - self.beta_x, -s * ox + c * oy - self.beta_y  # innovation, heading frame
+        n = math.hypot(ix, iy)
+        if n > self.innovation_max:
+            ix, iy = _clip(ix, iy, self.innovation_max)
+            self.clipped += 1
+        g = max(self.gain, 1.0 / (self._observed + 1))  # the running mean until it has 1/gain hops
+        self.beta_x, self.beta_y = _clip(self.beta_x + g * ix, self.beta_y + g * iy, self.tilt_max)
         self.updates += 1
+        self._observed += 1
+
+
+def _clip(x: float, y: float, limit: float) -> tuple[float, float]:
+    n = math.hypot(x, y)
+    if n > limit:
+        s = limit / n if n > 0.0 else 0.0
+        return x * s, y * s
+    return x, y
