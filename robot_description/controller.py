@@ -12,6 +12,7 @@ from onboard.low_level.planning.geometric_mpc import GeometricMpc
 from onboard.low_level.planning.gmpc_mid_level import GmpcMidLevel
 from onboard.low_level.controller import LowLevelController, design_policy
 from onboard.contracts.params import ControlParams, GeometricMpcParams, SafetyLimits
+from robot_description import identified
 from robot_description.hopper_dynamics import HopperDynamics
 from robot_description.params import DEFAULT_VARIANT, hopper_model, robot_params
 
@@ -32,10 +33,11 @@ def build_controller(
     params: ControlParams | None = None,
     safety: SafetyLimits | None = None,
 ) -> LowLevelController:
-    """The low level for robot ``variant`` with its parameters read from the MJCF."""
+    """The low level for robot ``variant`` with its parameters read from the MJCF (and the CoM's
+    offset from ``params.identified``, archer identify's file, where one is given)."""
     params = params or ControlParams()
     weights = load_policy_weights(params.mlp_weights) if params.policy == "mlp" else None
-    return LowLevelController(params, robot_params(variant), hopper_model(variant), safety, weights)
+    return LowLevelController(params, identified.robot_params(variant, params.identified), hopper_model(variant), safety, weights)
 
 
 def build_gmpc_mid_level(

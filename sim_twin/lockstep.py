@@ -35,7 +35,7 @@ from threadpoolctl import threadpool_limits
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import DepthImage
 from onboard.geometry import quaternion as quat
-from onboard.contracts.params import EstimatorParams, SafetyLimits, TwinParams, with_overrides
+from onboard.contracts.params import ControlParams, EstimatorParams, SafetyLimits, TwinParams, with_overrides
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
@@ -110,6 +110,19 @@ class _Tee(list):
             self.append(item)
 
 
+
+def _identified_control(control: ControlParams | None, estimator: EstimatorParams | None) -> ControlParams | None:
+    """The controller's parameters with the estimator's identified robot (``[estimator] identified``):
+    a robot runs both with the same file, so a config that names it once names it for both; two
+    different files are refused."""
+    est_file = estimator.identified if estimator is not None else ""
+    ctrl_file = control.identified if control is not None else ""
+    if est_file and ctrl_file and est_file != ctrl_file:
+        raise ValueError(f"[estimator] identified = {est_file!r} and [control] identified = {ctrl_file!r}: one robot, one file")
+    if not est_file or ctrl_file:
+        return control
+    return with_overrides(control or ControlParams(), {"identified": est_file})
+
 class LockstepRunner:
     """One run of one scenario; build, then :meth:`run`."""
 
@@ -159,7 +172,8 @@ class LockstepRunner:
             if not isinstance(self.planner, st.GraphPlannerPlug) or isinstance(self.planner, perception_plug.PerceivedGraphPlannerPlug):
                 raise ValueError("a world source feeds the graph planner on ground truth (--planner graph, --perception truth)")
             self.planner.use_world(cfg.world(self.scenario))
-        self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety, cfg.control_params, cfg.gmpc_params)
+        self.controller = st.make_controller(cfg.controller, cfg.variant, self.safety,
+                                             _identified_control(cfg.control_params, estimator_params), cfg.gmpc_params)
         self.metrics = PhysicsMetrics(self.model, self.scenario, self.truth, self.safety)
 
     def step_reference(self) -> None:

@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from onboard.contracts.params import ControlParams, TwinParams
+from onboard.contracts.params import ControlParams, EstimatorParams, TwinParams
 from onboard.low_level.planning.balance import BalancePoint
 from robot_description import params as rd
 from services.cli.campaign import parse_options
@@ -132,6 +132,22 @@ def test_balance_point_bounds_a_push_and_its_lean_and_resets() -> None:
     for _ in range(3):
         _hop(off, (0.03, 0.0), (0.0, 0.0), (0.0, 0.0))
     assert (off.beta_x, off.beta_y, off.updates) == (0.0, 0.0, 0)
+
+
+def test_balance_point_starts_from_a_known_offset_and_does_not_count_it_twice() -> None:
+    """An identified robot: the estimate already places the CoM 1 cm forward; the observer starts
+    from the lean that needs and moves the position the policy sees only by what is left."""
+    bp = BalancePoint(A_VEL, B_VEL, LEVER, gain=0.2, innovation_max=0.03, tilt_max=0.1, speed_max=1.0, known_x=0.01)
+    assert (bp.beta_x, bp.beta_y) == pytest.approx((0.01 / LEVER, 0.0))
+    assert bp.offset(0.7) == pytest.approx((0.0, 0.0), abs=1e-12)
+    v = (0.0, 0.0)
+    for _ in range(6):  # the true CoM is 1.2 cm forward: the observer moves from its prior, by the fixed gain
+        v = _hop(bp, (0.012 / LEVER, 0.0), (-bp.beta_x, 0.0), v)
+    assert bp.beta_x == pytest.approx(0.012 / LEVER - (0.002 / LEVER) * 0.8 ** 4)  # 4 pairs after the drop
+    assert bp.offset(0.0)[0] == pytest.approx(LEVER * bp.beta_x - 0.01)
+    with pytest.raises(ValueError, match="one robot, one file"):
+        run(RunConfig(scenario="hop-in-place", duration_s=0.1, control_params=ControlParams(identified="a.toml"),
+                      estimator_params=EstimatorParams(identified="b.toml")))
 
 
 def test_a_com_off_the_spine_is_found_online() -> None:

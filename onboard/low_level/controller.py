@@ -92,6 +92,7 @@ class RobotLike(Protocol):
     foot_torque_peak: float
     inertia_com: tuple[tuple[float, float, float], ...]
     wheel_spin_inertia: float
+    com_offset_body: tuple[float, float, float]
 
 
 @dataclass(frozen=True)
@@ -170,7 +171,8 @@ class LowLevelController:
         self.flip = FlipManoeuvre(self._flip_limits(safety), params)
         lin = self.design.linear  # the hop map's velocity row, whatever policy flies: the observer's model
         self.balance = BalancePoint(float(lin.a_zz[2, 2]), float(lin.a_zeta[2, 0]), hopper.com_to_pivot(self.design.preload_nominal),
-                                    params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
+                                    params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max,
+                                    robot.com_offset_body[0], robot.com_offset_body[1])
         self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)

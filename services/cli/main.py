@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "goal": ("services.cli.plan", "send the robot a goal position X Y [m]"),
     "reproduce": ("services.cli.reproduce", "regenerate the thesis's ARCHER figures and tables and compare them with its numbers (report.md)"),
     "identify": ("services.cli.identify", "fit the robot's wheel torque constants and drag, spring stiffness and CoM offset from a recording of the identification routine, with uncertainties; --validate N on drawn twins"),
+    "margins": ("services.cli.margins", "one-factor model-error sweeps: how far each factor may grow before the robot misses its goal and falls, per controller config; table and plot"),
     "soak": ("deploy.sil_soak", "chaos soak: the real-time stack on the twin with a schedule of faults; a JSON summary per fault"),
 }
 

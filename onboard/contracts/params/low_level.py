@@ -26,6 +26,9 @@ class ControlParams(_Section, section="control"):
     rate_hz: Annotated[float, within(100.0, LOOP_HZ_MAX)] = 1000.0  # control loop rate [Hz]
     auto_arm: bool = True  # arm on the first valid estimate (else wait for an arm request)
     robot: Name = "indoor"  # MJCF variant the parameters are read from (robot_description/models)
+    # archer identify's file, the same as [estimator] identified: the CoM offset the estimate already
+    # accounts for, which the balance observer starts from and does not count twice; "": the MJCF's
+    identified: str = ""
     rt_priority: RtPriority = 80  # SCHED_FIFO priority of the loop process (0: leave the scheduler alone)
     cpu: Cpu = -1  # CPU the loop process is pinned to (-1: no pinning)
     tube_period_s: Annotated[float, above(0.0, 60.0)] = 0.5  # publish the measured tube this often [s]

@@ -38,14 +38,22 @@ class BalancePoint:
     """The observed lean disturbance and the CoM offset it implies (module docstring)."""
 
     def __init__(self, a_vel: float, b_vel: float, lever: float, gain: float, innovation_max: float,
-                 tilt_max: float, speed_max: float) -> None:
+                 tilt_max: float, speed_max: float, known_x: float = 0.0, known_y: float = 0.0) -> None:
         """``a_vel``, ``b_vel``: the hop map's velocity row (per axis); ``lever`` [m]: CoM to foot
         pivot along the spine at impact; ``gain``: share of each hop's innovation taken (0: off);
-        ``speed_max`` [m/s]: faster touchdowns are outside the linearization and not observed."""
+        ``speed_max`` [m/s]: faster touchdowns are outside the linearization and not observed;
+        ``known_x``, ``known_y`` [m]: the CoM's offset from the spine that the robot description
+        (an identified robot) gives and the estimate already places the CoM by, body frame: the
+        observer starts from the lean it implies, and :meth:`offset` counts only the rest."""
         self.a_vel = a_vel
         self.b_vel = b_vel
         self.lever = lever
-        self.configure(gain, innovation_max, tilt_max, speed_max)
+        self.known_x = known_x
+        self.known_y = known_y
+        self.gain = gain
+        self.innovation_max = innovation_max
+        self.tilt_max = tilt_max
+        self.speed_max = speed_max
         self.beta_x = 0.0  # observed lean disturbance, heading frame [rad]
         self.beta_y = 0.0
         self.updates = 0  # hops observed
@@ -53,18 +61,20 @@ class BalancePoint:
         self._last: tuple[float, float, float, float] | None = None  # last touchdown's (vx, vy, eta_x, eta_y)
         self._observed = 0  # hops observed since the reset
         self._touchdowns = 0  # touchdowns since the reset
+        self.reset()
 
     def configure(self, gain: float, innovation_max: float, tilt_max: float, speed_max: float) -> None:
         self.gain = gain
         self.innovation_max = innovation_max
         self.tilt_max = tilt_max
         self.speed_max = speed_max
-        self.beta_x, self.beta_y = _clip(getattr(self, "beta_x", 0.0), getattr(self, "beta_y", 0.0), tilt_max)
+        self.beta_x, self.beta_y = _clip(self.beta_x, self.beta_y, tilt_max)
 
     def reset(self) -> None:
-        self.beta_x = self.beta_y = 0.0
+        self.beta_x, self.beta_y = _clip(self.known_x / self.lever, self.known_y / self.lever, self.tilt_max)
         self._last = None
-        self._observed = 0
+        # a known offset counts as the hops the fixed gain averages over; none: the running mean from the first hop
+        self._observed = round(1.0 / self.gain) if self.gain > 0.0 and (self.known_x or self.known_y) else 0
         self._touchdowns = 0
 
     def lean(self, yaw: float) -> tuple[float, float]:
@@ -75,7 +85,8 @@ class BalancePoint:
     def offset(self, yaw: float) -> tuple[float, float]:
         """The CoM's horizontal offset from where the estimate puts it, world axes [m]."""
         c, s = math.cos(yaw), math.sin(yaw)
-        return self.lever * (c * self.beta_x - s * self.beta_y), self.lever * (s * self.beta_x + c * self.beta_y)
+        hx, hy = self.lever * self.beta_x - self.known_x, self.lever * self.beta_y - self.known_y
+        return c * hx - s * hy, s * hx + c * hy
 
     def on_touchdown(self, vx: float, vy: float, eta_x: float, eta_y: float, yaw: float, usable: bool) -> None:
         """One touchdown: its CoM velocity (world, m/s), the lean it lands with (the body z axis's
