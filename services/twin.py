@@ -249,6 +249,8 @@ class TwinService(Service):
         out["contract_violations"] = self.contract_violations
         # commands that never reached the motors because of who sent them (onboard/contracts/commander.py)
         out["commands_refused_commander"] = dict(self.commander_latch.refused) if self.commander_latch is not None else {}
+        if self.model_error.values:  # the twin's drawn physics, as the lockstep report has it
+            out["model_error"] = self.model_error.report()
         return out
 
     def progress(self) -> bool:

@@ -186,6 +186,7 @@ def test_the_real_time_twin_takes_the_same_model_error_and_reports_the_draw(zeno
             assert status.extra["model_error.wheel_coulomb.2"] == pytest.approx(0.002)
             wheel = int(twin.model.joint(rd.WHEEL_JOINTS[2]).dofadr[0])
             assert twin.model.dof_frictionloss[wheel] == pytest.approx(0.002)
+            assert twin.summary()["model_error"]["com_x"] == pytest.approx(0.01)  # the run's report, as lockstep's
         finally:
             client.close()
             twin.request_stop()
