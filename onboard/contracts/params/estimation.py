@@ -112,3 +112,22 @@ class EstimatorParams(_Section, section="estimator"):
     # takes over [s]; 0: never. Above the worst stall of a loaded machine (a false fence costs a takeover and a
     # restart), so over ControlParams.estimate_fault_disarm_s: control disarms first (a hang still drops the robot)
     standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25
+    # Visual odometry (position_source = "odometry"): the D435's apex frames, frame to frame
+    # (onboard.perception.visual_odometry), give the CoM's horizontal displacement between two apexes;
+    # the odometry fuses it with its own displacement over the same stamps by inverse variance.
+    visual_odometry: bool = False  # fuse the D435's visual odometry into the odometry frame
+    vo_features: Annotated[int, within(50, 10_000)] = 1000  # ORB keypoints per frame
+    vo_min_inliers: Annotated[int, within(6, 10_000)] = 25  # PnP inliers below this: the pair is refused
+    vo_reprojection_px: Annotated[float, above(0.0, 20.0)] = 2.0  # [px] RANSAC inlier threshold
+    vo_ransac_iterations: Annotated[int, within(10, 10_000)] = 300
+    vo_ratio: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.8  # Lowe's ratio test on the two nearest descriptors
+    vo_min_depth_m: Annotated[float, within(0.0, 10.0)] = 0.3  # [m] 3D points from the first frame's depth in this range
+    vo_max_depth_m: Annotated[float, above(0.0, 20.0)] = 4.0
+    vo_min_spread: Annotated[float, within(0.0, 1.0)] = 0.05  # inliers' bounding box below this share of the image: bad geometry
+    vo_max_rotation_error_rad: Annotated[float, above(0.0, 3.2)] = 0.1  # the frames' rotation vs the attitude's
+    vo_max_speed_m_s: Annotated[float, above(0.0, 50.0)] = 3.0  # a displacement faster than this between two frames is refused
+    vo_max_interval_s: Annotated[float, above(0.0, 10.0)] = 1.0  # [s] frames further apart are not a pair
+    vo_max_std_m: Annotated[float, above(0.0, 10.0)] = 0.05  # [m] a displacement less certain than this is refused
+    vo_cov_scale: Annotated[float, above(0.0, 1e6)] = 3.0  # the residuals' covariance times this: measured, see below
+    vo_history_s: Annotated[float, above(0.0, 10.0)] = 1.5  # [s] odometry positions kept to meet a late displacement's stamps
+    vo_leg_std_m: Annotated[float, above(0.0, 1.0)] = 0.002  # [m] per axis: leg odometry's own displacement error apex to apex
