@@ -153,3 +153,83 @@ def test_fusing_it_lowers_the_drift_of_leg_odometry() -> None:
         off.append(a["final_drift_m"])
         on.append(b["final_drift_m"])
     assert np.mean(on) < 0.8 * np.mean(off), (off, on)
+
+
+def test_camera_service_publishes_the_displacement_between_its_frames(sidewalk: _Twin, zenoh_router) -> None:
+    """The real-time path: twin frames through librealsense's software device into the ``camera``
+    service, which places them by the estimate it hears, runs the VO and publishes the CoM's
+    displacement on the topic table's ``visual_odometry`` (the estimator service's input)."""
+    import asyncio
+    import threading
+    import time
+
+    from drivers.realsense import load
+    from drivers.realsense.device import StreamConfig
+    from drivers.realsense.emulator import Intrinsics, SoftwareD435
+    from onboard.contracts.params import CameraParams
+    from onboard.contracts.topics import TOPICS
+    from services.camera import CameraService
+    from services.estimator import INPUTS
+    from services.runtime.zenoh_session import open_session
+
+    assert "visual_odometry" in INPUTS and TOPICS["visual_odometry"].publishers == ("camera",)
+    rs = load()
+    cam = sidewalk.cam
+    cfg = StreamConfig(width=cam.width, height=cam.height, fps=30, color_width=cam.width, color_height=cam.height,
+                       decimation=1, spatial=False)
+    emu = SoftwareD435(rs, cfg, Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy))
+    poses = [(0.0, 0.0), (0.21, 0.03), (0.43, 0.0)]
+    shots = [sidewalk.frame(0, x, y, 0.0) for x, y in poses]  # the body level and facing +x: identity attitude
+    ns_key = "archer/test-vo"
+
+    class EmulatedCamera(CameraService):
+        def open_source(self, p):
+            return emu
+
+    params = CameraParams(capture="every", width=cam.width, height=cam.height, color_width=cam.width,
+                          color_height=cam.height, decimation=1, spatial=False, state_max_age_s=1.0, min_latency_s=0.0,
+                          robot_variant="outdoor")
+    est = with_overrides(EstimatorParams(), {"position_source": "odometry", "visual_odometry": True})
+    deltas: list[m.VisualOdometryDelta] = []
+
+    async def scenario() -> dict:
+        service = EmulatedCamera(ns=ns_key, endpoint=zenoh_router, params={"camera": params, "estimator": est})
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        sub = client.declare_subscriber(TOPICS["visual_odometry"].key(ns_key),
+                                        lambda s: deltas.append(m.decode(s.payload.to_bytes(), m.VisualOdometryDelta)))
+        state_pub = client.declare_publisher(TOPICS["state"].key(ns_key))
+        try:
+            pushed, last_push = 0, 0.0
+            end = time.monotonic() + 60.0
+            while time.monotonic() < end and len(deltas) < len(shots) - 1:
+                now = time.monotonic_ns()
+                state_pub.put(m.encode(m.StateEstimate(
+                    stamp_ns=now, position=[0.0, 0.0, 0.5], velocity=[0.0] * 3, quat=[1.0, 0.0, 0.0, 0.0], omega=[0.0] * 3,
+                    wheel_vel=[0.0] * 3, foot_pos=0.0, foot_vel=0.0, contact=False, phase="flight", pos_vel_cov=[0.0] * 36,
+                    att_cov=[0.0] * 3)))
+                if (pushed < len(shots) and getattr(service, "camera", None) is not None and service.frames >= pushed
+                        and time.monotonic() - last_push > 0.35):  # one frame a hop
+                    frame = shots[pushed][0]
+                    emu.push(frame.depth, frame.rgb, now / 1e6)
+                    pushed += 1
+                    last_push = time.monotonic()
+                await asyncio.sleep(0.05)
+            return service.counters.snapshot()
+        finally:
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 15.0)
+            client.close()
+
+    try:
+        counters = asyncio.run(asyncio.wait_for(scenario(), 120))
+    finally:
+        emu.stop()
+    assert len(deltas) == len(shots) - 1, counters
+    assert counters.get("vo_published") == len(deltas), counters
+    for i, delta in enumerate(deltas):
+        true = shots[i + 1][1] - shots[i][1]
+        err = np.array(delta.displacement) - true
+        assert math.hypot(err[0], err[1]) < 0.015, (i, err)
+        assert delta.seq == i + 1 and delta.stamp_ns > delta.from_stamp_ns
