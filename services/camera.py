@@ -12,7 +12,7 @@ The camera is opened once a valid estimate has arrived; a frame no recent valid 
 can place is refused (``rejected.no_state``).
 Publishes: ``depth`` (binary DepthImage, metres) and ``color`` (binary ColorImage, RGB
 aligned to the depth pixels), both stamped with the capture time; with
-``[estimator] visual_odometry`` also ``visual_odometry``: each published frame against the
+``[estimator] visual_odometry`` and ``position_source = "odometry"`` also ``visual_odometry``: each published frame against the
 previous one (:mod:`onboard.perception.visual_odometry`, placed by the same estimate), the CoM's
 displacement between their capture times (refusals counted as ``vo_rejected.<reason>``).
 """
@@ -71,7 +71,9 @@ class CameraService(Service):
         self._depth_pub = self.publisher("depth")
         self._color_pub = self.publisher("color") if p.color else None
         est: EstimatorParams = self.params["estimator"]
-        self.vo = VisualOdometry(est) if est.visual_odometry and p.color else None  # it needs the colour
+        # only where the estimator fuses it (no motion capture), and it needs the colour
+        fused = est.visual_odometry and est.position_source == "odometry"
+        self.vo = VisualOdometry(est) if fused and p.color else None
         self._vo_pub = self.publisher("visual_odometry") if self.vo is not None else None
         self._vo_seq = 0
         self._published = self.rate("depth")
