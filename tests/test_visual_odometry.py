@@ -128,7 +128,8 @@ def test_the_estimator_refuses_a_displacement_it_cannot_place() -> None:
     assert est.update_imu(imu, 400 * MS)
     assert not est.feed("visual_odometry", delta, 400 * MS) and est.rejections()["vo_before_anchor"] == 1
     assert not est.feed("visual_odometry", delta, 2000 * MS) and est.rejections()["vo_past"] == 1
-    off = StateEstimator(with_overrides(EstimatorParams(), {"position_source": "odometry"}), rd.robot_params("outdoor"))
+    off = StateEstimator(with_overrides(EstimatorParams(), {"position_source": "odometry", "visual_odometry": False}),
+                         rd.robot_params("outdoor"))
     assert not off.feed("visual_odometry", delta, 400 * MS) and off.rejections()["vo_disabled"] == 1
 
 
