@@ -11,7 +11,10 @@ its velocity over the gap) composed with the camera's mount (the MJCF site ``dep
 The camera is opened once a valid estimate has arrived; a frame no recent valid estimate
 can place is refused (``rejected.no_state``).
 Publishes: ``depth`` (binary DepthImage, metres) and ``color`` (binary ColorImage, RGB
-aligned to the depth pixels), both stamped with the capture time.
+aligned to the depth pixels), both stamped with the capture time; with
+``[estimator] visual_odometry`` and ``position_source = "odometry"`` also ``visual_odometry``: each published frame against the
+previous one (:mod:`onboard.perception.visual_odometry`, placed by the same estimate), the CoM's
+displacement between their capture times (refusals counted as ``vo_rejected.<reason>``).
 """
 
 from __future__ import annotations
@@ -29,7 +32,8 @@ from drivers.realsense.device import D435, WAIT_SLICE_MS, FrameSource, PipelineS
 from drivers.realsense.frames import ApexPicker, ClockMap
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import ColorImage, DepthImage, encode_color, encode_depth
-from onboard.contracts.params import CameraParams
+from onboard.contracts.params import CameraParams, EstimatorParams
+from onboard.perception.visual_odometry import VisualOdometry, VoFrame
 from onboard.geometry import quaternion as qt
 from robot_description.params import CameraMount, camera_mount
 from services.runtime.service import Service
@@ -53,7 +57,7 @@ def camera_pose(state: m.StateEstimate, at_ns: int, mount: CameraMount) -> tuple
 
 class CameraService(Service):
     name: ClassVar[str] = "camera"
-    params_sections: ClassVar[tuple[str, ...]] = ("camera",)
+    params_sections: ClassVar[tuple[str, ...]] = ("camera", "estimator")  # estimator: its visual odometry
     subscribes: ClassVar[tuple[str, ...]] = ("state", "phase")
 
     async def setup(self) -> None:
@@ -66,6 +70,12 @@ class CameraService(Service):
         self.mount = camera_mount(p.robot_variant)
         self._depth_pub = self.publisher("depth")
         self._color_pub = self.publisher("color") if p.color else None
+        est: EstimatorParams = self.params["estimator"]
+        # only where the estimator fuses it (no motion capture), and it needs the colour
+        fused = est.visual_odometry and est.position_source == "odometry"
+        self.vo = VisualOdometry(est) if fused and p.color else None
+        self._vo_pub = self.publisher("visual_odometry") if self.vo is not None else None
+        self._vo_seq = 0
         self._published = self.rate("depth")
         self._received = self.rate("frames")
         self._states: deque[m.StateEstimate] = deque(maxlen=STATE_HISTORY)
@@ -169,6 +179,25 @@ class CameraService(Service):
             self._color_pub.put_bytes(encode_color(ColorImage(frame.color, frame.fx, frame.fy, frame.cx, frame.cy,
                                                               cam_pos, cam_quat, stamp_ns, self._seq)))
         self._published.tick()
+        if self.vo is not None and frame.color is not None:
+            self._visual_odometry(frame.depth, frame.color, (frame.fx, frame.fy, frame.cx, frame.cy), state, quat, stamp_ns)
+
+    def _visual_odometry(self, depth: np.ndarray, color: np.ndarray, intrinsics: tuple[float, float, float, float],
+                         state: m.StateEstimate, cam_quat: list[float], stamp_ns: int) -> None:
+        """This frame against the previous published one; the displacement published, or the refusal counted."""
+        assert self.vo is not None and self._vo_pub is not None
+        lever = qt.rotate(state.quat, [-v for v in self.mount.pos_from_com])  # CoM - optical centre, world
+        fx, fy, cx, cy = intrinsics
+        delta = self.vo.step(VoFrame(stamp_ns, color, depth, fx, fy, cx, cy,
+                                     (cam_quat[0], cam_quat[1], cam_quat[2], cam_quat[3]), (lever[0], lever[1], lever[2])))
+        if delta is None:
+            if self.vo.last_reason:
+                self.count(f"vo_rejected.{self.vo.last_reason}")
+            return
+        self._vo_seq += 1
+        delta.seq = self._vo_seq
+        self._vo_pub.put(delta)
+        self.count("vo_published")
 
     async def main(self) -> None:
         self._reader.start()

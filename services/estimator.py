@@ -1,7 +1,9 @@
 """The ``estimator`` service: the state estimate at 1 kHz (issue 5).
 
 Subscribes: ``imu`` and ``joints`` (1 kHz), ``pose`` (motion capture / tracking camera,
-stamped with its capture time). Every message is kept: samples wait in Zenoh's own ring
+stamped with its capture time), ``visual_odometry`` (the camera service's displacement between
+two apex frames, stamped with their capture times; fused with ``position_source = "odometry"``
+and ``visual_odometry``). Every message is kept: samples wait in Zenoh's own ring
 buffers (``input_queue`` each, the oldest dropped beyond, counted as
 ``input_ring_full.<topic>``) until the loop thread drains them at its next tick, decodes
 them (malformed payloads are rejected and counted as for any subscription) and feeds
@@ -40,7 +42,7 @@ from robot_description import identified
 from services.runtime.realtime import DeadlineLoop, make_realtime_from
 from services.runtime.service import Service, fence
 
-INPUTS = ("imu", "joints", "pose")
+INPUTS = ("imu", "joints", "pose", "visual_odometry")
 
 
 class EstimatorService(Service):

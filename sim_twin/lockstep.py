@@ -166,6 +166,13 @@ class LockstepRunner:
                 raise ValueError("--sensing onboard is the onboard estimator's (--estimator kalman)")
             estimator_params = with_overrides(estimator_params or EstimatorParams(), {"position_source": "odometry"})
         self.estimator = self.truth if cfg.estimator == "truth" else st.make_estimator(cfg.estimator, self.model, self.robot, estimator_params)
+        # the D435's apex frames through the visual odometry into the estimator (estimator.visual_odometry)
+        self.visual_odometry = None
+        if cfg.sensing == "onboard" and getattr(estimator_params, "visual_odometry", False):
+            from sim_twin.visual_odometry_plug import ApexVisualOdometry
+
+            self.visual_odometry = ApexVisualOdometry(self.model, self.scenario.traversable, cfg.variant, estimator_params,
+                                                      cfg.twin, cfg.seed)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
         if cfg.world is not None:
@@ -233,6 +240,7 @@ class LockstepRunner:
         k = 0
         no_pose = cfg.sensing == "onboard"
         drift = _Drift(self.truth) if no_pose else None
+        vo = self.visual_odometry
         planner_feed = getattr(planner, "feed", None)
         perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
         sensor_feed = planner_feed if perceives else None  # a perceiving planner eats the depth images
@@ -267,6 +275,9 @@ class LockstepRunner:
             t = now_ns / NS
 
             # sensors -> estimator -> planner -> controller
+            if vo is not None:
+                for delta in vo.due(now_ns):  # late by the camera's and the VO's latency, stamped at capture
+                    estimator.feed("visual_odometry", delta, now_ns)
             for topic, msg in sensors.tick(data, now_ns):
                 if no_pose:
                     if topic == "pose":
@@ -291,6 +302,8 @@ class LockstepRunner:
                 next_tube_ns += tube_ns
                 planner_feed("tube", controller.tube(now_ns))
             phase = controller.drain_phase_events()
+            if vo is not None and any(ev.event == "apex" for ev in phase):
+                vo.on_apex(now_ns, data, state, self.truth.estimate(now_ns, data).position)
             trips = controller.drain_safety_events()
             phase_events += len(phase)
             safety_events += len(trips)
@@ -343,6 +356,8 @@ class LockstepRunner:
             drift.update(now_ns, data, state)
             out["sensing"] = "onboard"
             out.update(drift.summary())
+            if vo is not None:
+                out["visual_odometry"] = vo.report(estimator.counters())
         out.update({
             "contract_violations": contract_violations,
             "safety_events": safety_events,

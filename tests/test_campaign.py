@@ -174,3 +174,17 @@ def test_ray_gives_the_local_pool_results(tmp_path) -> None:
 
 # real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
 pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")
+
+
+def test_onboard_sensing_campaigns_report_the_drift(tmp_path, capsys) -> None:
+    """Without motion capture the summary holds the estimate's drift (final, and per metre once a run has
+    gone somewhere); with motion capture it holds none."""
+    out = tmp_path / "c"
+    rc = main(["campaign", "--scenario", "hop-in-place", "--seeds", "0", "--variant", "outdoor", "--option", "duration=1.5",
+               "--option", "estimator=kalman", "--option", "sensing=mocap,onboard", "--workers", "1", "--quiet",
+               "--out", str(out), "--json"])
+    assert rc == 0
+    mocap, onboard = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["groups"]
+    assert "drift_per_m" not in mocap and "sensing=onboard" in onboard["group"]
+    assert onboard["final_drift_m"]["p50"] is not None and "drift_per_m" in onboard
+    assert "drift per metre" in (out / SUMMARY_TXT).read_text()

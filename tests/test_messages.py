@@ -20,6 +20,7 @@ SAMPLES: list[msgspec.Struct] = [
     m.ImuSample(stamp_ns=5, seq=2, quat=Q, gyro=V3, accel=V3),
     m.JointSensors(wheel_pos=V3, wheel_vel=V3, wheel_torque=V3, foot_pos=0.01, foot_vel=-0.1, foot_contact=True),
     m.PoseMeasurement(position=V3, quat=Q),
+    m.VisualOdometryDelta(from_stamp_ns=1, displacement=V3, cov=[1e-6, 0.0, 0.0, 0.0, 1e-6, 0.0, 0.0, 0.0, 1e-6], inliers=40),
     m.StateEstimate(
         position=V3, velocity=V3, quat=Q, omega=V3, wheel_vel=V3, foot_pos=0.0, foot_vel=0.0,
         contact=False, phase="flight", pos_vel_cov=[0.0] * 36, att_cov=[1e-4] * 3,

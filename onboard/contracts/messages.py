@@ -73,6 +73,16 @@ class PoseMeasurement(Message):
     source: str = "mocap"
 
 
+class VisualOdometryDelta(Message):
+    """The CoM's displacement between two camera frames, from visual odometry
+    (:mod:`onboard.perception.visual_odometry`); ``stamp_ns`` is the second frame's capture time."""
+
+    from_stamp_ns: int  # the first frame's capture time [ns]
+    displacement: Vec3  # CoM(stamp_ns) - CoM(from_stamp_ns) [m, world]
+    cov: Annotated[list[float], msgspec.Meta(min_length=9, max_length=9)]  # its covariance, row-major 3x3 [m^2]
+    inliers: int = 0  # features that agreed on the motion
+
+
 # --- estimation ---------------------------------------------------------------
 
 Phase = Literal["flight", "stance"]

@@ -81,6 +81,9 @@ _TABLE = [
     # world model
     Topic("polytopes", "world/polytopes", m.PolytopeSet, 10, ("perception", "twin", "camera_overhead"), reliability="reliable"),
     Topic("grid", "world/grid", None, 5, ("perception",), priority="data_low", binary="grid"),
+    # visual odometry: the CoM's displacement between two apex frames (estimator.visual_odometry), one a hop
+    Topic("visual_odometry", "sensors/visual_odometry", m.VisualOdometryDelta, 0, ("camera",), reliability="reliable",
+          priority="interactive_high"),
 ]
 
 TOPICS: dict[str, Topic] = {t.name: t for t in _TABLE}

@@ -185,8 +185,19 @@ class ComFilter:
         self._out[2] += dz
         self._shift_horizon_height(dz)
 
+    def shift_horizontal(self, dx: float, dy: float) -> None:
+        """Move the CoM by ``(dx, dy)`` [m, world], output and horizon alike (its covariance stays):
+        a correction of the odometry frame from a displacement measured elsewhere (visual odometry)."""
+        self._out[0] += dx
+        self._out[1] += dy
+        self._shift_horizon_xy(dx, dy)
+
     def _shift_horizon_height(self, dz: float) -> None:
         self._x[2] += dz
+
+    def _shift_horizon_xy(self, dx: float, dy: float) -> None:
+        self._x[0] += dx
+        self._x[1] += dy
 
     def _anchor_horizon(self, dx: float, dy: float, dz: float, var: float) -> None:
         x = self._x
@@ -492,6 +503,10 @@ class FilterpyComFilter(ComFilter):
 
     def _shift_horizon_height(self, dz: float) -> None:
         self._kf.x[2, 0] += dz
+
+    def _shift_horizon_xy(self, dx: float, dy: float) -> None:
+        self._kf.x[0, 0] += dx
+        self._kf.x[1, 0] += dy
 
     def _anchor_horizon(self, dx: float, dy: float, dz: float, var: float) -> None:
         kf = self._kf

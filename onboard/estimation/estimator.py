@@ -9,6 +9,7 @@ Usage (lockstep or service)::
     est.update_imu(imu, t_arrival)        # ImuSample, 1 kHz: propagates attitude and CoM
     est.update_joints(joints, t_arrival)  # JointSensors, 1 kHz: wheels, foot, contact, leg kinematics
     est.update_pose(pose, t_arrival)      # PoseMeasurement, whenever one arrives (stamp = capture time)
+    est.update_visual_odometry(vo, t)     # VisualOdometryDelta (odometry): the CoM's displacement between two frames
     msg = est.estimate(now_ns)            # StateEstimate predicted to now_ns
 
 ``t_arrival`` is when the caller received the sample, on the clock its stamps use (the
@@ -81,7 +82,7 @@ from onboard.estimation.imu_gaps import GapModel
 from onboard.estimation.input_gate import ATTITUDE_HISTORY_S, NS, QUAT_NORM_TOL, InputGate, check_params
 from onboard.estimation.leg_model import FOOT_EXTENDED_M, LegModel, RobotGeometry
 from onboard.estimation.position_sources import MocapPoses, Odometry
-from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement, StateEstimate
+from onboard.contracts.messages import ImuSample, JointSensors, PoseMeasurement, StateEstimate, VisualOdometryDelta
 from onboard.contracts.params import EstimatorParams
 
 
@@ -152,7 +153,8 @@ class StateEstimator:
         # where position and absolute attitude come from (onboard.estimation.position_sources)
         self._odometry = p.position_source == "odometry"
         self.mocap = MocapPoses(p, self._gate, self._gate3)
-        self.odometry = Odometry(p, self._gate, self._gate3)
+        self.odometry = Odometry(p, self._gate, self._gate3, self._gate2)
+        self._vo_record = self._odometry and p.visual_odometry  # keep the odometry's positions for late VO
 
     # --- input ------------------------------------------------------------------
 
@@ -165,6 +167,8 @@ class StateEstimator:
             return self.update_joints(cast(JointSensors, msg), arrival_ns)
         if topic == "pose":
             return self.update_pose(cast(PoseMeasurement, msg), arrival_ns)
+        if topic == "visual_odometry":
+            return self.update_visual_odometry(cast(VisualOdometryDelta, msg), arrival_ns)
         return False
 
     # --- IMU --------------------------------------------------------------------------
@@ -288,6 +292,8 @@ class StateEstimator:
             k = self._gaps.speed_limit(vx, vy, vz, ax, ay, az, dt)
             ax, ay, az = k * ax, k * ay, k * az
         self.com.push(t, dt, ax, ay, az, stance, self.foot_pos, gap_cov)
+        if self._vo_record:
+            self.odometry.record(t, self.com)
 
     def _start(self, msg: ImuSample) -> bool:
         """First IMU sample: the IMU's own attitude if it is a unit quaternion, else level."""
@@ -368,6 +374,21 @@ class StateEstimator:
         if self._pending is not None:
             self._step_com()
         return self.mocap.fuse(pose, self._t_imu, self.att, self.com)
+
+    # --- visual odometry --------------------------------------------------------------
+
+    def update_visual_odometry(self, msg: VisualOdometryDelta, arrival_ns: int | None = None) -> bool:
+        """Fuse the CoM's displacement between two camera frames (``position_source = "odometry"``
+        with ``visual_odometry``): compared with the odometry's own between the frames' stamps,
+        whenever it arrives within ``vo_history_s`` of them."""
+        if not self._odometry:
+            return self._gate.reject("vo_not_odometry")  # the pose sensor's frame is absolute
+        refused = self._gate.stamp_refused("vo", msg.stamp_ns, arrival_ns)
+        if refused:
+            return self._gate.reject(refused)
+        if self._pending is not None:
+            self._step_com()
+        return self.odometry.fuse_displacement(msg, self.com)
 
     # --- output -------------------------------------------------------------------------
 

@@ -13,14 +13,20 @@ the present before either source touches it:
 - :class:`Odometry` (``"odometry"``: no motion capture): the IMU's own orientation (its AHRS)
   corrects the attitude every ``imu_att_every`` samples; the first confirmed touchdown's contact
   point is the origin (ground at z = 0), and on flat ground every later one resets the CoM's
-  height from the leg, keeping the unobserved vertical drift to one hop's worth.
+  height from the leg, keeping the unobserved vertical drift to one hop's worth. With
+  ``visual_odometry`` the D435's frame-to-frame displacement between two apex stamps
+  (:mod:`onboard.perception.visual_odometry`) is fused with the odometry's own displacement
+  between the same stamps by inverse variance, and the frame moved by the difference: the
+  measurement arrives late (the VO's compute), so the odometry keeps its own positions for
+  ``vo_history_s`` and compares at the frames' stamps, not at the arrival.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
-from onboard.contracts.messages import PoseMeasurement
+from onboard.contracts.messages import PoseMeasurement, VisualOdometryDelta
 from onboard.contracts.params import EstimatorParams
 from onboard.estimation.attitude_filter import AttitudeFilter
 from onboard.estimation.com_filter import ComFilter
@@ -106,7 +112,7 @@ class MocapPoses:
 class Odometry:
     """No pose sensor: the IMU's orientation for the attitude, an origin at the first touchdown."""
 
-    def __init__(self, p: EstimatorParams, gate: InputGate, gate3: float) -> None:
+    def __init__(self, p: EstimatorParams, gate: InputGate, gate3: float, gate2: float) -> None:
         self._gate = gate
         self._gate3 = gate3
         self.anchored = False
@@ -115,6 +121,14 @@ class Odometry:
         self._imu_att_run = 0
         self._anchor_var = p.anchor_std_m ** 2
         self._flat_ground = p.odometry_flat_ground
+        # visual odometry: the odometry's own horizontal positions (without the VO's corrections) by stamp
+        self.visual = p.visual_odometry
+        self._history: deque[tuple[int, float, float]] = deque()
+        self._history_ns = int(p.vo_history_s * NS)
+        self._shift_x = 0.0  # the VO's corrections so far [m, world]
+        self._shift_y = 0.0
+        self._leg_disp_var = p.vo_leg_std_m ** 2
+        self._gate2 = gate2
 
     def imu_attitude(self, att: AttitudeFilter, q: list[float], t: int) -> None:
         """Every ``imu_att_every``-th IMU orientation (its own AHRS) corrects the attitude."""
@@ -142,7 +156,75 @@ class Odometry:
         if not self.anchored:
             self.anchored = True
             com.anchor(lx, ly, lz, self._anchor_var)
+            self._history.clear()  # the frame's origin moved: positions before it are not comparable
             self._gate.count("odometry_anchored")
         elif self._flat_ground:
             com.shift_height(lz - com.position[2])
             self._gate.count("ground_height_resets")
+
+    def record(self, t: int, com: ComFilter) -> None:
+        """The CoM's horizontal position at ``t`` (an IMU sample), less the VO's corrections so far:
+        what a later displacement is compared against."""
+        if not self.anchored:
+            return
+        px, py, _ = com.position
+        history = self._history
+        history.append((t, px - self._shift_x, py - self._shift_y))
+        oldest = t - self._history_ns
+        while history[0][0] < oldest:
+            history.popleft()
+
+    def _position_at(self, t: int) -> tuple[float, float] | None:
+        """The odometry's own horizontal position at ``t`` [m], interpolated between the kept samples;
+        None outside them."""
+        history = self._history
+        if not history or t < history[0][0] or t > history[-1][0]:
+            return None
+        later = history[-1]
+        for i in range(len(history) - 1, -1, -1):  # the stamps asked for are recent: from the newest back
+            e = history[i]
+            if e[0] <= t:
+                if later[0] == e[0]:
+                    return e[1], e[2]
+                w = (t - e[0]) / (later[0] - e[0])
+                return e[1] + w * (later[1] - e[1]), e[2] + w * (later[2] - e[2])
+            later = e
+        return None
+
+    def fuse_displacement(self, msg: VisualOdometryDelta, com: ComFilter) -> bool:
+        """Fuse the VO's horizontal displacement of the CoM between ``msg.from_stamp_ns`` and
+        ``msg.stamp_ns`` with the odometry's own between the same stamps, by inverse variance
+        (the odometry's: ``vo_leg_std_m`` per axis; the VO's: its covariance), gated against their
+        sum; the frame moves by the fused minus the odometry's. Whether it was used."""
+        if not self.visual:
+            return self._gate.reject("vo_disabled")
+        if not self.anchored:
+            return self._gate.reject("vo_before_anchor")
+        d, c = msg.displacement, msg.cov
+        dx, dy = float(d[0]), float(d[1])
+        cxx, cxy, cyy = float(c[0]), 0.5 * (float(c[1]) + float(c[3])), float(c[4])
+        if not (math.isfinite(dx + dy) and math.isfinite(cxx + cxy + cyy)):
+            return self._gate.reject("vo_nonfinite")
+        if cxx <= 0.0 or cyy <= 0.0 or cxx * cyy - cxy * cxy <= 0.0:
+            return self._gate.reject("vo_bad_cov")
+        if msg.stamp_ns <= msg.from_stamp_ns:
+            return self._gate.reject("vo_bad_interval")
+        p0 = self._position_at(msg.from_stamp_ns)
+        p1 = self._position_at(msg.stamp_ns)
+        if p0 is None or p1 is None:
+            return self._gate.reject("vo_stamps_not_kept")
+        ox, oy = p1[0] - p0[0], p1[1] - p0[1]
+        v = self._leg_disp_var
+        # innovation covariance S = C_vo + v I; the fused displacement is the odometry's plus v S^-1 e
+        a, b, dd = cxx + v, cxy, cyy + v
+        det = a * dd - b * b
+        ex, ey = dx - ox, dy - oy
+        if (dd * ex * ex - 2.0 * b * ex * ey + a * ey * ey) / det > self._gate2:
+            return self._gate.reject("vo_outliers")
+        kx = v * (dd * ex - b * ey) / det
+        ky = v * (a * ey - b * ex) / det
+        com.shift_horizontal(kx, ky)
+        self._shift_x += kx
+        self._shift_y += ky
+        self._gate.count("vo_fused")
+        return True

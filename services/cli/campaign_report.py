@@ -86,6 +86,10 @@ def summarize(records: list[dict]) -> dict:
                 "time_to_goal_s": _spread(_reported(reports, "time_to_goal_s")),
                 "replans_per_s": _spread(_reported(reports, "planner_replans_per_s"))}
                if any("collisions_by_robot" in r for r in reports) else {}),
+            # no motion capture (--sensing onboard): how far the estimate drifted, per metre travelled and in all
+            **({"drift_per_m": _spread(_reported(reports, "drift_per_m")),
+                "final_drift_m": _spread(_reported(reports, "final_drift_m"))}
+               if any("drift_per_m" in r for r in reports) else {}),
             "final_goal_error_m": _spread(_reported(reports, "final_goal_error_m")),
             "rms_tracking_error_m": _spread(_reported(reports, "rms_tracking_error_m")),
             "realtime_factor_median": round(float(np.median(rtf)), 2) if rtf else None,
@@ -116,6 +120,11 @@ def table(summary: dict) -> str:
         ))
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    for g in summary["groups"]:
+        if "drift_per_m" in g:
+            d, f = g["drift_per_m"], g["final_drift_m"]
+            lines.append(f"{g['group']}: drift per metre p50/p90/max {_fmt(d['p50'], 4)}/{_fmt(d['p90'], 4)}/{_fmt(d['max'], 4)}, "
+                         f"final drift p50/p90 {_fmt(f['p50'])}/{_fmt(f['p90'])} m")
     lines.append(f"{summary['runs']} runs, {summary['errors']} errors"
                  + (f", {summary['campaign_wall_s']} s wall ({summary['executor']})" if "campaign_wall_s" in summary else ""))
     return "\n".join(lines)

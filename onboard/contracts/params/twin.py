@@ -69,3 +69,7 @@ class TwinParams(_Section, section="twin"):
     # a profile of sim_twin/model_errors/, a TOML file or name=value;... (the real-time twin adds no actuator delay:
     # its commands already cross the network)
     model_error: Name = "nominal"
+    # Visual odometry in lockstep (estimator.visual_odometry with --sensing onboard): the D435's frame at each apex,
+    # at the camera service's published size (its mode over the decimation), reaches the estimator as a displacement
+    # this long after its capture (the camera's transfer, ~10 ms, plus the VO's compute, 10-20 ms at 424 x 240 here)
+    vo_latency_s: Annotated[float, within(0.0, 1.0)] = 0.04
