@@ -12,13 +12,19 @@ The policy's own design linearizes the impact-to-impact map, per horizontal axis
 lean; ``a`` ~1.16, ``b`` ~3.85 m/s/rad for ARCHER). A CoM offset acts as a constant extra lean
 ``beta = d / L``: ``v' = a v + b (eta + beta)``. :class:`BalancePoint` observes
 ``beta = (v' - a v) / b - eta`` at every pair of touchdowns, whatever the robot is doing (standing,
-walking a square, crossing a forest), and filters it per hop (the running mean over the first ``1 / gain`` hops after a reset, so the first
-hops converge fast, then a fixed gain that follows a change) with an innovation clipped to
-``innovation_max`` (a push or a stumble moves the estimate by a bounded step). ``eta`` is the lean
-the body lands with (measured, not commanded): the observer never sees its own correction, so it
-converges at its own rate whatever flies the robot (the ZDP, the geometric MPC). The controller adds ``-beta`` to the policy's lean and moves the position
-the policy sees by the CoM offset ``L beta``, so the robot stands with its true CoM, not the
+walking a square, crossing a forest), and filters it per hop: the running mean over the first
+``1 / gain`` hops after a reset (the first hops converge fast), then a fixed gain that follows a
+change, each innovation clipped to ``innovation_max`` (a push or a stumble moves the estimate by a
+bounded step). ``eta`` is the lean the body lands with (measured, not commanded): the observer
+never sees its own correction, so it converges at its own rate whatever flies the robot (the ZDP,
+the geometric MPC). The controller adds ``-beta`` to the policy's lean and moves the position the
+policy sees by the CoM offset ``L beta``, so the robot stands with its true CoM, not the
 estimate's, on the reference.
+
+The map is the reduced model's. The twin's own, fitted on its touchdowns (square, seeds 0-2), is
+``a`` 1.21, ``b`` 2.97: the difference reads as a lean of about -0.23 ``eta`` + 0.013 ``v`` while
+the robot accelerates, which the filter averages out over a run but not within one leg of a square
+(+-0.008 rad, ~3 mm of offset).
 
 Anything that acts as a constant lean is learnt too: a floor slope, an attitude bias (IMU mount).
 The hop map cannot tell those from a CoM offset, so their share of ``L beta`` moves where the robot
@@ -90,13 +96,13 @@ class BalancePoint:
 
     def on_touchdown(self, vx: float, vy: float, eta_x: float, eta_y: float, yaw: float, usable: bool) -> None:
         """One touchdown: its CoM velocity (world, m/s), the lean it lands with (the body z axis's
-        horizontal part, world) and the heading. ``usable``: the CoM is trusted and the hop was an ordinary one (no
-        flip); an unusable touchdown breaks the chain of pairs."""
+        horizontal part, world) and the heading. ``usable``: the CoM is trusted and the hop was an
+        ordinary one (no flip); an unusable touchdown breaks the chain of pairs."""
         last = self._last
         ordinary = usable and self._touchdowns > 0 and math.hypot(vx, vy) <= self.speed_max
         self._touchdowns += 1  # the first after arming ends the drop from standing, not a hop
         self._last = (vx, vy, eta_x, eta_y) if ordinary else None
-        if last is None or not usable or self.gain <= 0.0 or self._last is None:
+        if last is None or self._last is None or self.gain <= 0.0:
             return
         ox = (vx - self.a_vel * last[0]) / self.b_vel - last[2]
         oy = (vy - self.a_vel * last[1]) / self.b_vel - last[3]
