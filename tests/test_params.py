@@ -121,3 +121,21 @@ def test_a_config_file_with_a_bad_value_names_file_and_field(tmp_path):
     path.write_text("[safety]\nwheel_torque_max = 1.2\n[hardware]\nnode_ids = [1, 2, 3, 4]\n")
     params = load_params(path)
     assert params["safety"].wheel_torque_max == 1.2 and params["hardware"].node_ids == (1, 2, 3, 4)
+
+
+def test_an_identified_robot_is_named_once_for_the_estimator_and_the_low_level(tmp_path):
+    """The estimator places the CoM by archer identify's offset and the balance observer starts from
+    it without counting it again: a file that gives it to one of them only, or two different files, is refused."""
+    def config(text: str):
+        path = tmp_path / "robot.toml"
+        path.write_text(text)
+        return load_params(path)
+
+    both = config('[estimator]\nidentified = "id.toml"\n[control]\nidentified = "id.toml"\n')
+    assert both["estimator"].identified == both["control"].identified == "id.toml"
+    assert config('[estimator]\nrobot = "indoor"\n[control]\nkp_tilt = 40.0\n')["control"].identified == ""
+    for text in ('[estimator]\nidentified = "id.toml"\n',
+                 '[estimator]\nidentified = "id.toml"\n[control]\nkp_tilt = 40.0\n',
+                 '[estimator]\nidentified = "a.toml"\n[control]\nidentified = "b.toml"\n'):
+        with pytest.raises(ConfigError, match=r"robot\.toml: archer identify's file goes in both"):
+            config(text)

@@ -18,6 +18,9 @@ from typing import Any
 from onboard.contracts.params import SECTIONS, with_overrides
 
 
+IDENTIFIED_SECTIONS = ("estimator", "control")  # each reads archer identify's robot (robot_description/identified.py)
+
+
 class ConfigError(ValueError):
     pass
 
@@ -32,6 +35,10 @@ def load_params(path: str | Path | None, sections: tuple[str, ...] | None = None
         data = tomllib.loads(Path(path).read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    identified = {section: data[section].get("identified", "") for section in IDENTIFIED_SECTIONS if isinstance(data.get(section), dict)}
+    if len(set(identified.values())) > 1 or len(identified) == 1 and any(identified.values()):
+        # the estimator places the CoM by it and the low level's balance observer must not count it again
+        raise ConfigError(f"{path}: archer identify's file goes in both [estimator] and [control] identified, the same; got {identified}")
     for section, overrides in data.items():
         if section not in SECTIONS:
             raise ConfigError(f"{path}: unknown section [{section}]; known: {', '.join(sorted(SECTIONS))}")
