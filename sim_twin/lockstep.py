@@ -110,7 +110,6 @@ class _Tee(list):
             self.append(item)
 
 
-
 def _identified_control(control: ControlParams | None, estimator: EstimatorParams | None) -> ControlParams | None:
     """The controller's parameters with the estimator's identified robot (``[estimator] identified``):
     a robot runs both with the same file, so a config that names it once names it for both; two
@@ -122,6 +121,7 @@ def _identified_control(control: ControlParams | None, estimator: EstimatorParam
     if not est_file or ctrl_file:
         return control
     return with_overrides(control or ControlParams(), {"identified": est_file})
+
 
 class LockstepRunner:
     """One run of one scenario; build, then :meth:`run`."""
