@@ -114,10 +114,9 @@ class EstimatorParams(_Section, section="estimator"):
     standby_fence_s: Annotated[float, within(0.0, 1.0)] = 0.25
     # Visual odometry (position_source = "odometry"): the D435's apex frames, frame to frame
     # (onboard.perception.visual_odometry), give the CoM's horizontal displacement between two apexes;
-    # the odometry fuses it with its own displacement over the same stamps by inverse variance.
-    # fuse the D435's visual odometry into the odometry frame. On by measurement: forest and sidewalk, seeds 0-19,
-    # outdoor, onboard sensing: drift per metre p50 0.0108 -> 0.0045 and 0.0112 -> 0.0047, success 15 -> 20 and
-    # 14 -> 20 of 20 (the runs that missed their goal missed it by the drift)
+    # the odometry fuses it with its own displacement over the same stamps by inverse variance. On by
+    # measurement (eb5acf8): forest and sidewalk, seeds 0-19, outdoor, onboard sensing: drift per metre p50
+    # 0.0108 -> 0.0045 and 0.0112 -> 0.0047, success 15 -> 20 and 14 -> 20 of 20 (the misses were the drift)
     visual_odometry: bool = True
     vo_features: Annotated[int, within(50, 10_000)] = 1000  # ORB keypoints per frame
     vo_min_inliers: Annotated[int, within(6, 10_000)] = 25  # PnP inliers below this: the pair is refused
