@@ -336,3 +336,40 @@ def test_a_time_limit_ends_the_solve_with_its_reason():
     assert "time limit" in sol.status
     with pytest.raises(ValueError, match="time_limit_s"):
         _octagon_mpc(time_limit_s=-1.0)
+
+
+def test_an_infeasible_verdict_is_returned_without_polishing_its_certificate():
+    """OSQP's ``y`` after "primal infeasible" is a certificate, not a dual: polishing it made every
+    row active (1808 rows, 20 s of least squares in the overhead bench); the verdict is the answer."""
+    verdicts = 0
+    for seed in range(6):
+        mpc = _octagon_mpc(max_planes=1)
+        verdict, polished_after = [], []  # each ADMM pass's status; the status each polish followed
+        real_solve, real_polish = mpc._solver.solve, mpc._polisher.polish
+        mpc._solver.solve = lambda **kw: verdict.append(res := real_solve(**kw)) or res
+        mpc._polisher.polish = lambda *args: polished_after.append(str(verdict[-1].info.status)) or real_polish(*args)
+        ref = sine_reference(seed, 20, 0.1)
+        a = np.zeros((20, 1, 2))
+        a[:, 0, 0] = 1.0
+        b = np.full((20, 1), np.inf)
+        b[19, 0] = min(ref[19, 0], ref[20, 0]) - 3.0  # the last segment 3 m behind where it must end
+        sol = mpc.solve(ref[0], ref, (a, b))
+        assert not sol.ok
+        verdicts += any("infeasible" in str(r.info.status) for r in verdict)
+        assert not [status for status in polished_after if "infeasible" in status]
+    assert verdicts >= 3  # OSQP says so on most of these (6 of 6 here): the rule was exercised
+
+
+def test_a_polish_with_more_active_rows_than_variables_gives_up():
+    """More active rows than variables are not a vertex: no polish (it would cost rows^3)."""
+    mpc = _octagon_mpc(max_planes=2)
+    ref = sine_reference(3, 20, 0.1)
+    assert mpc.solve(ref[0], ref).ok
+    A = mpc._A
+    ls, us = np.full(mpc.n_rows, -1.0), np.full(mpc.n_rows, 1.0)
+    assert mpc.n_rows > mpc.nvar
+    every_row = np.ones(mpc.n_rows)
+    assert mpc._polisher.polish(np.zeros(mpc.nvar), every_row, A, ls, us, np.zeros(mpc.nvar)) is None
+    few_rows = np.zeros(mpc.n_rows)
+    few_rows[:4] = 1.0  # the same polish on a real active set answers
+    assert mpc._polisher.polish(np.zeros(mpc.nvar), few_rows, A, ls, us, np.zeros(mpc.nvar)) is not None

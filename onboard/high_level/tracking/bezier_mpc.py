@@ -40,7 +40,7 @@ import scipy.sparse as sp
 
 from onboard.geometry import bezier as bz
 from onboard.contracts.messages import BezierSegment, ComReference
-from onboard.high_level.tracking.mpc_backends import QpBackends
+from onboard.high_level.tracking.mpc_backends import OSQP_INFEASIBLE, QpBackends
 from onboard.high_level.tracking.reachability import BezierReachability
 
 Backend = Literal["osqp", "piqp"]
@@ -466,7 +466,7 @@ class BezierMpc(QpBackends):
                     return self._certify(None, A, l, u, status, iters, obj)
                 self._last = res.x.copy()
                 first = self._certify(res.x, A, l, u, status, iters, obj)
-                if first.ok or not self.polish:
+                if first.ok or not self.polish or res.info.status_val in OSQP_INFEASIBLE:
                     return first
                 polished = self._polisher.polish(res.x, res.y, A, ls, us, q)
                 if polished is not None:

@@ -163,7 +163,9 @@ def cut_obstacles(hulls: HullSet, obstacles: PolygonSet, margin: float, active: 
     # meets the obstacle's box grown by the margin and the largest curve half-size.
     start, items = bin_grown(obstacles.aabb, float(hulls.half_max[0] + margin), float(hulls.half_max[1] + margin),
                               g.x0, g.y0, g.h, g.nx, g.ny)
-    return pick(cut_obstacles_kernel, E)(
+    # threads by the curves tested, not the graph's size: the cut in time tests a band of a few
+    # thousand of 250,000 curves at a time, and a parallel launch for those waited 20 ms on a busy machine
+    return pick(cut_obstacles_kernel, int(np.count_nonzero(act)))(
         *hulls.by_cell, hulls.order, act, obstacles.vertices, obstacles.offsets, obstacles.normals, obstacles.face_offsets,
         obstacles.aabb, obstacles.center, obstacles.radius, start, items, float(margin))
 
@@ -181,7 +183,7 @@ def free_cell_of(hulls: HullSet, cells: PolygonSet, margin: float, active: np.nd
         return np.full(E, -1, dtype=np.int64)
     grid = _grid_for(cells.aabb, max(_typical_extent(hulls.aabb), _typical_extent(cells.aabb) / 4), 0.0)
     start, items, _ = bin_boxes(cells.aabb, grid.x0, grid.y0, grid.h, grid.nx, grid.ny)
-    return pick(free_cell_kernel, E)(hulls.points, act, cells.normals, cells.face_offsets, cells.offsets,
+    return pick(free_cell_kernel, int(np.count_nonzero(act)))(hulls.points, act, cells.normals, cells.face_offsets, cells.offsets,
                              start, items, grid.x0, grid.y0, grid.h, grid.nx, grid.ny, float(margin))
 
 

@@ -30,6 +30,11 @@ _OSQP_CHECK_TERMINATION = 5  # a warm-started tick converges in 10-20 iterations
 # rho may change at every termination check (it refactors only on a change past OSQP's
 # tolerance): on 7 bench seeds the p99 was 0.99-1.61 ms against 1.13-2.60 ms every 100
 _OSQP_ADAPTIVE_RHO_INTERVAL = 5
+# OSQP's verdicts that the problem has no answer: its ``y`` is then a certificate of that, not a
+# dual, so neither a polish of it nor a tighter pass can certify anything
+OSQP_INFEASIBLE = frozenset(int(s) for s in (
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE,
+    osqp.SolverStatus.OSQP_DUAL_INFEASIBLE, osqp.SolverStatus.OSQP_DUAL_INFEASIBLE_INACCURATE))
 
 
 class QpBackends:
