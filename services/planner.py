@@ -17,6 +17,8 @@ its convex sets, after each replan), ``contract`` (ContractReport on every broke
 promise: the low level's tube p95 above the tube planned with; the planner then plans
 with the achieved tube times ``tube_growth``).
 Status: ``path`` (1/0), planning and refinement times, edges, tube, violations,
+``world_to_plan_ms_p50`` / ``_p99`` (a world's stamp, e.g. the overhead frame's receipt, to the end
+of the first tick that planned or refined on it, over the last ``LATENCY_WINDOW`` worlds),
 densifications (``densify_plans``, ``densify_rounds``, ``densify_nodes``: a failed search
 densifies the graph for at most ``densify_budget_s``, and later plans reuse it); the
 state is ``degraded`` with ``last_error`` saying so, and why, while there is no path.
@@ -27,6 +29,7 @@ Also here: the on-disk graph cache (:func:`load_or_build_graph`).
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import dataclasses
 import os
@@ -53,6 +56,7 @@ REFERENCE_KEEPALIVE_NS = 100_000_000  # an unchanged reference is republished ev
 WARM_NODES = 300  # throwaway graph that loads the kernels at start
 REFINE_BUDGET_SHARE = 0.4  # of a refine period, each MPC solve attempt's time limit (two attempts at most)
 WARM_BOUNDS = (0.0, 0.0, 2.0, 2.0)  # [m]
+LATENCY_WINDOW = 256  # worlds whose stamp-to-plan latency the status's percentiles cover
 
 
 # --- graph cache (file I/O lives here, not in onboard) ---------------------------------------
@@ -168,6 +172,8 @@ class PlannerService(Service):
         self._plan_ms = 0.0
         self._refine_ms = 0.0
         self._has_path = False
+        self._world_stamp_ns: int | None = None  # the stamp of a world taken but not yet planned on
+        self._world_to_plan_ms: collections.deque[float] = collections.deque(maxlen=LATENCY_WINDOW)
 
     @property
     def prm(self) -> PlannerParams:
@@ -224,6 +230,7 @@ class PlannerService(Service):
             "tube_m": self.planner.tube,
             "margin_m": self.planner.margin,
             "contract_violations": self.planner.contract_violations,
+            **_percentiles("world_to_plan_ms", self._world_to_plan_ms),
         }
 
     async def main(self) -> None:
@@ -279,12 +286,20 @@ class PlannerService(Service):
                 self.pub_waypoints.put(self.planner.waypoints(now))
         if not self._has_path:
             self._publish_hold(pos, now)
+            self._planned_on_world()
             return
         t0 = time.perf_counter()
         ref = self.planner.refine(pos, vel, now)
         self._refine_ms = (time.perf_counter() - t0) * 1e3
         if ref is not None:
             self._send_reference(ref, now)
+        self._planned_on_world()
+
+    def _planned_on_world(self) -> None:
+        """This tick planned on the world taken last (or held for want of a path in it): its latency."""
+        if self._world_stamp_ns is not None:
+            self._world_to_plan_ms.append((self.clock.now_ns() - self._world_stamp_ns) / 1e6)
+            self._world_stamp_ns = None
 
     def _send_reference(self, ref: msgs.ComReference, now: int) -> None:
         """Publish a reference that changed at once, an unchanged one at the keep-alive rate:
@@ -369,6 +384,8 @@ class PlannerService(Service):
                 required = self.prm.require_seen and msg.mode == "obstacles" and msg.source != "ground_truth"
                 if required != self.planner.require_seen:
                     self.planner.set_seen(self.planner.seen, required=required)
+                if msg.stamp_ns > 0:  # an unstamped world (a hand-made message) has no latency
+                    self._world_stamp_ns = msg.stamp_ns
             except (pg.PolygonError, gp.PlanningError) as exc:
                 self.count("rejected.polytopes_geometry")
                 self.fail(f"polytopes: {exc}")
@@ -395,6 +412,14 @@ class PlannerService(Service):
         self.pub_contract.put(report)
         self.log.warning("contract violated", extra={"fields": {"promised": report.promised, "achieved": report.achieved,
                                                                "tube": self.planner.tube}})
+
+
+def _percentiles(name: str, values: collections.deque[float]) -> dict[str, float]:
+    """``name_p50`` and ``name_p99`` of ``values`` (none while empty)."""
+    if not values:
+        return {}
+    p50, p99 = np.percentile(list(values), [50, 99])  # list(): one step under the GIL, the tick may append
+    return {f"{name}_p50": round(float(p50), 2), f"{name}_p99": round(float(p99), 2)}
 
 
 def _holds(bounds: tuple[float, float, float, float], *points: np.ndarray | None) -> bool:

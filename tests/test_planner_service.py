@@ -66,7 +66,8 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             await wait_for(lambda: service.state == "running")
             await asyncio.sleep(0.3)
             # a world given whole (as the twin's ground truth): nothing to wait to see
-            obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)], source="ground_truth")
+            obstacles = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.5, 0.0, 0.3)], source="ground_truth",
+                                      stamp_ns=time.monotonic_ns())  # the service's clock: its latency is measured
             client.put(TOPICS["polytopes"].key(NS), m.encode(obstacles))
             client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[3.0, 0.0], tolerance=0.1)))
             await wait_for(lambda: any(not r.hold for r in refs) and wps)
@@ -81,6 +82,8 @@ def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_ro
             assert np.allclose(wps[-1].points[-1], [3.0, 0.0]) and len(wps[-1].sets) == len(wps[-1].points)
             # Refined at the tick rate; published when it changes, and at least every 0.1 s.
             n0, e0 = len(refs), service.status_extra()
+            # the world's stamp to the first tick that planned on it: measured, and within the wait above
+            assert 0.0 < e0["world_to_plan_ms_p50"] <= e0["world_to_plan_ms_p99"] < 60_000.0
             await asyncio.sleep(1.0)
             e1 = service.status_extra()
             ticks = (e1["refine_solves"] + e1["refine_reused"]) - (e0["refine_solves"] + e0["refine_reused"])

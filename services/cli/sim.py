@@ -483,6 +483,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         flip_counts: dict[str, int] = {}
         probe = None
         camera_status: dict[str, Any] = {}
+        planner_latency: dict[str, float] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -533,6 +534,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                     if overhead is not None:  # how the planner fared on the camera's world (what it refused, and why)
                         camera_status["planner_counters"] = dict(status.counters)
                         camera_status["planner_last_error"] = status.last_error
+                        # a frame's receipt (its obstacles' stamp) to the planner's first tick on them
+                        planner_latency = {k: v for k, v in status.extra.items() if k.startswith("world_to_plan_ms")}
         finally:
             run_ended = time.monotonic()  # what the stop itself does is no failure
             if cpu0 is not None:
@@ -560,7 +563,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         if probe is not None and overhead is not None:
             probe.close()
             served = overhead.stream.finish()
-            out["overhead"] = {**probe.report(served["stamps_ns"]), "camera": camera_status, "stream": served["summary"]}
+            out["overhead"] = {**probe.report(served["stamps_ns"]), **planner_latency, "camera": camera_status,
+                               "stream": served["summary"]}
         if scenario.flip_requests_s:
             out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
