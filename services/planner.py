@@ -327,7 +327,10 @@ class PlannerService(Service):
         graph = self.planner.graph
         if graph is not None and graph.spec == spec:
             return True
-        if self._build is None or self._build_spec != spec:
+        # A build in flight is never replaced: the region follows the obstacles' extent, which a
+        # camera's silhouettes change a little every frame, and a build replaced at each frame was
+        # never installed (a real-time overhead run planned nothing in 60 s)
+        if self._build is None:
             self._build_spec = spec
             self._build = self._builder.submit(load_or_build_graph, spec, self._cache_dir)
         if self._build.done():
@@ -337,9 +340,10 @@ class PlannerService(Service):
             except Exception as exc:
                 self.fail(f"graph build: {exc!r}")
                 return False
-            self.planner.set_graph(g)
             self.count("graph_cache_hits" if cached else "graph_builds")
-            return True
+            if _holds(g.spec.bounds, pos, self.planner.goal):  # else the next tick builds the region needed now
+                self.planner.set_graph(g)
+                return True
         return graph is not None and _holds(graph.spec.bounds, pos, self.planner.goal)
 
     def _take_goal(self) -> None:

@@ -258,3 +258,44 @@ def test_footprint_radius_comes_from_the_mjcf():
 
 # real time: loops at their rate, processes and Zenoh over loopback share two loaded cores
 pytestmark = pytest.mark.timing_sensitive(reason="real-time loops, processes or Zenoh over loopback on a shared host")
+
+
+def test_a_graph_is_installed_while_the_obstacles_extent_keeps_changing(zenoh_router, tmp_path):
+    """The automatic region follows the obstacles' extent, which an overhead camera's silhouettes move a
+    little every frame: the build in flight is kept (not replaced by one for each new extent, none of which
+    ever finished), installed when it holds the robot and the goal, and the robot gets a plan."""
+    quantum = 0.05  # [m] every message below changes the region
+    prm = dataclasses.replace(PARAMS, bounds_quantum=quantum)
+
+    async def scenario() -> None:
+        service = PlannerService(ns=NS, endpoint=zenoh_router, params={"planner": prm}, robot_radius=ROBOT_RADIUS,
+                                 cache_dir=tmp_path)
+        task = asyncio.create_task(service.run())
+        client = open_session(zenoh_router, "peer")
+        refs: list[m.ComReference] = []
+        sub = client.declare_subscriber(TOPICS["reference"].key(NS), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
+        stop_state = asyncio.Event()
+        feeder = asyncio.create_task(_stream_resting_state(client, NS, stop_state))
+        try:
+            await wait_for(lambda: service.state == "running")
+            client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
+            far = 1.5
+            deadline = time.monotonic() + 60.0
+            while service.planner.graph is None and time.monotonic() < deadline:
+                far += quantum  # a far obstacle's silhouette, a little further each frame
+                world = m.PolytopeSet(mode="obstacles", polytopes=[_box(1.0, -0.8, 0.2), _box(1.0, far, 0.2)],
+                                      source="ground_truth")
+                client.put(TOPICS["polytopes"].key(NS), m.encode(world))
+                await asyncio.sleep(0.05)
+            assert service.planner.graph is not None, f"no graph installed while the extent moved {far - 1.5:.1f} m"
+            assert service.counters.get("graph_builds") + service.counters.get("graph_cache_hits") >= 1
+            await wait_for(lambda: any(not r.hold for r in refs))  # and the robot has a plan
+        finally:
+            stop_state.set()
+            await feeder
+            sub.undeclare()
+            service.stopping.set()
+            await asyncio.wait_for(task, 10.0)
+            client.close()
+
+    asyncio.run(asyncio.wait_for(scenario(), 150))
