@@ -163,7 +163,6 @@ class PlannerService(Service):
         self._cache_dir = graph_cache_dir() if cache_dir is True else (None if cache_dir is False else cache_dir)
         self._builder = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner-graph")
         self._build: concurrent.futures.Future | None = None
-        self._build_spec: bg.GraphSpec | None = None
         self._hold_xy: list[float] | None = None
         self._hold_ref: msgs.ComReference | None = None
         self._sent: msgs.ComReference | None = None  # the reference last published
@@ -331,7 +330,6 @@ class PlannerService(Service):
         # camera's silhouettes change a little every frame, and a build replaced at each frame was
         # never installed (a real-time overhead run planned nothing in 60 s)
         if self._build is None:
-            self._build_spec = spec
             self._build = self._builder.submit(load_or_build_graph, spec, self._cache_dir)
         if self._build.done():
             build, self._build = self._build, None
