@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import time
 
@@ -44,6 +45,30 @@ def _box(cx: float, cy: float, h: float) -> m.Polytope:
     verts = [[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]]
     A, b = pg.polygon_halfspaces(np.array(verts))
     return m.Polytope(A=A.tolist(), b=b.tolist(), vertices=verts)
+
+
+@contextlib.asynccontextmanager
+async def _running_planner(endpoint: str, ns: str, params: PlannerParams, cache_dir):
+    """The planner service running, a client session, the references it publishes, and the robot resting
+    at the origin streamed as its state; all of it stopped whatever the test does."""
+    service = PlannerService(ns=ns, endpoint=endpoint, params={"planner": params}, robot_radius=ROBOT_RADIUS,
+                             cache_dir=cache_dir)
+    task = asyncio.create_task(service.run())
+    client = open_session(endpoint, "peer")
+    refs: list[m.ComReference] = []
+    sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
+    stop_state = asyncio.Event()
+    feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
+    try:
+        await wait_for(lambda: service.state == "running")
+        yield service, client, refs
+    finally:
+        stop_state.set()
+        await feeder
+        sub.undeclare()
+        service.stopping.set()
+        await asyncio.wait_for(task, 10.0)
+        client.close()
 
 
 def test_plans_refines_reports_broken_promises_and_holds_without_a_path(zenoh_router, tmp_path):
@@ -172,16 +197,7 @@ def test_a_goal_the_planner_cannot_take_is_refused_once_and_the_last_plan_kept(z
     ns = NS + "-far"
 
     async def scenario() -> None:
-        service = PlannerService(ns=ns, endpoint=zenoh_router, params={"planner": PARAMS}, robot_radius=ROBOT_RADIUS,
-                                 cache_dir=tmp_path)
-        task = asyncio.create_task(service.run())
-        client = open_session(zenoh_router, "peer")
-        refs: list[m.ComReference] = []
-        sub = client.declare_subscriber(TOPICS["reference"].key(ns), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
-        stop_state = asyncio.Event()
-        feeder = asyncio.create_task(_stream_resting_state(client, ns, stop_state))
-        try:
-            await wait_for(lambda: service.state == "running")
+        async with _running_planner(zenoh_router, ns, PARAMS, tmp_path) as (service, client, refs):
             client.put(TOPICS["polytopes"].key(ns), m.encode(m.PolytopeSet(mode="obstacles", polytopes=[], source="ground_truth")))
             client.put(TOPICS["goal"].key(ns), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
             await wait_for(lambda: any(not r.hold for r in refs))
@@ -198,13 +214,6 @@ def test_a_goal_the_planner_cannot_take_is_refused_once_and_the_last_plan_kept(z
             kept = refs[n0:]
             assert kept and not any(r.hold for r in kept)
             assert np.allclose(kept[-1].segments[-1].control_points[-1], [2.0, 0.0], atol=1e-6)
-        finally:
-            stop_state.set()
-            await feeder
-            sub.undeclare()
-            service.stopping.set()
-            await asyncio.wait_for(task, 10.0)
-            client.close()
 
     asyncio.run(asyncio.wait_for(scenario(), 120))
 
@@ -270,16 +279,7 @@ def test_a_graph_is_installed_while_the_obstacles_extent_keeps_changing(zenoh_ro
     prm = dataclasses.replace(PARAMS, bounds_quantum=quantum)
 
     async def scenario() -> None:
-        service = PlannerService(ns=NS, endpoint=zenoh_router, params={"planner": prm}, robot_radius=ROBOT_RADIUS,
-                                 cache_dir=tmp_path)
-        task = asyncio.create_task(service.run())
-        client = open_session(zenoh_router, "peer")
-        refs: list[m.ComReference] = []
-        sub = client.declare_subscriber(TOPICS["reference"].key(NS), lambda s: refs.append(m.decode(s.payload.to_bytes(), m.ComReference)))
-        stop_state = asyncio.Event()
-        feeder = asyncio.create_task(_stream_resting_state(client, NS, stop_state))
-        try:
-            await wait_for(lambda: service.state == "running")
+        async with _running_planner(zenoh_router, NS, prm, tmp_path) as (service, client, refs):
             client.put(TOPICS["goal"].key(NS), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
             far = 1.5
             deadline = time.monotonic() + 60.0
@@ -292,12 +292,5 @@ def test_a_graph_is_installed_while_the_obstacles_extent_keeps_changing(zenoh_ro
             assert service.planner.graph is not None, f"no graph installed while the extent moved {far - 1.5:.1f} m"
             assert service.counters.get("graph_builds") + service.counters.get("graph_cache_hits") >= 1
             await wait_for(lambda: any(not r.hold for r in refs))  # and the robot has a plan
-        finally:
-            stop_state.set()
-            await feeder
-            sub.undeclare()
-            service.stopping.set()
-            await asyncio.wait_for(task, 10.0)
-            client.close()
 
     asyncio.run(asyncio.wait_for(scenario(), 150))
