@@ -62,6 +62,7 @@ from onboard.low_level.tracking import attitude_control as ac
 from onboard.geometry import quaternion as qt
 from onboard.low_level.planning import zdp, zdp_policy
 from onboard.low_level.planning.balance import BalancePoint
+from onboard.low_level.planning.momentum import MomentumGovernor
 from onboard.low_level.tracking.excitation import heading_swing, wheel_dither
 from onboard.low_level.tracking.flip import FlipLimits, FlipManoeuvre
 from onboard.low_level.tracking.foot_control import FootPhysics, HopRegulator
@@ -93,6 +94,7 @@ class RobotLike(Protocol):
     inertia_com: tuple[tuple[float, float, float], ...]
     wheel_spin_inertia: float
     com_offset_body: tuple[float, float, float]
+    hop_speed_max: float
 
 
 @dataclass(frozen=True)
@@ -173,6 +175,9 @@ class LowLevelController:
         self.balance = BalancePoint(float(lin.a_zz[2, 2]), float(lin.a_zeta[2, 0]), hopper.com_to_pivot(self.design.preload_nominal),
                                     params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max,
                                     robot.com_offset_body[0], robot.com_offset_body[1])
+        self.momentum = MomentumGovernor(robot.hop_speed_max, params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi,
+                                         params.momentum_speed_min, params.momentum_lead_s, params.momentum_lookahead_hops,
+                                         params.momentum_cap_rise)
         self._tune(params, safety)
 
         self.supervisor = Supervisor(self.safety, params)
@@ -222,6 +227,7 @@ class LowLevelController:
         self.flip.configure(self._flip_limits(safety), params)
         if hasattr(self, "balance"):  # built after the first _tune
             self.balance.configure(params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
+            self.momentum.configure(params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi, params.momentum_speed_min, params.momentum_lead_s, params.momentum_lookahead_hops, params.momentum_cap_rise)
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
@@ -328,6 +334,7 @@ class LowLevelController:
             self._flown = False
             self.phase.reset()
             self.balance.reset()
+            self.momentum.reset()
         return True
 
     def _phase_update(self, now_ns: int, state: StateEstimate, ref: ComReference | None) -> None:
@@ -363,7 +370,8 @@ class LowLevelController:
         rx, ry, rvx, rvy = self._target(now_ns, state, ref, t_imp)
         self.predicted_impact = (t_imp, xi, yi)
         self.reference_at_impact = (rx, ry, rvx, rvy)
-        ax, ay = self.policy(xi - rx, yi - ry, vx - rvx, vy - rvy)
+        ex, ey, gvx, gvy = self.momentum.target(xi - rx, yi - ry, rvx, rvy)
+        ax, ay = self.policy(ex, ey, vx - gvx, vy - gvy)
         bx, by = self.balance.lean(yaw)
         ax, ay = zdp_policy.clip_norm(ax + bx, ay + by, math.sin(self.p.tilt_cmd_max) if self.p.tilt_cmd_max > 0.0 else 0.999)
         self.eta = (ax, ay)
@@ -515,6 +523,7 @@ class LowLevelController:
             yaw = qt.yaw_of(s.quat)
             lean = qt.body_z(s.quat)  # the lean it lands with, whoever commanded it (the ZDP, the geometric MPC)
             self.balance.on_touchdown(s.velocity[0], s.velocity[1], lean[0], lean[1], yaw, com_valid and self.flip.state == "idle")
+            self.momentum.on_touchdown(s.wheel_vel[0], s.wheel_vel[1], s.wheel_vel[2])
             if com_valid:
                 rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
                 dx, dy = self.balance.offset(yaw)

@@ -98,6 +98,18 @@ class ControlParams(_Section, section="control"):
     balance_innovation_max: Annotated[float, above(0.0, 0.3)] = 0.03  # [rad] a push or a stumble moves the estimate by at most gain x this
     balance_tilt_max: Annotated[float, within(0.0, 0.3)] = 0.1  # [rad] bound on the observed lean (0.1: ~3.6 cm of CoM)
     balance_speed_max: Annotated[float, above(0.0, 3.0)] = 1.0  # [m/s] faster touchdowns are outside the hop map's linearization
+    # the wheels' momentum governor (onboard.low_level.planning.momentum): the fastest wheel at each touchdown,
+    # projected momentum_lookahead_hops on where it grew, caps the speed the ZDP steers to: from the robot's
+    # nominal sustained speed (hop_speed_max) at momentum_wheel_speed_lo down to momentum_speed_min at
+    # momentum_wheel_speed_hi. The nominal twin's setpoint and square peak at ~200 rad/s; datasheet robots at
+    # the same speed gained 60-170 rad/s a hop into the motors' 600 rad/s limit and fell (issue 26). 0 for
+    # the low bound: off
+    momentum_wheel_speed_lo: Annotated[float, within(0.0, 600.0)] = 150.0  # [rad/s]
+    momentum_wheel_speed_hi: Annotated[float, above(0.0, 600.0)] = 350.0  # [rad/s] room to slow before the motors' knee (~510-565)
+    momentum_speed_min: Annotated[float, within(0.0, 1.0)] = 0.05  # [m/s]
+    momentum_lead_s: Annotated[float, above(0.0, 2.0)] = 0.25  # [s] the position error the policy sees: this long at the cap (about a hop)
+    momentum_lookahead_hops: Annotated[float, within(0.0, 20.0)] = 3.0  # a wheel that grew over the last hop counts as this many hops on
+    momentum_cap_rise: Annotated[float, above(0.0, 1.0)] = 0.02  # [m/s] per hop the cap rises by, once the wheels slowed (it falls at once)
     # identification routine (onboard/low_level/tracking/excitation.py, archer identify): while hopping in
     # place, a known dither on every wheel's command and a heading swing, so that a recording tells each
     # wheel's torque constant from its drag. Off on the robot unless the lab runs the routine.
