@@ -41,6 +41,7 @@ class MomentumGovernor:
         self.cap = math.inf  # [m/s] the speed the ZDP may steer to now
         self.wheel_speed = 0.0  # [rad/s] the fastest wheel at the last touchdown, projected (module docstring)
         self._last = (0.0, 0.0, 0.0)  # each wheel's speed at the last touchdown [rad/s]
+        self._first = True  # no touchdown since the reset: nothing to measure a growth from
         self.governed_hops = 0  # touchdowns that set a cap
 
     def configure(self, wheel_speed_lo: float, wheel_speed_hi: float, speed_min: float, lead_s: float, lookahead_hops: float,
@@ -56,12 +57,14 @@ class MomentumGovernor:
         self.cap = math.inf
         self.wheel_speed = 0.0
         self._last = (0.0, 0.0, 0.0)
+        self._first = True
 
     def on_touchdown(self, w0: float, w1: float, w2: float) -> None:
         """The wheels' speeds [rad/s] at a touchdown: the cap for the next flights."""
         l0, l1, l2 = self._last
         self._last = (w0, w1, w2)
-        k = self.lookahead_hops
+        k = 0.0 if self._first else self.lookahead_hops
+        self._first = False
         w = max(_projected(w0, l0, k), _projected(w1, l1, k), _projected(w2, l2, k))
         self.wheel_speed = w
         lo = self.wheel_speed_lo
