@@ -272,6 +272,7 @@ class ControlLoop:
             "mid_level_fallback_ticks": self.ctrl.mid_level_fallback_ticks,
             "safe_ticks": self.safe_ticks,
             "tube_p95_m": tube.impact_err_p95,
+            "momentum": self.ctrl.momentum.counters(),
             "trip_counts": dict(self.ctrl.supervisor.counts),
             "trips": [msgs.encode(t) for t in trips],
             "rejected": dict(self.rejected),
@@ -654,6 +655,8 @@ class ControlService(Service):
         out["hops"] = float(rep.get("hops", 0))
         out["safe_ticks"] = float(rep.get("safe_ticks", 0))
         out["tube_p95_m"] = float(rep.get("tube_p95_m", 0.0))
+        for name, v in rep.get("momentum", {}).items():  # the wheels' momentum governor (low_level/planning/momentum.py)
+            out[f"momentum_{name}"] = float(v)
         for name, n in rep.get("rejected", {}).items():
             out[f"rejected_{name}"] = float(n)
         out["safety_trips_logged"] = float(self._trips_logged)

@@ -108,6 +108,8 @@ def test_control_service_end_to_end(zenoh_router):
             assert 5.0 < status.extra["loop_tick_us_p50"] < 1000.0
             assert status.extra["loop_tick_us_p50"] <= status.extra["loop_tick_us_p99"] <= status.extra["loop_tick_us_max"]
             assert "loop_period_jitter_us_p99" in status.extra and "loop_overruns" in status.extra
+            # and the wheels' momentum governor's state: no cap while the wheels are slow
+            assert status.extra["momentum_speed_cap_m_s"] == 0.0 and status.extra["momentum_governed_hops"] == 0.0
         finally:
             proc = service._loop_proc
             feeder.running = False

@@ -26,6 +26,7 @@ def test_no_cap_while_the_wheels_are_slow_and_steady() -> None:
     for _ in range(5):
         g.on_touchdown(120.0, -140.0, 10.0)
     assert g.cap == math.inf and g.governed_hops == 0
+    assert g.counters()["speed_cap_m_s"] == 0.0  # none
     assert g.target(-0.8, 0.1, 0.4, 0.3) == (-0.8, 0.1, 0.4, 0.3)
 
 
@@ -43,6 +44,8 @@ def test_the_cap_falls_linearly_between_the_bounds_and_clips_the_target() -> Non
     assert g.target(-0.01, 0.0, 0.05, 0.0) == (-0.01, 0.0, 0.05, 0.0)  # inside the cap: unchanged
     g.on_touchdown(0.0, 500.0, 0.0)  # past the upper bound
     assert g.cap == pytest.approx(MIN)
+    assert g.counters() == {"speed_cap_m_s": pytest.approx(MIN), "wheel_speed_rad_s": pytest.approx(500.0 + LOOKAHEAD * 250.0),
+                            "governed_hops": 3.0}  # every touchdown above the low bound
 
 
 def test_a_fast_growing_wheel_is_capped_before_it_is_fast() -> None:

@@ -83,6 +83,12 @@ class MomentumGovernor:
         if self.cap != math.inf:
             self.governed_hops += 1
 
+    def counters(self) -> dict[str, float]:
+        """For the service's status: the cap [m/s] (0: none), the projected wheel speed it came from
+        [rad/s] and the touchdowns that set one."""
+        return {"speed_cap_m_s": self.cap if self.cap != math.inf else 0.0, "wheel_speed_rad_s": self.wheel_speed,
+                "governed_hops": float(self.governed_hops)}
+
     def target(self, ex: float, ey: float, rvx: float, rvy: float) -> tuple[float, float, float, float]:
         """The impact error to the reference ``(ex, ey)`` [m] and the reference velocity [m/s],
         clipped to what the cap allows (unchanged without one)."""
