@@ -498,10 +498,13 @@ class ControlService(Service):
 
     async def main(self) -> None:
         while not self.stopping.is_set():
-            try:
-                await asyncio.wait_for(self._restart.wait(), STATS_PERIOD_S)
-            except asyncio.TimeoutError:
-                pass
+            # woken by a restart, or by the stop itself: a stopped stack must be gone within 3 s
+            wakes = [asyncio.ensure_future(self._restart.wait()), asyncio.ensure_future(self.stopping.wait())]
+            await asyncio.wait(wakes, timeout=STATS_PERIOD_S, return_when=asyncio.FIRST_COMPLETED)
+            for wake in wakes:
+                wake.cancel()
+            if self.stopping.is_set():
+                break
             proc = self._loop_proc
             if proc is None:
                 continue
