@@ -172,7 +172,7 @@ class LockstepRunner:
             from sim_twin.visual_odometry_plug import ApexVisualOdometry
 
             self.visual_odometry = ApexVisualOdometry(self.model, self.scenario.traversable, cfg.variant, estimator_params,
-                                                      cfg.twin, cfg.seed)
+                                                      cfg.twin, cfg.seed, perception=cfg.perception_params)
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
                                                     cfg.perception_params)
         if cfg.world is not None:
@@ -358,6 +358,7 @@ class LockstepRunner:
             out.update(drift.summary())
             if vo is not None:
                 out["visual_odometry"] = vo.report(estimator.counters())
+                out["segmentation"] = vo.segmentation_report()
         out.update({
             "contract_violations": contract_violations,
             "safety_events": safety_events,

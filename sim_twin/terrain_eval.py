@@ -29,7 +29,7 @@ from onboard.perception.terrain import ColorTerrainSegmenter
 from robot_description import params as rd
 from sim_twin import scenarios as sc
 from sim_twin.camera import TRAVERSABLE as TRUE_TRAVERSABLE
-from sim_twin.camera import CameraModel, RgbdCamera
+from sim_twin.camera import CameraModel, RgbdCamera, RgbdFrame
 from sim_twin.model import load_spec
 
 APEX_RISE_M = 0.12  # [m] foot above the ground at apex (a hop of the outdoor robot)
@@ -103,17 +103,23 @@ def score_seed(scenario_name: str, seed: int, views: int, segmenters: dict[str, 
         img = DepthImage(frame.depth, cam.fx, cam.fy, cam.cx, cam.cy, frame.cam_pos, frame.cam_quat)
         taken += 1
         for name, seg in segmenters.items():
-            sp: PerceptionParams = seg.params  # type: ignore[attr-defined]
-            k = sp.pixel_stride
-            pts, valid = depth_to_points(img, sp.max_range_m, k)
-            labels = seg.segment(Cloud(pts, valid, frame.cam_pos, frame.rgb[::k, ::k], np.array(xy)))
-            s = labels == TRAVERSABLE
-            t_ = (frame.labels[::k, ::k] == TRUE_TRAVERSABLE) & valid
-            s &= valid
-            scores[name].intersection += int((s & t_).sum())
-            scores[name].union += int((s | t_).sum())
-            scores[name].views += 1
+            score_frame(seg, img, frame, xy, scores[name])
     return scores
+
+
+def score_frame(seg: Segmenter, img: DepthImage, frame: RgbdFrame, robot_xy: tuple[float, float], score: Score) -> None:
+    """Add one view to ``score``: ``seg`` on the depth image ``img`` (placed where the robot believes
+    the camera is) and the frame's colour, against the frame's true labels, over the pixels with a
+    return (the segmenter's own stride)."""
+    sp: PerceptionParams = seg.params  # type: ignore[attr-defined]
+    k = sp.pixel_stride
+    pts, valid = depth_to_points(img, sp.max_range_m, k)
+    labels = seg.segment(Cloud(pts, valid, np.asarray(img.cam_pos, dtype=float), frame.rgb[::k, ::k], np.array(robot_xy, dtype=float)))
+    s = (labels == TRAVERSABLE) & valid
+    t_ = (frame.labels[::k, ::k] == TRUE_TRAVERSABLE) & valid
+    score.intersection += int((s & t_).sum())
+    score.union += int((s | t_).sum())
+    score.views += 1
 
 
 def main(argv: list[str] | None = None) -> int:

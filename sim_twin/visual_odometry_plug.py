@@ -9,7 +9,9 @@ the MJCF's camera mount), never by the truth. The displacement reaches the estim
 Beside the counts (pairs used, refused by reason, fused or gated by the estimator) the report
 holds what only the twin can say: each used pair's error against the true CoM displacement
 (horizontal RMS) and its normalized squared error against the claimed covariance (2 dof, mean 2
-when the covariance is honest).
+when the covariance is honest). The same frames score the robot's terrain segmenter (``[perception]
+segmenter``; ~50 ms a frame, so only the one the robot runs) against the twin's labels: the IoU of the
+traversable class over the run's apex views, placed by the estimate.
 """
 
 from __future__ import annotations
@@ -20,11 +22,13 @@ import mujoco
 import numpy as np
 
 from onboard.contracts import messages as m
-from onboard.contracts.params import CameraParams, EstimatorParams, TwinParams
+from onboard.contracts.binary_messages import DepthImage
+from onboard.contracts.params import CameraParams, EstimatorParams, PerceptionParams, TwinParams
 from onboard.geometry import quaternion as quat
 from onboard.perception.visual_odometry import VisualOdometry, VoFrame
 from robot_description import params as rd
 from sim_twin.camera import CameraModel, RgbdCamera
+from sim_twin.terrain_eval import SEGMENTERS, Score, score_frame
 
 SEED_SALT = 27_000  # the camera's noise drawn apart from the other sensors'
 
@@ -33,7 +37,8 @@ class ApexVisualOdometry:
     """The twin's camera at each apex -> visual odometry -> the estimator, late by the latency."""
 
     def __init__(self, model: mujoco.MjModel, traversable: tuple[str, ...] | list[str], variant: str,
-                 est: EstimatorParams, twin: TwinParams, seed: int, camera: CameraParams | None = None) -> None:
+                 est: EstimatorParams, twin: TwinParams, seed: int, camera: CameraParams | None = None,
+                 perception: PerceptionParams | None = None) -> None:
         cp = camera or CameraParams()
         self.cam = CameraModel.d435(cp.width // cp.decimation, cp.height // cp.decimation, cp.fps)
         self.camera = RgbdCamera(model, self.cam, list(traversable), seed=seed + SEED_SALT, noise=twin.noise)
@@ -48,6 +53,10 @@ class ApexVisualOdometry:
         self._errors: list[tuple[float, float]] = []
         self._nees: list[float] = []
         self._est_errors: list[tuple[float, float]] = []
+        pp = perception or PerceptionParams()
+        self.segmenter_name = pp.segmenter
+        self.segmenter = SEGMENTERS[pp.segmenter](pp)
+        self.segmentation = Score()
 
     def on_apex(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate, true_com: list[float]) -> None:
         """Render the frame at this apex, place it by the estimate, and run the VO on it."""
@@ -60,6 +69,9 @@ class ApexVisualOdometry:
         lever = quat.rotate(q, [-v for v in self.mount.pos_from_com])
         vf = VoFrame(now_ns, frame.rgb, frame.depth, self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy,
                      (cam_quat[0], cam_quat[1], cam_quat[2], cam_quat[3]), (lever[0], lever[1], lever[2]))
+        cam_pos = [p - v for p, v in zip(state.position, lever)]  # the optical centre where the estimate puts it
+        img = DepthImage(frame.depth, self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, cam_pos, list(cam_quat), now_ns)
+        score_frame(self.segmenter, img, frame, (state.position[0], state.position[1]), self.segmentation)
         self._truth[now_ns] = (np.array(true_com[:2], dtype=float), np.array(state.position[:2], dtype=float))
         delta = self.vo.step(vf)
         if delta is None:
@@ -104,6 +116,13 @@ class ApexVisualOdometry:
             "estimate_error_axis_std_m": round(float(np.std(est)), 5) if len(est) > 1 else None,
             "nees_xy_mean": round(float(np.mean(self._nees)), 3) if self._nees else None,
         }
+
+    def segmentation_report(self) -> dict:
+        """The segmenter's IoU of the traversable class over the run's apex views (and the pixel
+        counts, so that runs can be pooled)."""
+        s = self.segmentation
+        return {"segmenter": self.segmenter_name, "iou": round(s.iou, 4), "views": s.views, "intersection": s.intersection,
+                "union": s.union}
 
 
 def _rms(e: np.ndarray) -> float | None:

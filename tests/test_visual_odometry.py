@@ -151,6 +151,11 @@ def test_fusing_it_lowers_the_drift_of_leg_odometry() -> None:
         assert v["used"] >= 0.9 * v["frames"] and v["fused"] >= v["delivered"] - 2 > 0, v
         assert 1.0 < v["nees_xy_mean"] < 4.0, v
         assert b["estimator_counters"]["vo_fused"] == v["fused"]
+        # the same apex frames score the robot's segmenter against the twin's labels
+        seg = b["segmentation"]
+        assert seg["segmenter"] == "geometric" and seg["views"] == v["frames"] and 0 < seg["intersection"] <= seg["union"]
+        assert seg["iou"] == pytest.approx(seg["intersection"] / seg["union"], abs=1e-4) and seg["iou"] > 0.3, seg
+        assert "segmentation" not in a  # no camera frames without the VO
         off.append(a["final_drift_m"])
         on.append(b["final_drift_m"])
     assert np.mean(on) < 0.8 * np.mean(off), (off, on)
