@@ -66,6 +66,8 @@ class ColorTerrainSegmenter:
         self.rng = np.random.default_rng(params.seed + 1)
         self.seed_color: np.ndarray | None = None  # Lab of what the robot stands on, remembered over views
         self.seeded_views = 0
+        self.seed_jumps = 0  # views whose seed was too far from the remembered colour to be taken
+        self._agreed = 0  # views in a row whose seed agreed with the memory
 
     @property
     def plane(self):  # the pipeline reports the ground plane's inliers
@@ -88,11 +90,18 @@ class ColorTerrainSegmenter:
         foot = cloud.foot if cloud.foot is not None else np.asarray(cloud.cam_pos, dtype=float)[:2]
         near = np.hypot(cloud.points[..., 0] - foot[0], cloud.points[..., 1] - foot[1]) <= p.terrain_seed_range_m
         seed = (ground & near).reshape(-1)
+        trusted = True  # the seed pixels are what the robot stands on
         if seed.sum() >= p.terrain_min_seed_px:
             here = np.median(lab[seed], axis=0)
-            w = p.terrain_memory if self.seed_color is not None else 0.0
-            self.seed_color = here if self.seed_color is None else w * self.seed_color + (1.0 - w) * here
-            self.seeded_views += 1
+            jump = self.seed_color is not None and float(np.linalg.norm(here - self.seed_color)) > p.terrain_seed_jump
+            if jump and self._agreed >= p.terrain_seed_confirm:
+                trusted = False  # across a boundary (PerceptionParams.terrain_seed_jump)
+                self.seed_jumps += 1
+            else:
+                self._agreed = 0 if jump else self._agreed + 1
+                w = p.terrain_memory if self.seed_color is not None else 0.0
+                self.seed_color = here if self.seed_color is None else w * self.seed_color + (1.0 - w) * here
+                self.seeded_views += 1
         if self.seed_color is None:
             return labels  # nothing known of what the robot stands on: geometry alone
         pool = np.nonzero(valid)[0]
@@ -101,7 +110,7 @@ class ColorTerrainSegmenter:
         assign = nearest(lab, centres)
         share = np.bincount(assign[seed], minlength=p.terrain_clusters) / max(int(seed.sum()), 1)
         close = np.linalg.norm(centres - self.seed_color, axis=1) <= p.terrain_color_distance
-        good = (share >= p.terrain_seed_share) | close
+        good = ((share >= p.terrain_seed_share) | close) if trusted else close
         colour_ok = good[assign].reshape(cloud.valid.shape).astype(np.uint8)
         kernel = np.ones((3, 3), np.uint8)  # specks of the wrong cluster inside a surface are texture
         colour_ok = cv2.morphologyEx(cv2.morphologyEx(colour_ok, cv2.MORPH_CLOSE, kernel), cv2.MORPH_OPEN, kernel) > 0

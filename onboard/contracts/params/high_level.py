@@ -159,6 +159,13 @@ class PerceptionParams(_Section, section="perception"):
     terrain_blur_px: Annotated[int, within(1, 31)] = 5  # odd: smoothing before clustering (texture is not class)
     terrain_min_seed_px: Annotated[int, within(1, 1_000_000)] = 40  # fewer seed pixels: the last view's colours stand
     terrain_memory: Probability = 0.7  # weight of the last views' seed colour against this view's
+    # once terrain_seed_confirm views in a row agreed with it, a view's seed this far (Lab) from the remembered
+    # colour is a view across a boundary (the robot at a walkway's end facing the grass: the nearest ground
+    # in view is not what it stands on), not a new surface underfoot: it neither moves the memory nor makes
+    # its clusters traversable. Paving to grass is ~58 (the sidewalk's colours); at 30 the twin's exposure
+    # changes alone tripped it. Before that (a first view across a boundary), the memory follows the views
+    terrain_seed_jump: Annotated[float, above(0.0, 1000.0)] = 45.0
+    terrain_seed_confirm: Annotated[int, within(1, 1000)] = 5
 
     def _relations(self) -> list[str]:
         if self.clusters_min > self.clusters_max:
