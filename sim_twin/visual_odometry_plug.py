@@ -10,7 +10,7 @@ Beside the counts (pairs used, refused by reason, fused or gated by the estimato
 holds what only the twin can say: each used pair's error against the true CoM displacement
 (horizontal RMS) and its normalized squared error against the claimed covariance (2 dof, mean 2
 when the covariance is honest). The same frames score the robot's terrain segmenter (``[perception]
-segmenter``; ~50 ms a frame, so only the one the robot runs) against the twin's labels: the IoU of the
+segmenter``, at its ``pixel_stride``: up to ~0.1 s a frame at stride 1, so only the one the robot runs) against the twin's labels: the IoU of the
 traversable class over the run's apex views, placed by the estimate.
 """
 

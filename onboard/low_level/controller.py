@@ -227,7 +227,8 @@ class LowLevelController:
         self.flip.configure(self._flip_limits(safety), params)
         if hasattr(self, "balance"):  # built after the first _tune
             self.balance.configure(params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
-            self.momentum.configure(params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi, params.momentum_speed_min, params.momentum_lead_s, params.momentum_lookahead_hops, params.momentum_cap_rise)
+            self.momentum.configure(params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi, params.momentum_speed_min,
+                                    params.momentum_lead_s, params.momentum_lookahead_hops, params.momentum_cap_rise)
         lin = self.design.linear
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)

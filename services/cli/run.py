@@ -13,6 +13,7 @@ import logging
 import os
 import signal
 import sys
+from typing import NoReturn
 
 from services.runtime.config import ConfigError, load_params
 from services.runtime.realtime import die_with_parent
@@ -48,10 +49,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"archer run: {exc}", file=sys.stderr)
         return 2
     leave(run_service(service))
-    return 1  # not reached
 
 
-def leave(code: int) -> None:
+def leave(code: int) -> NoReturn:
     """Exit with ``code`` now, once the service has stopped (its session closed, its helper processes
     joined): the interpreter's finalization after that adds 0.1-0.2 s per process on a loaded machine
     (tearing down numpy, Zenoh's runtime, every module), and a stopped stack must be gone within 3 s."""
