@@ -1,7 +1,7 @@
 """Lockstep trace at each touchdown (docs/model_error.md, the wheels' momentum): speed, the wheels' speeds,
 the angular impulse the wheels were commanded over the flight before and the stance after, and the
 momentum governor's cap.
-Usage: python docs/momentum_trace.py SCENARIO SEED MODEL_ERROR [WHEEL_SPEED_LO]   (0: the governor off)
+Usage: python docs/momentum_trace.py SCENARIO SEED MODEL_ERROR [WHEEL_SHARE_LO]   (0: the governor off)
 """
 import math
 import sys
@@ -12,7 +12,7 @@ from onboard.contracts.params import ControlParams
 from sim_twin import lockstep as ls
 
 scen, seed, error = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-params = ControlParams() if len(sys.argv) < 5 else ControlParams(momentum_wheel_speed_lo=float(sys.argv[4]))
+params = ControlParams() if len(sys.argv) < 5 else ControlParams(momentum_wheel_share_lo=float(sys.argv[4]))
 runner = ls.LockstepRunner(ls.RunConfig(scenario=scen, seed=seed, estimator="kalman", model_error=error, control_params=params))
 plug = runner.controller
 ctrl = plug.ctrl

@@ -88,8 +88,18 @@ def test_a_datasheet_robot_that_spun_its_wheels_into_their_limit_reaches_its_goa
     with it, it slows, keeps its wheels well under the limit and reaches the goal."""
     cfg = dict(scenario="setpoint", estimator="kalman", seed=34, model_error="datasheet")
     on = run(RunConfig(**cfg))
-    off = run(RunConfig(**cfg, control_params=ControlParams(momentum_wheel_speed_lo=0.0)))
+    off = run(RunConfig(**cfg, control_params=ControlParams(momentum_wheel_share_lo=0.0)))
     assert off.metrics["max_wheel_speed_rad_s"] > 500.0
     assert off.metrics["falls"] >= 1
     assert on.metrics["falls"] == 0 and on.metrics["goal_reached"]
     assert on.metrics["max_wheel_speed_rad_s"] < 450.0
+
+
+def test_a_flips_momentum_is_not_governed_until_the_wheels_have_shed_it() -> None:
+    g = _governor()
+    g.on_touchdown(1800.0, 0.0, 0.0, ordinary=False)  # the flip's landing
+    g.on_touchdown(900.0, 0.0, 0.0)  # the stances shed it: still the flip's
+    assert g.cap == math.inf and g.governed_hops == 0
+    g.on_touchdown(100.0, 0.0, 0.0)  # shed
+    g.on_touchdown(400.0, 0.0, 0.0)  # the hopping's own again
+    assert g.cap == pytest.approx(MIN)

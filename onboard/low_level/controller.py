@@ -175,7 +175,8 @@ class LowLevelController:
         self.balance = BalancePoint(float(lin.a_zz[2, 2]), float(lin.a_zeta[2, 0]), hopper.com_to_pivot(self.design.preload_nominal),
                                     params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max,
                                     robot.com_offset_body[0], robot.com_offset_body[1])
-        self.momentum = MomentumGovernor(robot.hop_speed_max, params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi,
+        limit = safety.wheel_speed_max  # the governor's bounds are shares of it
+        self.momentum = MomentumGovernor(robot.hop_speed_max, params.momentum_wheel_share_lo * limit, params.momentum_wheel_share_hi * limit,
                                          params.momentum_speed_min, params.momentum_lead_s, params.momentum_lookahead_hops,
                                          params.momentum_cap_rise)
         self._tune(params, safety)
@@ -227,7 +228,8 @@ class LowLevelController:
         self.flip.configure(self._flip_limits(safety), params)
         if hasattr(self, "balance"):  # built after the first _tune
             self.balance.configure(params.balance_gain, params.balance_innovation_max, params.balance_tilt_max, params.balance_speed_max)
-            self.momentum.configure(params.momentum_wheel_speed_lo, params.momentum_wheel_speed_hi, params.momentum_speed_min,
+            limit = safety.wheel_speed_max  # the governor's bounds are shares of it
+            self.momentum.configure(params.momentum_wheel_share_lo * limit, params.momentum_wheel_share_hi * limit, params.momentum_speed_min,
                                     params.momentum_lead_s, params.momentum_lookahead_hops, params.momentum_cap_rise)
         lin = self.design.linear
         if params.policy == "zdp":
@@ -524,7 +526,7 @@ class LowLevelController:
             yaw = qt.yaw_of(s.quat)
             lean = qt.body_z(s.quat)  # the lean it lands with, whoever commanded it (the ZDP, the geometric MPC)
             self.balance.on_touchdown(s.velocity[0], s.velocity[1], lean[0], lean[1], yaw, com_valid and self.flip.state == "idle")
-            self.momentum.on_touchdown(s.wheel_vel[0], s.wheel_vel[1], s.wheel_vel[2])
+            self.momentum.on_touchdown(s.wheel_vel[0], s.wheel_vel[1], s.wheel_vel[2], self.flip.state == "idle")
             if com_valid:
                 rx, ry, _, _ = self._target(now_ns, s, ref, 0.0)
                 dx, dy = self.balance.offset(yaw)

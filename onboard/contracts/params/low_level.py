@@ -100,12 +100,13 @@ class ControlParams(_Section, section="control"):
     balance_speed_max: Annotated[float, above(0.0, 3.0)] = 1.0  # [m/s] faster touchdowns are outside the hop map's linearization
     # the wheels' momentum governor (onboard.low_level.planning.momentum): the fastest wheel at each touchdown,
     # projected momentum_lookahead_hops on where it grew, caps the speed the ZDP steers to: from the robot's
-    # nominal sustained speed (hop_speed_max) at momentum_wheel_speed_lo down to momentum_speed_min at
-    # momentum_wheel_speed_hi. The nominal twin's setpoint and square peak at ~200 rad/s; datasheet robots at
-    # the same speed gained 60-170 rad/s a hop into the motors' 600 rad/s limit and fell (issue 26). 0 for
-    # the low bound: off
-    momentum_wheel_speed_lo: Annotated[float, within(0.0, 600.0)] = 150.0  # [rad/s]
-    momentum_wheel_speed_hi: Annotated[float, above(0.0, 600.0)] = 350.0  # [rad/s] room to slow before the motors' knee (~510-565)
+    # nominal sustained speed (hop_speed_max) at momentum_wheel_share_lo of the wheels' speed limit
+    # (SafetyLimits.wheel_speed_max: 600 rad/s indoor, 3000 for sim15nm's 15 N m wheels) down to
+    # momentum_speed_min at momentum_wheel_share_hi. The nominal twin's setpoint and square peak at ~200 rad/s
+    # of 600; datasheet robots at the same speed gained 60-170 rad/s a hop into the limit and fell (issue 26).
+    # 0 for the low share: off
+    momentum_wheel_share_lo: Annotated[float, within(0.0, 1.0)] = 0.25  # 150 rad/s indoor
+    momentum_wheel_share_hi: Annotated[float, above(0.0, 1.0)] = 0.5833  # 350 rad/s indoor: room to slow before the motors' knee
     momentum_speed_min: Annotated[float, within(0.0, 1.0)] = 0.05  # [m/s]
     momentum_lead_s: Annotated[float, above(0.0, 2.0)] = 0.25  # [s] the position error the policy sees: this long at the cap (about a hop)
     momentum_lookahead_hops: Annotated[float, within(0.0, 20.0)] = 3.0  # a wheel that grew over the last hop counts as this many hops on

@@ -42,6 +42,7 @@ class MomentumGovernor:
         self.wheel_speed = 0.0  # [rad/s] the fastest wheel at the last touchdown, projected (module docstring)
         self._last = (0.0, 0.0, 0.0)  # each wheel's speed at the last touchdown [rad/s]
         self._first = True  # no touchdown since the reset: nothing to measure a growth from
+        self._exempt = False  # a flip's momentum still in the wheels: not the hopping's to govern
         self.governed_hops = 0  # touchdowns that set a cap
 
     def configure(self, wheel_speed_lo: float, wheel_speed_hi: float, speed_min: float, lead_s: float, lookahead_hops: float,
@@ -58,9 +59,19 @@ class MomentumGovernor:
         self.wheel_speed = 0.0
         self._last = (0.0, 0.0, 0.0)
         self._first = True
+        self._exempt = False
 
-    def on_touchdown(self, w0: float, w1: float, w2: float) -> None:
-        """The wheels' speeds [rad/s] at a touchdown: the cap for the next flights."""
+    def on_touchdown(self, w0: float, w1: float, w2: float, ordinary: bool = True) -> None:
+        """The wheels' speeds [rad/s] at a touchdown: the cap for the next flights. Not ``ordinary``
+        (a flip's): the wheels hold the turn's momentum, which the stances shed; no cap until a
+        touchdown finds them under the low bound again."""
+        if not ordinary or self._exempt:
+            self._exempt = ordinary is False or max(abs(w0), abs(w1), abs(w2)) > self.wheel_speed_lo
+            if self._exempt:
+                self.cap = math.inf
+                self._last = (w0, w1, w2)
+                self._first = True
+                return
         l0, l1, l2 = self._last
         self._last = (w0, w1, w2)
         k = 0.0 if self._first else self.lookahead_hops
