@@ -66,7 +66,7 @@ class MomentumGovernor:
         (a flip's): the wheels hold the turn's momentum, which the stances shed; no cap until a
         touchdown finds them under the low bound again."""
         if not ordinary or self._exempt:
-            self._exempt = ordinary is False or max(abs(w0), abs(w1), abs(w2)) > self.wheel_speed_lo
+            self._exempt = not ordinary or max(abs(w0), abs(w1), abs(w2)) > self.wheel_speed_lo
             if self._exempt:
                 self.cap = math.inf
                 self._last = (w0, w1, w2)
