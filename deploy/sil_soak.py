@@ -6,8 +6,8 @@
 Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every service its own
 process under :mod:`services.runtime.supervisor`) on a free loopback endpoint and its own namespace,
 with the flight recorder. An operator thread re-sends a tour of goals every second (so that a
-restarted planner picks the current one up). At the schedule's times (seconds after the twin
-started; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
+restarted planner picks the current one up). At the schedule's times (seconds after the stack
+first armed; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
 of a service or its loop child, SIGSTOP stalls, a router restart, a CPU hog, floods of malformed
 or badly stamped messages.
 
@@ -255,7 +255,8 @@ class Soak:
         config.write_text(_sil_config(Path(self.args.config), rec_dir))
         wall_minus_mono = time.time_ns() - time.monotonic_ns()  # the recorder stamps receipt on the wall clock
         cmd = [sys.executable, "-m", "services.cli.main", "sim", "--mode", "realtime", "--scenario", self.args.scenario,
-               "--planner", "graph", "--services", ",".join(self.services), "--duration", str(self.duration_s),
+               "--planner", "graph", "--services", ",".join(self.services),
+               "--duration", str(self.duration_s + SIM_START_TIMEOUT_S),  # the soak stops it; its clock starts at arming
                "--keep-going", "--json", "--quiet", "--config", str(config), "--endpoint", self.endpoint, "--namespace", self.ns]
         parent = os.getpid()
         stdout, stderr = open(self.out / "sim.stdout", "wb"), open(self.out / "sim.stderr", "wb")
@@ -274,6 +275,7 @@ class Soak:
             while TWIN not in observer.live:  # the physics starts with the twin
                 self._check_sim(sim, deadline)
                 time.sleep(0.05)
+            self._wait_armed(sim, observer, deadline)
             t0 = time.monotonic_ns()
             observer.start()
             poller = StatusPoller(session, self.ns, observer, self.out / "status.jsonl")
@@ -281,18 +283,21 @@ class Soak:
             faults = list(self.schedule.faults)
             run_end = t0 + int(self.duration_s * 1e9)
             for k, fault in enumerate(faults):
+                helper = self._start_helper(fault)  # set up while the run goes on, acting at the fault's time
                 start = t0 + int(fault.at_s * 1e9)
                 self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
                 poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
                 self._wait_until(start, sim, session, poller, observer)
                 window_end = t0 + int(faults[k + 1].at_s * 1e9) if k + 1 < len(faults) else run_end - int(OBSERVE_END_S * 1e9)
-                inj = self._inject(fault, sim.pid, session, window_end)
+                inj = self._inject(fault, sim.pid, session, window_end, helper)
                 self.injections.append(inj)
                 self._print_progress(inj, t0)
             self._wait_until(run_end - int(OBSERVE_END_S * 1e9), sim, session, poller, observer)
             t_end = time.monotonic_ns()
-            try:  # the sim ends by itself and prints its metrics
-                sim.wait(OBSERVE_END_S + SIM_STOP_TIMEOUT_S)
+            time.sleep(OBSERVE_END_S)
+            sim.send_signal(signal.SIGTERM)  # the sim stops and prints its metrics
+            try:
+                sim.wait(SIM_STOP_TIMEOUT_S)
             except subprocess.TimeoutExpired:
                 pass
         finally:
@@ -301,6 +306,16 @@ class Soak:
         for inj in self.injections:
             inj.window_end_ns = min(inj.window_end_ns, t_end)
         return self._summarize(observer.streams, t0, rec_dir, wall_minus_mono)
+
+    def _wait_armed(self, sim: subprocess.Popen, observer: Observer, deadline: float) -> None:
+        """Until the stack's first armed command: the schedule's clock starts there, since a fault
+        injected before the robot is up tests nothing, and a loaded machine takes seconds to start
+        the services."""
+        seen = 0
+        while 1 not in observer.streams.torque_armed[seen:]:
+            seen = len(observer.streams.torque_armed)
+            self._check_sim(sim, deadline)
+            time.sleep(0.05)
 
     def _check_sim(self, sim: subprocess.Popen, deadline: float) -> None:
         if sim.poll() is not None:
@@ -327,7 +342,22 @@ class Soak:
 
     # --- faults ---
 
-    def _inject(self, f: Fault, sim_pid: int, session: zenoh.Session, window_end: int) -> Injection:
+    def _start_helper(self, f: Fault) -> subprocess.Popen | None:
+        """The helper process of a load or message fault, started now and waiting for its word."""
+        if f.kind == "cpu_hog" and f.cpu < (os.cpu_count() or 1):
+            argv = sf.helper_argv("hog", "--cpu", str(f.cpu), "--duration", str(f.duration_s))
+        elif f.kind in ("malformed_flood", "bad_stamps"):
+            argv = sf.helper_argv("flood", "--endpoint", self.endpoint, "--namespace", self.ns, "--topics", ",".join(f.topics),
+                                  "--kind", "malformed" if f.kind == "malformed_flood" else "stamps",
+                                  "--rate", str(f.rate_hz), "--offset", str(f.offset_s), "--duration", str(f.duration_s))
+        else:
+            return None
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.PIPE)
+        self.helpers.append(proc)
+        return proc
+
+    def _inject(self, f: Fault, sim_pid: int, session: zenoh.Session, window_end: int,
+                helper: subprocess.Popen | None = None) -> Injection:
         if f.kind == "noop":  # nothing done: what shows in its window is a false detection
             now = time.monotonic_ns()
             return Injection(f, now, now, window_end)
@@ -358,31 +388,26 @@ class Soak:
                 sf.signal_unit(pid, signal.SIGCONT, whole_unit)
                 self.stopped.remove((pid, whole_unit))
             return Injection(f, start, time.monotonic_ns(), window_end, pid=pid)
-        if f.kind == "cpu_hog":
-            if f.cpu >= (os.cpu_count() or 1):
-                now = time.monotonic_ns()
-                return Injection(f, now, now, window_end, error=f"cpu {f.cpu} does not exist here")
-            argv = sf.helper_argv("hog", "--cpu", str(f.cpu), "--duration", str(f.duration_s))
-        else:
-            argv = sf.helper_argv("flood", "--endpoint", self.endpoint, "--namespace", self.ns, "--topics", ",".join(f.topics),
-                                  "--kind", "malformed" if f.kind == "malformed_flood" else "stamps",
-                                  "--rate", str(f.rate_hz), "--offset", str(f.offset_s), "--duration", str(f.duration_s))
-        return self._run_helper(f, argv, window_end)
+        if helper is None:  # a hog on a core this host lacks
+            now = time.monotonic_ns()
+            return Injection(f, now, now, window_end, error=f"cpu {f.cpu} does not exist here")
+        return self._run_helper(f, helper, window_end)
 
     def _watch_exit(self, inj: Injection, watch: sf.ExitWatch, thread: threading.Thread) -> None:
         thread.join(KILL_WATCH_S + 1.0)
         inj.exited_ns, inj.reaped_ns = watch.exited_ns, watch.reaped_ns
 
-    def _run_helper(self, f: Fault, argv: list[str], window_end: int) -> Injection:
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
-        self.helpers.append(proc)
+    def _run_helper(self, f: Fault, proc: subprocess.Popen, window_end: int) -> Injection:
         start = time.monotonic_ns()
         try:
-            # a busy host can take seconds to import and open a session: the fault (and its deadline)
-            # begins when the helper says so, not when it was spawned
+            # started at the previous fault; one not set up yet is waited for, and the fault (and
+            # its deadline) begins at the word it is given, not when it was due
             ready = select.select([proc.stdout], [], [], HELPER_START_TIMEOUT_S)[0] and proc.stdout.readline()
             if ready and ready.decode(errors="replace").strip() == sf.READY_LINE:
                 start = time.monotonic_ns()
+                assert proc.stdin is not None
+                proc.stdin.write(f"{sf.GO_LINE}\n".encode())
+                proc.stdin.flush()
                 out, err = proc.communicate(timeout=f.duration_s + HELPER_GRACE_S)
             else:
                 proc.kill()
@@ -560,7 +585,7 @@ def _sum_lost(faults: list[dict[str, Any]]) -> dict[str, int]:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--schedule", default=None, help=f"fault schedule, TOML or JSON (default: {DEFAULT_SCHEDULE.name} unless faults are given below)")
-    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE (SERVICE/child: its loop process) T s after the twin started")
+    ap.add_argument("--kill", action="append", default=[], metavar="SERVICE@T", help="kill -9 SERVICE (SERVICE/child: its loop process) T s after the stack first armed")
     ap.add_argument("--fault", action="append", default=[], metavar="KIND@T[:k=v,...]", help="any fault, e.g. stall@40:target=control/child,duration=0.2 (see deploy/soak_schedule.py)")
     ap.add_argument("--duration", type=float, default=None, help=f"[s] wall time (default: the schedule's, else {DURATION_S:g})")
     ap.add_argument("--scenario", default=None, help="twin scenario (default: the schedule's, else hop-in-place)")

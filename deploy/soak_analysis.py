@@ -275,7 +275,7 @@ def fall_times(s: Streams) -> list[int]:
 
 
 def falls_by_window(s: Streams, injections: Sequence[Injection], t0_ns: int) -> list[dict[str, Any]]:
-    """Every fall with its time [s after the twin started] and the fault window it lies in (None: outside any)."""
+    """Every fall with its time [s after the stack first armed] and the fault window it lies in (None: outside any)."""
     out = []
     for t in fall_times(s):
         inside = next((inj for inj in injections if inj.start_ns <= t < inj.window_end_ns), None)

@@ -15,8 +15,10 @@ their own, started with ``python -m deploy.soak_faults hog|flood``; each dies wi
   a schema example where nothing is live) stamped ``offset`` seconds from now, ``seq`` 0 so
   that no sequence check takes them for the real publisher's.
 
-Each helper prints ``READY_LINE`` when its fault begins (a flood: once its session is open) and
-one JSON line of what it sent when it ends.
+Each helper is started ahead of its fault (a starved host takes seconds to import and open a
+session), prints ``READY_LINE`` once set up (a flood: its session open), waits for ``GO_LINE`` on
+stdin, then acts, and prints one JSON line of what it did when it ends (nothing, if stdin closes
+first: the soak went away).
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from typing import Any
 CHILD_MARKER = b"spawn_main"  # argv of a multiprocessing child (not its resource tracker)
 REAP_POLL_S = 0.001
 LIVE_COPY_WAIT_S = 1.0  # a stamps flood waits this long for a live message to copy
-READY_LINE = "ready"  # a helper's first line: its start-up (imports, session) is over, the fault begins
+READY_LINE = "ready"  # a helper's first line: its start-up (imports, session) is over
+GO_LINE = "go"  # the soak's word on the helper's stdin: the fault begins now
 
 
 # --- finding and signalling the stack's processes -------------------------------------------------
@@ -145,13 +148,16 @@ def helper_argv(mode: str, *args: str) -> list[str]:
 # --- the helper processes -------------------------------------------------------------------------
 
 
-def say_ready() -> None:
+def ready_then_go() -> None:
+    """Say the set-up is over; return at the soak's word, exit at once if it never comes."""
     print(READY_LINE, flush=True)
+    if sys.stdin.readline().strip() != GO_LINE:
+        sys.exit(0)
 
 
 def run_hog(cpu: int, duration_s: float) -> dict[str, Any]:
     os.sched_setaffinity(0, {cpu})
-    say_ready()
+    ready_then_go()
     deadline = time.monotonic() + duration_s
     spins = 0
     while time.monotonic() < deadline:
@@ -269,7 +275,7 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
 
             def make(t: str, k: int) -> bytes:
                 return m.encode(msgspec.structs.replace(templates[t], stamp_ns=time.monotonic_ns() + offset_ns, seq=0))
-        say_ready()
+        ready_then_go()
         t0 = time.monotonic()
         while (elapsed := time.monotonic() - t0) < duration_s:
             for t in topics:

@@ -2,7 +2,7 @@
 
 A schedule is a TOML or JSON file with an optional ``[soak]`` table (``duration_s``,
 ``services``, ``scenario``) and a list of faults (``[[fault]]`` in TOML, ``"fault": [...]``
-in JSON), each with ``kind``, ``at`` (seconds after the twin started) and its parameters:
+in JSON), each with ``kind``, ``at`` (seconds after the stack first armed) and its parameters:
 
 ==================  ===============================================================================
 kind                parameters
@@ -72,7 +72,7 @@ class ScheduleError(ValueError):
 @dataclass(frozen=True)
 class Fault:
     kind: str
-    at_s: float  # [s] after the twin started
+    at_s: float  # [s] after the stack first armed
     target: str = ""  # kill, stall: SERVICE or SERVICE/child
     duration_s: float = 0.0  # [s] how long a timed fault lasts
     topics: tuple[str, ...] = ()  # floods
@@ -114,7 +114,7 @@ def fault_from_dict(raw: dict[str, Any]) -> Fault:
     if kind not in KINDS:
         raise ScheduleError(f"fault kind {kind!r}: expected one of {', '.join(KINDS)}")
     if "at" not in raw:
-        raise ScheduleError(f"{kind}: no 'at' (seconds after the twin started)")
+        raise ScheduleError(f"{kind}: no 'at' (seconds after the stack first armed)")
     unknown = set(raw) - _ALLOWED[kind] - {"at"}
     if unknown:
         raise ScheduleError(f"{kind}: unknown parameters {sorted(unknown)}; it takes {sorted(_ALLOWED[kind]) or 'none'}")

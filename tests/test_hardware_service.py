@@ -148,6 +148,14 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
     def applied() -> list[float]:
         return [d.applied_torque for d in emulator.drives]
 
+    def driving() -> bool:
+        """Every drive enabled and driving: the foot at its command, each wheel at its command or,
+        held at its speed limit, at zero (0.3 N m takes the emulated wheel there in under a second)."""
+        if not all(d.state == c.DriveState.OPERATION_ENABLED for d in emulator.drives):
+            return False
+        *wheels, foot = applied()
+        return foot != 0.0 and all(t == 0.0 or t == pytest.approx(want, abs=0.002) for t, want in zip(wheels, commander.torques))
+
     async def scenario() -> None:
         task = asyncio.create_task(service.run())
         try:
@@ -181,7 +189,7 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
             await wait_for(lambda: any(e.trip == "command_stale" for e in events))
             assert all(d.state == c.DriveState.READY_TO_SWITCH_ON for d in emulator.drives)  # disabled, not faulted
             commander.running.set()  # fresh armed commands re-enable: staleness is not a fault
-            await wait_for(lambda: all(t != 0.0 for t in applied()))
+            await wait_for(driving)
 
             # a drive fault: latched, reported on the safety topic and in the status, all motors off
             emulator.emcy_fault(2, 0x2340, c.ErrorRegister.CURRENT)
@@ -196,7 +204,7 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
             # recovery on command: the operator sets hardware.recover_request
             reply = await asyncio.to_thread(query, client, params_key(NS, "hardware"), msgspec.json.encode({"set": {"hardware.recover_request": 1}}))
             assert reply["error"] == ""
-            await wait_for(lambda: all(t != 0.0 for t in applied()))
+            await wait_for(driving)
             assert not backend.faults
         finally:
             commander.running.clear()
