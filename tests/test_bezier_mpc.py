@@ -348,6 +348,7 @@ def test_an_infeasible_verdict_is_returned_without_polishing_its_certificate():
         real_solve, real_polish = mpc._solver.solve, mpc._polisher.polish
         mpc._solver.solve = lambda **kw: verdict.append(res := real_solve(**kw)) or res
         mpc._polisher.polish = lambda *args: polished_after.append(str(verdict[-1].info.status)) or real_polish(*args)
+        mpc._row_outside_box = lambda *args: False  # the test before the solve would refuse it: off, the solver meets it
         ref = sine_reference(seed, 20, 0.1)
         a = np.zeros((20, 1, 2))
         a[:, 0, 0] = 1.0
@@ -358,6 +359,23 @@ def test_an_infeasible_verdict_is_returned_without_polishing_its_certificate():
         verdicts += any("infeasible" in str(r.info.status) for r in verdict)
         assert not [status for status in polished_after if "infeasible" in status]
     assert verdicts >= 3  # OSQP says so on most of these (6 of 6 here): the rule was exercised
+
+
+def test_a_path_end_behind_an_obstacle_face_is_refused_before_the_solve():
+    """The planner pins the last knot to the graph path (7.2e); an obstacle that moved onto it
+    leaves a face that knot breaks: no answer exists, said at once (the solver spent its whole
+    budget, twice, on each such tick of the sliding scenarios)."""
+    for seed in range(5):
+        mpc = _octagon_mpc(max_planes=1, terminal="equal")
+        ref = sine_reference(seed, 20, 0.1)
+        a = np.zeros((20, 1, 2))
+        a[19, 0, 0] = 1.0
+        b = np.full((20, 1), np.inf)
+        b[19, 0] = ref[20, 0] + 0.1  # the face 0.1 m past the pinned end (the tube tightens it by 0.05): it may be kept
+        assert mpc.solve(ref[0], ref, (a, b)).ok
+        b[19, 0] = ref[20, 0] + 0.04  # the face moved 6 cm: the pinned end is 1 cm past it once tightened
+        sol = mpc.solve(ref[0], ref, (a, b))
+        assert not sol.ok and "holds nowhere" in sol.status and sol.iterations == 0, sol.status
 
 
 def test_a_polish_with_more_active_rows_than_variables_gives_up():

@@ -331,6 +331,7 @@ class BezierMpc(QpBackends):
         self._perm = ids.data.astype(int) - 1
         self._A_indices = ids.indices.copy()
         self._A_indptr = ids.indptr.copy()
+        self._entry_cols = np.repeat(np.arange(self.nvar), np.diff(self._A_indptr))  # each stored entry's column
         self._coo_vals = v_all
         where = np.empty_like(self._perm)
         where[self._perm] = np.arange(len(self._perm))
@@ -445,6 +446,10 @@ class BezierMpc(QpBackends):
             # e.g. a measured speed past the speed bound: no answer exists, and an iterative solver
             # would spend its whole iteration budget finding that out
             return self._certify(None, A, l, u, "infeasible: the initial state breaks the state constraints", 0, np.nan)
+        if self._row_outside_box(A, l, u):
+            # e.g. the path's end at the horizon (7.2e pins it) lies past an obstacle's halfspace since
+            # the obstacle moved: no answer exists, and the solver would spend its whole budget, twice
+            return self._certify(None, A, l, u, "infeasible: a row holds nowhere in the waypoints' bounds", 0, np.nan)
         if self.backend == "osqp":
             upd = {"q": q, "l": ls, "u": us}
             if a_changed:
@@ -485,6 +490,28 @@ class BezierMpc(QpBackends):
             rs = self._solver.result
             y, status, iters, obj = rs.x, str(st).split(".")[-1], int(rs.info.iter), float(rs.info.primal_obj)
         return self._certify(y, A, l, u, status, iters, obj)
+
+    def _row_outside_box(self, A: sp.csc_matrix, l: np.ndarray, u: np.ndarray) -> bool:
+        """Whether some row (beyond the waypoint bounds themselves) holds for no point of the box
+        the waypoint bounds ``l, u`` give (the free control points unbounded), against the true
+        bounds: interval arithmetic over each row, the box widened by the equality residual the
+        certificate accepts, so a row found here could never be certified whatever the solver did."""
+        box = self.r_box
+        slack = 10 * self.eps * (1.0 + float(np.abs(l[box]).max(initial=0.0)))
+        var_lo = np.full(self.nvar, -np.inf)
+        var_hi = np.full(self.nvar, np.inf)
+        var_lo[: self.nx] = l[box] - slack
+        var_hi[: self.nx] = u[box] + slack
+        a = A.data
+        lo_e, hi_e = var_lo[self._entry_cols], var_hi[self._entry_cols]
+        with np.errstate(invalid="ignore"):  # 0 * inf: explicit zeros (unused planes) add nothing
+            least = np.where(a > 0, a * lo_e, np.where(a < 0, a * hi_e, 0.0))
+            most = np.where(a > 0, a * hi_e, np.where(a < 0, a * lo_e, 0.0))
+        row_least = np.bincount(A.indices, weights=least, minlength=self.n_rows)[box.stop :]
+        row_most = np.bincount(A.indices, weights=most, minlength=self.n_rows)[box.stop :]
+        lo, hi = l[box.stop :], u[box.stop :]
+        inequality = lo < hi  # an equality row is certified within a residual: not judged here
+        return bool(np.any(inequality & ((row_least > hi) | (row_most < lo))))
 
     def _start_outside_node_rows(self, lo0: np.ndarray, hi0: np.ndarray, us: np.ndarray) -> bool:
         """Whether some single-waypoint row (the speed polygon) holds for no first waypoint in
