@@ -27,6 +27,9 @@ sparsity pattern), warm starts (OSQP), solves and then *certifies* the answer: e
 inequality is re-evaluated against the untightened bounds, so ``ok`` means the returned
 trajectory satisfies its constraints whatever the solver's status. Inequalities are
 tightened by ``margin`` so that a solver's small residual never becomes a violation.
+Before the solve, each row is bounded over the box the waypoint bounds give (interval
+arithmetic); a row that holds nowhere in it (a pinned end past an obstacle's face) is refused
+at once, with zero iterations, since no answer to it could ever be certified.
 """
 
 from __future__ import annotations
