@@ -7,7 +7,7 @@ Runs ``archer sim --mode realtime`` (the twin in place of the hardware, every se
 process under :mod:`services.runtime.supervisor`) on a free loopback endpoint and its own namespace,
 with the flight recorder. An operator thread re-sends a tour of goals every second (so that a
 restarted planner picks the current one up). At the schedule's times (seconds after the stack
-first armed; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
+first armed, or after the twin started when no ``control`` runs; :mod:`deploy.soak_schedule`) it injects each fault (:mod:`deploy.soak_faults`): kill -9
 of a service or its loop child, SIGSTOP stalls, a router restart, a CPU hog, floods of malformed
 or badly stamped messages.
 
@@ -47,7 +47,7 @@ from typing import Any
 import zenoh
 
 from deploy import soak_faults as sf
-from deploy.soak_analysis import TWIN, Injection, Streams, analyze, falls_by_window, window_losses
+from deploy.soak_analysis import COMMANDER, TWIN, Injection, Streams, analyze, falls_by_window, window_losses
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard.contracts import messages as m
 from onboard.contracts.topics import TOPICS, liveliness_key, topic_for_key
@@ -275,7 +275,8 @@ class Soak:
             while TWIN not in observer.live:  # the physics starts with the twin
                 self._check_sim(sim, deadline)
                 time.sleep(0.05)
-            self._wait_armed(sim, observer, deadline)
+            if COMMANDER in self.services:  # without a commander nothing arms: the clock starts with the twin
+                self._wait_armed(sim, observer, deadline)
             t0 = time.monotonic_ns()
             observer.start()
             poller = StatusPoller(session, self.ns, observer, self.out / "status.jsonl")
