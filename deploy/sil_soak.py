@@ -283,8 +283,11 @@ class Soak:
             poller.start()
             faults = list(self.schedule.faults)
             run_end = t0 + int(self.duration_s * 1e9)
+            # every helper set up now, each waiting for its word: one started at the fault before took
+            # 3-12 s to import and connect beside the real-time stack, longer than the gap to its fault
+            helpers = [self._start_helper(fault) for fault in faults]
             for k, fault in enumerate(faults):
-                helper = self._start_helper(fault)  # set up while the run goes on, acting at the fault's time
+                helper = helpers[k]
                 start = t0 + int(fault.at_s * 1e9)
                 self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
                 poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
@@ -401,7 +404,7 @@ class Soak:
     def _run_helper(self, f: Fault, proc: subprocess.Popen, window_end: int) -> Injection:
         start = time.monotonic_ns()
         try:
-            # started at the previous fault; one not set up yet is waited for, and the fault (and
+            # started with the schedule; one not set up yet is waited for, and the fault (and
             # its deadline) begins at the word it is given, not when it was due
             ready = select.select([proc.stdout], [], [], HELPER_START_TIMEOUT_S)[0] and proc.stdout.readline()
             if ready and ready.decode(errors="replace").strip() == sf.READY_LINE:

@@ -15,7 +15,7 @@ their own, started with ``python -m deploy.soak_faults hog|flood``; each dies wi
   a schema example where nothing is live) stamped ``offset`` seconds from now, ``seq`` 0 so
   that no sequence check takes them for the real publisher's.
 
-Each helper is started ahead of its fault (a starved host takes seconds to import and open a
+Each helper is started when the schedule starts (a starved host takes seconds to import and open a
 session), prints ``READY_LINE`` once set up (a flood: its session open), waits for ``GO_LINE`` on
 stdin, then acts, and prints one JSON line of what it did when it ends (nothing, if stdin closes
 first: the soak went away).
