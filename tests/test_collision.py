@@ -190,6 +190,35 @@ def test_cut_matches_exact_distance(poly, ctrl, margin):
     assert col.hull_polygon_distance(P, poly) == pytest.approx(dist, abs=1e-6)
 
 
+@pytest.mark.parametrize("spread", [1.0, 3.0])  # new curves inside the old ones' grid; reaching past it
+def test_a_grown_hull_set_is_the_set_built_whole(spread):
+    rng = np.random.default_rng(3)
+    old = rng.uniform(0, 2, (500, 1, 2)) + np.cumsum(rng.normal(0, 0.1, (500, 4, 2)), axis=1)
+    new = rng.uniform(0, spread, (60, 1, 2)) + np.cumsum(rng.normal(0, 0.1, (60, 4, 2)), axis=1)
+    new_at = np.sort(rng.choice(560, 60, replace=False))
+    shuffled = rng.permutation(60)  # any order of the new curves: each goes to its own index
+    grown = col.grown_hull_set(col.hull_set(old), new[shuffled], new_at[shuffled])
+    is_new = np.zeros(560, dtype=bool)
+    is_new[new_at] = True
+    all_pts = np.empty((560, 4, 2))
+    all_pts[is_new], all_pts[~is_new] = new, old
+    whole = col.hull_set(all_pts)
+    for name in ("points", "aabb", "center", "radius", "axes", "half_max"):
+        np.testing.assert_array_equal(getattr(grown, name), getattr(whole, name), err_msg=name)
+    # the cells and their order on the grid it kept (the whole set's own when it had to bin again)
+    assert np.all(np.diff(grown.by_cell[5]) >= 0) and np.array_equal(grown.cell[grown.order], grown.by_cell[5])
+    for kept, field in zip(grown.by_cell, (grown.points, grown.aabb, grown.center, grown.radius, grown.axes, grown.cell)):
+        np.testing.assert_array_equal(kept, field[grown.order])
+    if spread > 2.5:
+        assert grown.grid == whole.grid and np.array_equal(grown.order, whole.order)
+    else:
+        assert grown.grid == col.hull_set(old).grid  # merged into the bins it had
+    polys = pg.pack_polygons([SQUARE * 0.3 + c for c in rng.uniform(0, spread, (12, 2))])
+    np.testing.assert_array_equal(col.cut_obstacles(grown, polys, 0.1), col.cut_obstacles(whole, polys, 0.1))
+    with pytest.raises(ValueError):
+        col.grown_hull_set(col.hull_set(old), new, np.zeros(60, dtype=np.int64))  # two curves at one index
+
+
 def test_many_curves_sound_against_dense_sampling():
     rng = np.random.default_rng(7)
     E = 4000

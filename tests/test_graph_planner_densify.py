@@ -106,6 +106,29 @@ def test_budget_and_node_limit_stop_densification():
     assert planner.plan(START, (0, 0)) is None and planner.last_densify is None
 
 
+def test_an_extended_graph_is_the_graph_sorted_and_built_whole():
+    planner = planner_for(wall_with_gap(2 * MARGIN + 0.04))
+    planner.plan(START, (0, 0))  # builds the graph (and densifies it)
+    graph = planner.graph
+    lattice = np.array([[x, y, 0.0, 0.0] for x in (1.95, 2.0, 2.05) for y in (1.6, 1.7, 1.8)])
+    grown, old_at, new_at = dn.extend_graph(graph, lattice, np.full(len(lattice), 0.1))
+    assert grown.n_nodes == graph.n_nodes + len(lattice) and grown.densified == graph.densified + len(lattice)
+    assert len(old_at) == graph.n_edges and len(new_at) == grown.n_edges - graph.n_edges > 0
+    np.testing.assert_array_equal(grown.src[old_at], graph.src)
+    np.testing.assert_array_equal(grown.dst[old_at], graph.dst)
+    np.testing.assert_array_equal(grown.control_points[old_at], graph.control_points)
+    assert np.all((grown.src[new_at] >= graph.n_nodes) | (grown.dst[new_at] >= graph.n_nodes))  # each has a new end
+    keys = grown.src * grown.n_nodes + grown.dst
+    assert np.all(np.diff(keys) > 0)  # sorted by source, then destination; no edge twice
+    np.testing.assert_array_equal(np.diff(grown.indptr), np.bincount(grown.src, minlength=grown.n_nodes))
+    whole = bg.assemble(grown.spec, grown.nodes, grown.src, grown.dst, grown.control_points, grown.cost, grown.reachability)
+    for name in ("points", "aabb", "radius", "axes"):
+        np.testing.assert_array_equal(getattr(grown.hulls, name), getattr(whole.hulls, name), err_msg=name)
+    np.testing.assert_array_equal(grown.cost, bz.path_length_bound(grown.control_points))
+    obstacles = planner.obstacles
+    np.testing.assert_array_equal(col.cut_obstacles(grown.hulls, obstacles, MARGIN), col.cut_obstacles(whole.hulls, obstacles, MARGIN))
+
+
 def test_a_densified_graph_is_never_written_to_the_cache(tmp_path):
     scene = {"bounds": [[0, 0], [4, 4]], "obstacles": [p.tolist() for p in wall_with_gap(2 * MARGIN + 0.04)],
              "start": START.tolist(), "goal": GOAL.tolist(), "robot_radius": RADIUS, "tube": 0.1, "nodes": 300,

@@ -197,13 +197,13 @@ class BezierGraph:
 
 def assemble(spec: GraphSpec, nodes: np.ndarray, src: np.ndarray, dst: np.ndarray, ctrl: np.ndarray,
              cost: np.ndarray, test: reach.BezierReachability, densified: int = 0,
-             axes: np.ndarray | None = None) -> BezierGraph:
-    """A graph from edges sorted by source (the CSR index and the hulls computed here;
-    ``axes``: the hulls' candidate axes when already known)."""
+             hulls: col.HullSet | None = None) -> BezierGraph:
+    """A graph from edges sorted by source (the CSR index and, unless the caller has them for
+    ``ctrl``, the hulls computed here)."""
     indptr = np.zeros(len(nodes) + 1, dtype=np.int64)
     np.cumsum(np.bincount(src, minlength=len(nodes)), out=indptr[1:])
     return BezierGraph(spec, np.ascontiguousarray(nodes), np.ascontiguousarray(src), np.ascontiguousarray(dst),
-                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl, axes),
+                       indptr, np.ascontiguousarray(ctrl), np.ascontiguousarray(cost), test, col.hull_set(ctrl) if hulls is None else hulls,
                        densified)
 
 

@@ -299,18 +299,25 @@ def extend_graph(graph: BezierGraph, new_nodes: np.ndarray, link: np.ndarray,
     test = graph.reachability
     ok = test.edge_table(nodes).test_pairs(i, j)
     i, j = i[ok], j[ok]
+    # the old edges are sorted by (source, destination) and no new edge repeats one (each has a new
+    # end): the new ones are merged in, not the whole set sorted and every hull rebuilt
+    total = len(nodes)
+    key_old = graph.src * total + graph.dst
+    by_key = np.argsort(i * total + j, kind="stable")
+    i, j = i[by_key], j[by_key]
+    new_at = np.searchsorted(key_old, i * total + j) + np.arange(len(i))
+    is_new = np.zeros(graph.n_edges + len(i), dtype=bool)
+    is_new[new_at] = True
+    old_at = np.flatnonzero(~is_new)
     ctrl = test.curve(nodes[i], nodes[j])
-    src = np.concatenate([graph.src, i])
-    dst = np.concatenate([graph.dst, j])
-    order = np.lexsort((dst, src))
-    where = np.empty(len(order), dtype=np.int64)
-    where[order] = np.arange(len(order))
-    all_ctrl = np.concatenate([graph.control_points, ctrl])[order]
-    cost = np.concatenate([graph.cost, bz.path_length_bound(ctrl)])[order]
-    axes = np.concatenate([graph.hulls.axes, col.hull_axes(ctrl)])[order]
-    out = assemble(graph.spec, nodes, src[order], dst[order], all_ctrl, cost, test,
-                   densified=graph.densified + len(new_nodes), axes=axes)
-    return out, where[: graph.n_edges], where[graph.n_edges:]
+    hulls = col.grown_hull_set(graph.hulls, ctrl, new_at)
+    src = np.empty(len(is_new), dtype=np.int64)
+    dst = np.empty(len(is_new), dtype=np.int64)
+    cost = np.empty(len(is_new))
+    src[old_at], dst[old_at], cost[old_at] = graph.src, graph.dst, graph.cost
+    src[new_at], dst[new_at], cost[new_at] = i, j, bz.path_length_bound(ctrl)
+    out = assemble(graph.spec, nodes, src, dst, hulls.points, cost, test, densified=graph.densified + len(new_nodes), hulls=hulls)
+    return out, old_at, new_at
 
 
 # --- the rounds ------------------------------------------------------------------------------

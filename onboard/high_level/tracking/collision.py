@@ -118,29 +118,111 @@ def hull_axes(points: np.ndarray) -> np.ndarray:
     return hull_axes_kernel(pts)
 
 
-def hull_set(points: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
-    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points
-    (``axes``: :func:`hull_axes` of ``points`` when the caller has them, e.g. a grown graph)."""
+def _checked(points: np.ndarray) -> np.ndarray:
     pts = np.ascontiguousarray(points, dtype=float)
     if pts.ndim != 3 or pts.shape[2] != 2 or pts.shape[1] < 1:
         raise ValueError(f"control points must be (E, K, 2), got {pts.shape}")
     if not np.all(np.isfinite(pts)):
         raise ValueError("control points must be finite")
+    return pts
+
+
+def _bounds(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per curve: box ``(E, 4)``, its centre ``(E, 2)``, the bounding-circle radius ``(E,)`` and the box's half-size ``(2,)`` at most."""
     lo = pts.min(axis=1)
     hi = pts.max(axis=1)
     aabb = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
     center = np.ascontiguousarray((lo + hi) / 2)
     radius = np.sqrt(np.max(np.sum((pts - center[:, None, :]) ** 2, axis=2), axis=1)) if len(pts) else np.zeros(0)
-    axes = hull_axes(pts) if axes is None else axes
     half_max = (hi - lo).max(axis=0) / 2 if len(pts) else np.zeros(2)
-    grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
+    return aabb, center, radius, half_max
+
+
+def _cells(grid: _Grid, center: np.ndarray) -> np.ndarray:
     cx = np.clip(((center[:, 0] - grid.x0) // grid.h).astype(np.int64), 0, grid.nx - 1)
     cy = np.clip(((center[:, 1] - grid.y0) // grid.h).astype(np.int64), 0, grid.ny - 1)
-    cell = cy * grid.nx + cx
+    return cy * grid.nx + cx
+
+
+def _on_grid(grid: _Grid, center: np.ndarray) -> bool:
+    """Every centre falls in a cell of ``grid`` (none clipped into a border cell)."""
+    if len(center) == 0:
+        return True
+    return bool(center[:, 0].min() >= grid.x0 and center[:, 1].min() >= grid.y0
+                and ((center[:, 0].max() - grid.x0) // grid.h) < grid.nx and ((center[:, 1].max() - grid.y0) // grid.h) < grid.ny)
+
+
+def hull_set(points: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
+    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points
+    (``axes``: :func:`hull_axes` of ``points`` when the caller has them)."""
+    pts = _checked(points)
+    aabb, center, radius, half_max = _bounds(pts)
+    axes = np.ascontiguousarray(hull_axes(pts) if axes is None else axes)
+    grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
+    cell = _cells(grid, center)
     order = np.argsort(cell, kind="stable").astype(np.int64)
-    axes = np.ascontiguousarray(axes)
     by_cell = tuple(np.ascontiguousarray(a[order]) for a in (pts, aabb, center, radius, axes, cell))
     return HullSet(pts, aabb, center, radius, axes, grid, half_max, cell, order, by_cell)
+
+
+def _interleave(old: np.ndarray, new: np.ndarray, is_new: np.ndarray) -> np.ndarray:
+    out = np.empty((len(is_new), *old.shape[1:]), dtype=old.dtype)
+    out[is_new] = new
+    out[~is_new] = old
+    return out
+
+
+def grown_hull_set(hulls: HullSet, points: np.ndarray, new_at: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
+    """``hulls`` with the curves ``points`` ``(M, K, 2)`` inserted: curve ``m`` at index ``new_at[m]``
+    of the grown set (distinct indices), the old curves in their order at the others.
+
+    What :func:`hull_set` computes for the old curves is reused, not computed again: a graph
+    grown a few hundred curves at a time (densification) costs the new curves plus one pass
+    of copies, not a rebuild of every curve's box, circle and grid cell. The grid stays when
+    it holds every new centre (its cell size is the broad phase's locality, not its
+    correctness); else the whole set is binned again."""
+    pts_new = _checked(points)
+    new_at = np.asarray(new_at, dtype=np.int64)
+    total = len(hulls) + len(pts_new)
+    if pts_new.shape[1:] != hulls.points.shape[1:] or new_at.shape != (len(pts_new),):
+        raise ValueError(f"curves {pts_new.shape} at {new_at.shape} do not fit hulls of {hulls.points.shape}")
+    is_new = np.zeros(total, dtype=bool)
+    is_new[new_at] = True
+    if np.count_nonzero(is_new) != len(new_at):
+        raise ValueError("new curves' indices must be distinct")
+    order_new = np.argsort(new_at, kind="stable")  # the new curves in the grown set's order
+    pts_new = pts_new[order_new]
+    axes_new = np.ascontiguousarray(hull_axes(pts_new) if axes is None else np.asarray(axes)[order_new])
+    aabb_new, center_new, radius_new, half_new = _bounds(pts_new)
+    pts = _interleave(hulls.points, pts_new, is_new)
+    aabb = _interleave(hulls.aabb, aabb_new, is_new)
+    center = _interleave(hulls.center, center_new, is_new)
+    radius = _interleave(hulls.radius, radius_new, is_new)
+    axes_all = _interleave(hulls.axes, axes_new, is_new)
+    half_max = np.maximum(hulls.half_max, half_new)
+    grid = hulls.grid
+    if not _on_grid(grid, center_new) or len(hulls) == 0:
+        grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
+        cell = _cells(grid, center)
+        order = np.argsort(cell, kind="stable").astype(np.int64)
+        by_cell = tuple(np.ascontiguousarray(a[order]) for a in (pts, aabb, center, radius, axes_all, cell))
+        return HullSet(pts, aabb, center, radius, axes_all, grid, half_max, cell, order, by_cell)
+    cell_new = _cells(grid, center_new)
+    cell = _interleave(hulls.cell, cell_new, is_new)
+    # merge the two cell-sorted lists by (cell, index in the grown set): the old list is already sorted
+    # so (its indices only shift up), the new one is sorted here; the result is what a stable argsort gives
+    old_index = np.flatnonzero(~is_new)[hulls.order]
+    new_index = np.flatnonzero(is_new)
+    key_old = hulls.by_cell[5] * total + old_index
+    key_new = cell_new * total + new_index
+    by_key = np.argsort(key_new, kind="stable")
+    slot = np.searchsorted(key_old, key_new[by_key]) + np.arange(len(by_key))
+    new_slot = np.zeros(total, dtype=bool)
+    new_slot[slot] = True
+    order = _interleave(old_index, new_index[by_key], new_slot)
+    fresh = (pts_new, aabb_new, center_new, radius_new, axes_new, cell_new)
+    by_cell = tuple(_interleave(old_sorted, added[by_key], new_slot) for old_sorted, added in zip(hulls.by_cell, fresh))
+    return HullSet(pts, aabb, center, radius, axes_all, grid, half_max, cell, order, by_cell)
 
 
 # --- public entry points ----------------------------------------------------------------
