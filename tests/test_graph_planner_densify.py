@@ -102,6 +102,10 @@ def test_budget_and_node_limit_stop_densification():
     planner = planner_for(wall_with_gap(2 * MARGIN + 0.04), densify_max_nodes=3)
     assert planner.plan(START, (0, 0)) is None
     assert planner.last_densify.reason == dn.NODE_LIMIT and planner.graph.densified == 3
+    planner = planner_for(wall_with_gap(2 * MARGIN - 0.02), densify_max_edges=1)  # the memory bound: one round passes it
+    assert planner.plan(START, (0, 0)) is None
+    assert planner.last_densify.reason == dn.EDGE_LIMIT and planner.last_densify.rounds == 1
+    assert planner.last_densify.edges_added > 0
     planner = planner_for(wall_with_gap(2 * MARGIN + 0.04), densify_budget_s=0.0)
     assert planner.plan(START, (0, 0)) is None and planner.last_densify is None
 

@@ -34,6 +34,9 @@ class PlannerParams(_Section, section="planner"):
     densify_grid: Annotated[float, above(0.0, 10.0)] = 0.3  # [m] first lattice spacing for a graph without a rest lattice (else half of rest_grid)
     densify_min_grid: Annotated[float, above(0.0, 10.0)] = 0.02  # [m] finest lattice spacing: below it the goal is unreachable "at the finest resolution"
     densify_max_nodes: Annotated[int, within(1, 1_000_000)] = 40_000  # nodes densification may add to one graph (memory, cut time)
+    # edges it may add to one graph: what the memory and the cut's time grow with (~0.5 kB an edge with its hull;
+    # a resting node among the moving ones gets ~60, and sliding-fast seed 1014 grew a graph by 1.37 M edges)
+    densify_max_edges: Annotated[int, within(1, 100_000_000)] = 500_000
     densify_round_nodes: Annotated[int, within(1, 1_000_000)] = 500  # nodes added per round at most (one round, ~0.1-0.3 s on a shared 2-core machine, is what may overrun the budget)
     densify_max_rounds: Annotated[int, within(1, 10_000)] = 4  # rounds per plan call at most when the caller has no clock (lockstep): the same on any machine
     seed: Seed = 0  # node sampling seed

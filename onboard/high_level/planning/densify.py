@@ -23,7 +23,8 @@ again after each:
   done without a path means the goal is unreachable in the graph at the finest
   resolution. Rounds stop earlier when the time budget (``densify_budget_s``, read from
   the caller's clock), the rounds of one call (``densify_max_rounds``) or the node limit
-  (``densify_max_nodes`` per graph) is spent.
+  (``densify_max_nodes`` per graph) or the edge limit (``densify_max_edges`` per graph: the memory)
+  is spent.
 
 The densified graph replaces the planner's graph (same :class:`GraphSpec`, ``densified``
 counts the nodes added), so later plans in the same region reuse it; it is never written
@@ -52,6 +53,7 @@ REST_SPEED = 0.0  # [m/s] nodes with exactly this speed are resting nodes (strai
 
 BUDGET_SPENT = "budget spent"
 NODE_LIMIT = "node limit reached"
+EDGE_LIMIT = "edge limit reached"
 UNREACHABLE = "goal unreachable in the graph at the finest resolution"
 
 
@@ -329,6 +331,7 @@ class DensifyLimits:
     first_grid: float  # [m] lattice spacing of the first level
     min_grid: float  # [m] no level finer than this
     max_nodes: int  # nodes added to one graph at most
+    max_edges: int  # edges added to one graph at most (one round may pass it)
     round_nodes: int  # nodes added per round at most (bounds one round's time)
     max_rounds: int  # rounds per call at most without a clock (lockstep's bound, the same on any machine)
 
@@ -352,6 +355,7 @@ class Densifier:
         on = np.all(np.abs(k * finest + [xmin, ymin] - rest) < 1e-9, axis=1)
         self._present[k[on, 0].astype(np.int64), k[on, 1].astype(np.int64)] = True
         self._scale = reach_scale(graph.reachability, graph.spec.a_max)
+        self._base_edges = graph.n_edges
         self._crossed: set[tuple[int, int]] = set()  # gaps whose crossing is in the graph
         self._crossings: dict[tuple[int, int], np.ndarray] | None = None  # of the world below
         self._crossing_world = -1
@@ -387,6 +391,9 @@ class Densifier:
             room = lim.max_nodes - view.graph.densified
             if room <= 0:
                 reason = NODE_LIMIT
+                break
+            if view.graph.n_edges - self._base_edges >= lim.max_edges:
+                reason = EDGE_LIMIT
                 break
             t_round = clock() if clock is not None else 0.0
             graph = view.graph

@@ -393,7 +393,8 @@ class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
         if self._densifier is None:
             first = prm.rest_grid / 2 if self.graph.spec.rest_grid else prm.densify_grid
             limits = dn.DensifyLimits(prm.densify_budget_s, first, min(prm.densify_min_grid, first),
-                                      prm.densify_max_nodes, prm.densify_round_nodes, prm.densify_max_rounds)
+                                      prm.densify_max_nodes, prm.densify_max_edges, prm.densify_round_nodes,
+                                      prm.densify_max_rounds)
             self._densifier = dn.Densifier(self.graph, limits)
         view = _PlanView(self, x0, start_seeds, goal_seeds)
         report = self._densifier.run(view, x0[:2], self.goal, self.obstacles if self.mode == "obstacles" else None,
