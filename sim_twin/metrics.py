@@ -20,6 +20,9 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   its first contact to the one that moved into the other (``collisions_by_robot``: the robot's CoM velocity
   toward the obstacle along the contact normal exceeds the obstacle's toward the robot;
   ``collisions_by_obstacle`` otherwise: a mover of the scenario, ``Scenario.velocities``, came at it);
+  ``collision_events`` lists each with its time, who moved, the robot's tilt at that contact and the
+  seconds since an obstacle last came at it, so a robot knocked over by one mover and falling into
+  another can be read apart from one that walked into it (movers only);
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
   the same time, at every touchdown (``rms_/max_tracking_error_m``, the issue-4 definition) and over
   the whole run sampled every ``TRACE_EVERY`` ticks (``*_continuous_m``);
@@ -53,6 +56,7 @@ TURN_REPORTED = 0.25 * math.pi  # [rad] flights turning further are listed one b
 FLIP_PENDING_S = 8.0
 RECOVERY_S = 0.5  # [s] up this long ends a fall: a fallen robot rocking on its housing is one fall
 TRACE_EVERY = 10  # ticks between trace samples (plots, continuous tracking error)
+HIT_REPORTED_S = 2.0  # [s] a collision this soon after an obstacle came at the robot says how soon
 
 
 @dataclass
@@ -187,6 +191,8 @@ class PhysicsMetrics:
         self.turns: list[float] = []  # [rad] every flight's turn past TURN_REPORTED
         self._t_prev = 0.0
         self._in_collision = False
+        self.collision_events: list[dict] = []  # t_s, by ("robot" | "obstacle"), tilt_deg, since_hit_s (None: no hit within HIT_REPORTED_S)
+        self._last_hit = -math.inf  # [s] the last contact an obstacle came into
         self._impact_err: list[float] = []
         self._cont_err: list[float] = []
         self._est_err: list[float] = []
@@ -230,17 +236,25 @@ class PhysicsMetrics:
                 self._turn_flight = bool(self._pending) and self._pending[0] <= t
         elif not foot_ground and self._airborne_since == 0.0:
             self._airborne_since = t  # the initial drop: a flight start for timing
-        if obstacle and not self._in_collision:
-            self.collisions += 1
-            if self._obstacle_came(data):
-                self.collisions_by_obstacle += 1
-            else:
-                self.collisions_by_robot += 1
-        self._in_collision = obstacle
         qpos = data.qpos.tolist()
         qvel = data.qvel.tolist()
         qx, qy = qpos[self.qp_root + 4], qpos[self.qp_root + 5]
-        tilted = 1.0 - 2.0 * (qx * qx + qy * qy) < self.cos_tilt_max
+        cos_tilt = 1.0 - 2.0 * (qx * qx + qy * qy)
+        tilted = cos_tilt < self.cos_tilt_max
+        if obstacle and not self._in_collision:
+            self.collisions += 1
+            came = self._obstacle_came(data)
+            if came:
+                self.collisions_by_obstacle += 1
+            else:
+                self.collisions_by_robot += 1
+            since = t - self._last_hit
+            self.collision_events.append({"t_s": round(t, 3), "by": "obstacle" if came else "robot",
+                                          "tilt_deg": round(math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt)))), 1),
+                                          "since_hit_s": round(since, 3) if since <= HIT_REPORTED_S else None})
+            if came:
+                self._last_hit = t
+        self._in_collision = obstacle
         if self._aerial_turns:
             if not foot_ground and self._turn_flight:
                 tilted = tilted and body_ground  # turning over in flight is the manoeuvre; landing so is a fall
@@ -326,6 +340,7 @@ class PhysicsMetrics:
             "collisions": self.collisions,
             # who moved: only where obstacles move (a static world's collisions are all the robot's)
             **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle,
+                "collision_events": self.collision_events,
                 "time_to_goal_s": None if math.isnan(self.goal_time) else round(self.goal_time, 3)}
                if self.scenario.movers else {}),
             "goal_reached": bool(final_err <= tol and not self.fell),

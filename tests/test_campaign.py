@@ -17,7 +17,7 @@ import pytest
 
 from services.cli import campaign as cp
 from services.cli.campaign_pool import LocalPool
-from services.cli.campaign_report import PLOT_PNG, SUMMARY_JSON, SUMMARY_TXT, wilson_interval
+from services.cli.campaign_report import PLOT_PNG, SUMMARY_JSON, SUMMARY_TXT, summarize, table, wilson_interval
 from services.cli.main import main
 
 WALL_CLOCK_FIELDS = {"wall_time_s", "realtime_factor", "tick_us_mean"}  # the only report fields a rerun may change
@@ -188,3 +188,23 @@ def test_onboard_sensing_campaigns_report_the_drift(tmp_path, capsys) -> None:
     assert "drift_per_m" not in mocap and "sensing=onboard" in onboard["group"]
     assert onboard["final_drift_m"]["p50"] is not None and "drift_per_m" in onboard
     assert "drift per metre" in (out / SUMMARY_TXT).read_text()
+
+
+def test_the_summary_counts_the_robots_collisions_soon_after_it_was_hit() -> None:
+    """Robot-caused contacts within the reported window after an obstacle came at it are counted apart
+    (knocked, then falling into one), and still counted among the robot's."""
+    def record(seed: int, events: list[dict]) -> dict:
+        report = {"goal_reached": not events, "collisions": len(events), "falls": 0, "final_goal_error_m": 0.01,
+                  "rms_tracking_error_m": 0.02, "realtime_factor": 5.0, "sim_time_s": 10.0,
+                  "collisions_by_robot": sum(e["by"] == "robot" for e in events),
+                  "collisions_by_obstacle": sum(e["by"] == "obstacle" for e in events), "collision_events": events}
+        return {"spec": {"scenario": "sliding", "seed": seed, "variant": "indoor", "options": {}}, "report": report}
+
+    knocked = [{"t_s": 4.0, "by": "obstacle", "tilt_deg": 2.0, "since_hit_s": None},
+               {"t_s": 4.6, "by": "robot", "tilt_deg": 31.0, "since_hit_s": 0.6}]
+    walked = [{"t_s": 9.0, "by": "robot", "tilt_deg": 3.0, "since_hit_s": None}]
+    summary = summarize([record(0, knocked), record(1, walked), record(2, [])])
+    (group,) = summary["groups"]
+    assert "collisions by the robot 2 (1 soon after it was hit), by an obstacle 1" in table(summary)
+    assert group["collisions"] == 3 and group["collisions_by_robot"] == 2 and group["collisions_by_obstacle"] == 1
+    assert group["collisions_by_robot_after_hit"] == 1 and group["successes"] == 1

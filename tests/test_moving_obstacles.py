@@ -126,6 +126,10 @@ def test_an_obstacle_walking_into_the_robot_is_its_collision() -> None:
     report = metrics.summary(data, _actuation(model))
     assert report["collisions"] >= 1  # shoved away and caught up with again: each time the walker's
     assert report["collisions_by_obstacle"] == report["collisions"] and report["collisions_by_robot"] == 0
+    events = report["collision_events"]
+    assert len(events) == report["collisions"] and all(e["by"] == "obstacle" for e in events)
+    assert 0.3 < events[0]["t_s"] < 0.8 and events[0]["since_hit_s"] is None  # 0.5 m at 1 m/s, less the radii
+    assert all(0.0 < e["since_hit_s"] <= 2.0 for e in events[1:])  # caught up with again: soon after the last hit
 
 
 def test_the_robot_moving_into_a_still_obstacle_is_the_robots_collision() -> None:
@@ -146,6 +150,8 @@ def test_the_robot_moving_into_a_still_obstacle_is_the_robots_collision() -> Non
     report = metrics.summary(data, _actuation(model))
     assert report["collisions"] >= 1  # it may bounce: every episode the robot's
     assert report["collisions_by_robot"] == report["collisions"] and report["collisions_by_obstacle"] == 0
+    assert [e["by"] for e in report["collision_events"]] == ["robot"] * report["collisions"]
+    assert all(e["since_hit_s"] is None for e in report["collision_events"])  # nothing came at it first
 
 
 def _actuation(model: mujoco.MjModel):

@@ -8,6 +8,9 @@ Definitions, per group:
 - ``success_ci95``: the Wilson score interval of the success rate at 95 % (sound at 0 or all
   successes and for small groups, where the normal approximation is not);
 - ``runs_with_falls`` / ``runs_with_collisions`` and the totals ``falls`` / ``collisions``;
+- where obstacles move: ``collisions_by_robot`` / ``collisions_by_obstacle`` (who moved into whom, at
+  first contact), and ``collisions_by_robot_after_hit``: the robot's that came within
+  ``sim_twin.metrics.HIT_REPORTED_S`` of an obstacle coming at it (knocked, then falling into one);
 - percentiles (p50, p90, max) of ``final_goal_error_m`` and ``rms_tracking_error_m`` over the
   runs that report them; ``realtime_factor`` median and minimum.
 """
@@ -83,6 +86,9 @@ def summarize(records: list[dict]) -> dict:
             # obstacles that move: who moved into whom, time to goal, replanning rate (where runs report them)
             **({"collisions_by_robot": sum(r["collisions_by_robot"] for r in reports if "collisions_by_robot" in r),
                 "collisions_by_obstacle": sum(r["collisions_by_obstacle"] for r in reports if "collisions_by_obstacle" in r),
+                # of the robot's: those within HIT_REPORTED_S of an obstacle coming at it (knocked, then falling into one)
+                "collisions_by_robot_after_hit": sum(e["by"] == "robot" and e["since_hit_s"] is not None
+                                                     for r in reports for e in r.get("collision_events", ())),
                 "time_to_goal_s": _spread(_reported(reports, "time_to_goal_s")),
                 "replans_per_s": _spread(_reported(reports, "planner_replans_per_s"))}
                if any("collisions_by_robot" in r for r in reports) else {}),
@@ -121,6 +127,9 @@ def table(summary: dict) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
     for g in summary["groups"]:
+        if "collisions_by_robot" in g:
+            lines.append(f"{g['group']}: collisions by the robot {g['collisions_by_robot']} "
+                         f"({g['collisions_by_robot_after_hit']} soon after it was hit), by an obstacle {g['collisions_by_obstacle']}")
         if "drift_per_m" in g:
             d, f = g["drift_per_m"], g["final_drift_m"]
             lines.append(f"{g['group']}: drift per metre p50/p90/max {_fmt(d['p50'], 4)}/{_fmt(d['p90'], 4)}/{_fmt(d['max'], 4)}, "
