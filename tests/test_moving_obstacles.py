@@ -260,3 +260,17 @@ def test_lockstep_planner_sees_the_world_move(name: str) -> None:
     met = res.metrics
     assert met["collisions"] == met["collisions_by_robot"] + met["collisions_by_obstacle"]
     assert "planner_replans_per_s" in met and "time_to_goal_s" in met
+
+
+def test_curve_bands_are_the_boxes_distances_in_bands() -> None:
+    rng = np.random.default_rng(5)
+    lo = rng.uniform(-3.0, 3.0, (2000, 2))
+    aabb = np.hstack([lo, lo + rng.uniform(0.0, 1.0, (2000, 2))])
+    origin = np.array([0.3, -0.2])
+    dx = np.maximum(np.maximum(aabb[:, 0] - origin[0], origin[0] - aabb[:, 2]), 0.0)
+    dy = np.maximum(np.maximum(aabb[:, 1] - origin[1], origin[1] - aabb[:, 3]), 0.0)
+    expected = np.floor(np.hypot(dx, dy) / 0.4).astype(np.int64)
+    bands = mo.curve_bands(aabb, origin, 0.4)
+    np.testing.assert_array_equal(bands, expected)
+    inside = (aabb[:, 0] <= origin[0]) & (origin[0] <= aabb[:, 2]) & (aabb[:, 1] <= origin[1]) & (origin[1] <= aabb[:, 3])
+    assert inside.any() and np.all(bands[inside] == 0)  # a box holding the origin is in the first band

@@ -291,16 +291,15 @@ class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
         x0 = self._state(position, velocity)
         if build or self.graph is None:
             self._ensure_graph(x0[:2])
+        if self.mode == "obstacles" and self._moving is not None:  # moving obstacles: the full windows, from here
+            self._set_sweep_level(0)  # (before the cut: a cut from where the robot was is one thrown away)
+            self._set_band_origin(x0[:2])
         self.cut()
         self.stats.plans += 1
         # free mode: with no frontier within reach, going nearer one comes before densifying (each
         # replan, at the perception rate, has new cells fitted around the robot; densifying every
         # time was most of a maze run's time)
         approach = self.mode == "free" and self.params.frontier_approach_weight > 0
-        if self.mode == "obstacles" and self._moving is not None:  # moving obstacles: the full windows, from here
-            self._set_sweep_level(0)
-            self._set_band_origin(x0[:2])
-            self.cut()
         result, start_seeds, goal_seeds = self._search(x0, approach)
         while result is None and self.mode == "obstacles" and self._set_sweep_level(self._sweep_level + 1):
             self.cut()  # no way past the sweeps: shorter ones, down to where the obstacles are now

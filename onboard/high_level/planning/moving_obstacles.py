@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 
 SWEEP_LEVELS = (1.0, 0.5, 0.0)  # shares of the horizon tried in turn when the longer sweep leaves no path
@@ -78,11 +79,21 @@ def band_polygons(polygons: list[np.ndarray], velocities: np.ndarray, t0: float,
     return out
 
 
-def curve_distances(aabb: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """Distance [m] from ``origin`` to each curve's box ``(E, 4)``: no point of the curve is nearer."""
-    dx = np.maximum(np.maximum(aabb[:, 0] - origin[0], origin[0] - aabb[:, 2]), 0.0)
-    dy = np.maximum(np.maximum(aabb[:, 1] - origin[1], origin[1] - aabb[:, 3]), 0.0)
-    return np.hypot(dx, dy)
+@nb.njit(cache=True)
+def _bands(aabb, ox, oy, band_m):  # pragma: no cover - compiled
+    out = np.empty(aabb.shape[0], dtype=np.int64)
+    for e in range(aabb.shape[0]):
+        dx = max(aabb[e, 0] - ox, ox - aabb[e, 2], 0.0)
+        dy = max(aabb[e, 1] - oy, oy - aabb[e, 3], 0.0)
+        out[e] = int(math.hypot(dx, dy) / band_m)
+    return out
+
+
+def curve_bands(aabb: np.ndarray, origin: np.ndarray, band_m: float) -> np.ndarray:
+    """Distance band of each curve's box ``(E, 4)`` from ``origin``: ``floor(d / band_m)`` with ``d`` [m]
+    the box's distance (no point of the curve is nearer). One compiled pass: the planner bands every
+    edge of its graph at each replan among moving obstacles."""
+    return _bands(np.ascontiguousarray(aabb, dtype=float), float(origin[0]), float(origin[1]), float(band_m))
 
 
 def moving(velocities: np.ndarray | None) -> bool:

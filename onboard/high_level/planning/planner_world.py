@@ -110,8 +110,8 @@ class PlannerWorld:
         robot, the moving ones over that band's window (the cut in time)."""
         blocked = col.cut_obstacles(hulls, self._static, margin, active=active)
         free = active & ~blocked
-        bands = (mo.curve_distances(hulls.aabb, self._band_origin) / self.params.obstacle_band_m).astype(np.int64)
-        for b in np.unique(bands[free]).tolist():
+        bands = mo.curve_bands(hulls.aabb, self._band_origin, self.params.obstacle_band_m)
+        for b in np.flatnonzero(np.bincount(bands[free])).tolist():
             sel = free & (bands == b)
             blocked |= col.cut_obstacles(hulls, self._band_set(b), margin, active=sel) & sel
         return blocked
