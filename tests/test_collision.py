@@ -219,6 +219,30 @@ def test_a_grown_hull_set_is_the_set_built_whole(spread):
         col.grown_hull_set(col.hull_set(old), new, np.zeros(60, dtype=np.int64))  # two curves at one index
 
 
+def test_a_grouped_cut_is_each_group_cut_alone():
+    """Curves meet only the obstacles of their own group: one pass gives what a cut per group gives."""
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(0, 4, (3000, 1, 2)) + np.cumsum(rng.normal(0, 0.15, (3000, 4, 2)), axis=1)
+    hulls = col.hull_set(pts)
+    polys = [SQUARE * 0.4 + c for c in rng.uniform(0, 4, (30, 2))]
+    obstacle_group = np.arange(30) % 3
+    curve_group = rng.integers(0, 4, 3000)  # group 3 has no obstacles: never blocked
+    active = rng.random(3000) < 0.9
+    grouped = col.cut_obstacles(hulls, pg.pack_polygons(polys), 0.1, active=active,
+                                curve_group=curve_group, obstacle_group=obstacle_group)
+    expected = np.zeros(3000, dtype=bool)
+    for g in range(3):
+        alone = col.cut_obstacles(hulls, pg.pack_polygons([p for p, k in zip(polys, obstacle_group) if k == g]), 0.1,
+                                  active=active & (curve_group == g))
+        expected |= alone
+    np.testing.assert_array_equal(grouped, expected)
+    assert grouped.any() and not grouped[curve_group == 3].any() and not grouped[~active].any()
+    with pytest.raises(ValueError, match="go together"):
+        col.cut_obstacles(hulls, pg.pack_polygons(polys), 0.1, curve_group=curve_group)
+    with pytest.raises(ValueError, match="groups must be"):
+        col.cut_obstacles(hulls, pg.pack_polygons(polys), 0.1, curve_group=curve_group[:10], obstacle_group=obstacle_group)
+
+
 def test_many_curves_sound_against_dense_sampling():
     rng = np.random.default_rng(7)
     E = 4000

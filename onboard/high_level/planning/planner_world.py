@@ -43,7 +43,8 @@ class PlannerWorld:
         self._sweep_level = 0
         self._static = pg.pack_polygons([])  # with moving obstacles: the still ones
         self._band_origin = np.zeros(2)  # where the robot is: the cut in time measures from here
-        self._bands: dict[int, pg.PolygonSet] = {}  # moving obstacles per distance band, at the current level
+        self._bands: dict[int, list[np.ndarray]] = {}  # moving obstacles per distance band, at the current level
+        self._banded: tuple[int, pg.PolygonSet, np.ndarray] | None = None  # bands 0..n-1 packed together, each polygon's band
         self._world_moves = False  # the obstacles come with velocities: a world that changes keeps a path still clear of it
         self._world_version = 0
         self._cut_key: tuple | None = None
@@ -74,7 +75,7 @@ class PlannerWorld:
             if mo.moving(vel):
                 self._moving = (polys, vel)
                 self._sweep_level = 0
-                self._bands = {}
+                self._bands, self._banded = {}, None
                 still = np.hypot(vel[:, 0], vel[:, 1]) < mo.STILL
                 self._static = pg.pack_polygons([p for p, s in zip(polys, still) if s])
                 polygons = self._swept()
@@ -96,25 +97,33 @@ class PlannerWorld:
         t0 = band * prm.obstacle_band_m / prm.v_max
         return t0, t0 + mo.SWEEP_LEVELS[self._sweep_level] * (prm.obstacle_band_m / prm.v_max + prm.obstacle_sweep_s)
 
-    def _band_set(self, band: int) -> pg.PolygonSet:
+    def _band_polygons(self, band: int) -> list[np.ndarray]:
         got = self._bands.get(band)
         if got is None:
             assert self._moving is not None
             polys, vel = self._moving
-            got = self._bands[band] = pg.pack_polygons(mo.band_polygons(polys, vel, *self._band_window(band),
-                                                                        self.params.obstacle_sweep_max_m))
+            got = self._bands[band] = mo.band_polygons(polys, vel, *self._band_window(band), self.params.obstacle_sweep_max_m)
         return got
+
+    def _bands_packed(self, count: int) -> tuple[pg.PolygonSet, np.ndarray]:
+        """The moving obstacles of bands ``0..count-1`` in one set, and each polygon's band."""
+        if self._banded is None or self._banded[0] < count:
+            lists = [self._band_polygons(b) for b in range(count)]
+            group = np.repeat(np.arange(count, dtype=np.int64), [len(p) for p in lists])
+            self._banded = (count, pg.pack_polygons([p for ps in lists for p in ps]), group)
+        return self._banded[1], self._banded[2]
 
     def _blocked_in_time(self, hulls: col.HullSet, margin: float, active: np.ndarray) -> np.ndarray:
         """Blocked mask of curves against the still obstacles and, band by band of distance from the
-        robot, the moving ones over that band's window (the cut in time)."""
+        robot, the moving ones over that band's window (the cut in time: every band in one pass, each
+        curve against its own band's obstacles)."""
         blocked = col.cut_obstacles(hulls, self._static, margin, active=active)
         free = active & ~blocked
+        if not free.any():
+            return blocked
         bands = mo.curve_bands(hulls.aabb, self._band_origin, self.params.obstacle_band_m)
-        for b in np.flatnonzero(np.bincount(bands[free])).tolist():
-            sel = free & (bands == b)
-            blocked |= col.cut_obstacles(hulls, self._band_set(b), margin, active=sel) & sel
-        return blocked
+        moving, band_of = self._bands_packed(int(bands[free].max()) + 1)
+        return blocked | col.cut_obstacles(hulls, moving, margin, active=free, curve_group=bands, obstacle_group=band_of)
 
     def _set_band_origin(self, position: np.ndarray) -> None:
         """Measure the cut in time from ``position`` (a changed origin is a changed world for the cut)."""
@@ -128,7 +137,7 @@ class PlannerWorld:
         if self._moving is None or level == self._sweep_level or not 0 <= level < len(mo.SWEEP_LEVELS):
             return False
         self._sweep_level = level
-        self._bands = {}
+        self._bands, self._banded = {}, None
         self.obstacles = pg.pack_polygons(self._swept())
         self._world_version += 1
         return True

@@ -155,12 +155,14 @@ def bin_boxes(aabb, x0, y0, h, nx, ny):  # pragma: no cover - compiled
     return start, items, ranges
 
 
-def cut_obstacles_kernel_py(pts, aabb, center, radius, axes, cell_of, order, active,
-                             verts, offsets, norms, face_offs, oaabb, ocenter, oradius,
+def cut_obstacles_kernel_py(pts, aabb, center, radius, axes, cell_of, order, active, curve_group,
+                             verts, offsets, norms, face_offs, oaabb, ocenter, oradius, obstacle_group,
                              start, items, margin):  # pragma: no cover - compiled
     """Curve arrays come sorted by cell (neighbours share the cell's obstacles in cache);
-    ``order`` maps them back for the result."""
+    ``order`` maps them back for the result. With groups (``obstacle_group`` not empty) a curve
+    meets only the obstacles of its own group (``curve_group``, in the curves' cell order)."""
     E = order.shape[0]
+    grouped = obstacle_group.shape[0] > 0
     blocked = np.zeros(E, dtype=np.bool_)
     for e in nb.prange(E):
         if not active[order[e]]:
@@ -168,6 +170,8 @@ def cut_obstacles_kernel_py(pts, aabb, center, radius, axes, cell_of, order, act
         c = cell_of[e]
         for k in range(start[c], start[c + 1]):
             o = items[k]
+            if grouped and obstacle_group[o] != curve_group[e]:
+                continue
             if (aabb[e, 0] - oaabb[o, 2] > margin or oaabb[o, 0] - aabb[e, 2] > margin
                     or aabb[e, 1] - oaabb[o, 3] > margin or oaabb[o, 1] - aabb[e, 3] > margin):
                 continue
