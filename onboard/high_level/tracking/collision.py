@@ -152,12 +152,11 @@ def _on_grid(grid: _Grid, center: np.ndarray) -> bool:
                 and ((center[:, 0].max() - grid.x0) // grid.h) < grid.nx and ((center[:, 1].max() - grid.y0) // grid.h) < grid.ny)
 
 
-def hull_set(points: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
-    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points
-    (``axes``: :func:`hull_axes` of ``points`` when the caller has them)."""
+def hull_set(points: np.ndarray) -> HullSet:
+    """Precompute boxes, circles, candidate axes and the grid for ``(E, K, 2)`` control points."""
     pts = _checked(points)
     aabb, center, radius, half_max = _bounds(pts)
-    axes = np.ascontiguousarray(hull_axes(pts) if axes is None else axes)
+    axes = np.ascontiguousarray(hull_axes(pts))
     grid = _grid_for(np.concatenate([center, center], axis=1), max(_typical_extent(aabb), MIN_CELL), 0.0)
     cell = _cells(grid, center)
     order = np.argsort(cell, kind="stable").astype(np.int64)
@@ -172,7 +171,7 @@ def _interleave(old: np.ndarray, new: np.ndarray, is_new: np.ndarray) -> np.ndar
     return out
 
 
-def grown_hull_set(hulls: HullSet, points: np.ndarray, new_at: np.ndarray, axes: np.ndarray | None = None) -> HullSet:
+def grown_hull_set(hulls: HullSet, points: np.ndarray, new_at: np.ndarray) -> HullSet:
     """``hulls`` with the curves ``points`` ``(M, K, 2)`` inserted: curve ``m`` at index ``new_at[m]``
     of the grown set (distinct indices), the old curves in their order at the others.
 
@@ -192,7 +191,7 @@ def grown_hull_set(hulls: HullSet, points: np.ndarray, new_at: np.ndarray, axes:
         raise ValueError("new curves' indices must be distinct")
     order_new = np.argsort(new_at, kind="stable")  # the new curves in the grown set's order
     pts_new = pts_new[order_new]
-    axes_new = np.ascontiguousarray(hull_axes(pts_new) if axes is None else np.asarray(axes)[order_new])
+    axes_new = np.ascontiguousarray(hull_axes(pts_new))
     aabb_new, center_new, radius_new, half_new = _bounds(pts_new)
     pts = _interleave(hulls.points, pts_new, is_new)
     aabb = _interleave(hulls.aabb, aabb_new, is_new)
@@ -209,8 +208,8 @@ def grown_hull_set(hulls: HullSet, points: np.ndarray, new_at: np.ndarray, axes:
         return HullSet(pts, aabb, center, radius, axes_all, grid, half_max, cell, order, by_cell)
     cell_new = _cells(grid, center_new)
     cell = _interleave(hulls.cell, cell_new, is_new)
-    # merge the two cell-sorted lists by (cell, index in the grown set): the old list is already sorted
-    # so (its indices only shift up), the new one is sorted here; the result is what a stable argsort gives
+    # merge the two lists sorted by (cell, index in the grown set): the old one stays sorted (its indices
+    # only shift up), the new one is sorted here; the merge is what a stable argsort of every cell gives
     old_index = np.flatnonzero(~is_new)[hulls.order]
     new_index = np.flatnonzero(is_new)
     key_old = hulls.by_cell[5] * total + old_index
