@@ -48,6 +48,15 @@ def test_a_quick_reproduction_writes_the_report_and_resumes_without_running_agai
     assert (out / "runs" / "hops3000.jsonl").read_text().splitlines() == run_lines  # nothing ran again
     assert json.loads(again.stdout.strip().splitlines()[-1])["items"] == summary["items"]
 
+    # --redo runs the item's lockstep runs again: none of the kept ones (another commit's) is reported
+    stale = json.loads(run_lines[0])
+    stale["report"]["hops"] = -1
+    (out / "runs" / "hops3000.jsonl").write_text(json.dumps(stale) + "\n")
+    redo = archer("--quick", "--only", "hops3000", "--out", str(out), "--workers", "1", "--quiet", "--redo")
+    assert redo.returncode == 0, redo.stderr[-3000:]
+    redone = (out / "runs" / "hops3000.jsonl").read_text().splitlines()
+    assert len(redone) == 1 and json.loads(redone[0])["report"]["hops"] > 0
+
 
 def test_bad_requests_are_refused(tmp_path: Path) -> None:
     proc = archer("--only", "fig9.99", "--out", str(tmp_path / "a"))

@@ -2,8 +2,8 @@
 
 Runs each item (:mod:`services.reproduce.items`), writes its figures and ``DIR/items/ITEM.json``,
 then ``DIR/report.md`` over every item done so far. Resumable twice over: an item whose JSON is
-there is not run again (``--redo`` runs it anew), and inside an item the lockstep runs already in
-``DIR/runs/ITEM.jsonl`` are kept. ``--quick`` is a small subset with few seeds (CI checks the
+there is not run again (``--redo`` runs it anew, its lockstep runs too: a redone item's figures are
+its commit's), and inside an item the lockstep runs already in ``DIR/runs/ITEM.jsonl`` are kept. ``--quick`` is a small subset with few seeds (CI checks the
 report is produced); a quick and a full run do not share a folder.
 """
 
@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="folder: report.md, the figures, items/ and runs/ (resumable)")
     parser.add_argument("--only", default=None, help="comma list of items (default: all; --list names them)")
     parser.add_argument("--quick", action="store_true", help="the CI subset: a few items, few seeds, short runs")
-    parser.add_argument("--redo", action="store_true", help="run the chosen items again even where their result is there")
+    parser.add_argument("--redo", action="store_true",
+                        help="run the chosen items again, their lockstep runs too, even where their result is there")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local campaign workers (default: one per core)")
     parser.add_argument("--ray", default=None, metavar="ADDRESS", help="run campaigns on this Ray cluster ('local': a private one)")
     parser.add_argument("--report", default=None, metavar="FILE.md",
@@ -57,7 +58,7 @@ def _check_mode(out: Path, quick: bool) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from services.reproduce import report
-    from services.reproduce.engine import Context
+    from services.reproduce.engine import RUNS_DIR, Context
     from services.reproduce.catalogue import load_all
     from services.reproduce.items import ItemResult
 
@@ -84,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         path = done_dir / f"{it.name}.json"
         if path.exists() and not args.redo:
             continue
+        if args.redo:  # the runs kept from an older commit would be reported under this one
+            (out / RUNS_DIR / f"{it.name}.jsonl").unlink(missing_ok=True)
         if not args.quiet:
             print(f"[{k}/{len(chosen)}] {it.name}: {it.title}", file=sys.stderr, flush=True)
         start = time.perf_counter()
