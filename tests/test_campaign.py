@@ -208,3 +208,24 @@ def test_the_summary_counts_the_robots_collisions_soon_after_it_was_hit() -> Non
     assert "collisions by the robot 2 (1 soon after it was hit), by an obstacle 1" in table(summary)
     assert group["collisions"] == 3 and group["collisions_by_robot"] == 2 and group["collisions_by_obstacle"] == 1
     assert group["collisions_by_robot_after_hit"] == 1 and group["successes"] == 1
+
+
+def test_the_summary_pools_the_segmenters_iou_over_every_apex_view() -> None:
+    """The group's IoU is the pixels' (intersections over unions, summed over runs), not the runs' mean:
+    a run with many views weighs more; a run that saw no view adds nothing to the per-run spread."""
+    def record(seed: int, intersection: int, union: int, views: int) -> dict:
+        report = {"goal_reached": True, "collisions": 0, "falls": 0, "final_goal_error_m": 0.01,
+                  "rms_tracking_error_m": 0.02, "realtime_factor": 5.0, "sim_time_s": 10.0,
+                  "segmentation": {"segmenter": "color", "iou": intersection / union if union else 0.0, "views": views,
+                                   "intersection": intersection, "union": union}}
+        return {"spec": {"scenario": "sidewalk", "seed": seed, "variant": "outdoor", "options": {"sensing": "onboard"}},
+                "report": report}
+
+    summary = summarize([record(0, 900, 1000, 30), record(1, 50, 100, 3), record(2, 0, 0, 0)])
+    (group,) = summary["groups"]
+    assert group["segmentation_iou"] == round(950 / 1100, 4) and group["segmentation_views"] == 33
+    assert group["segmentation_iou_per_run"]["max"] == 0.9 and group["segmentation_iou_per_run"]["p50"] == 0.7
+    assert "segmentation IoU 0.864 over 33 apex views" in table(summary)
+    mocap = record(3, 0, 0, 0)
+    del mocap["report"]["segmentation"]  # with motion capture no segmenter runs
+    assert "segmentation_iou" not in summarize([mocap])["groups"][0]

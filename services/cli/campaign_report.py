@@ -11,6 +11,10 @@ Definitions, per group:
 - where obstacles move: ``collisions_by_robot`` / ``collisions_by_obstacle`` (who moved into whom, at
   first contact), and ``collisions_by_robot_after_hit``: the robot's that came within
   ``sim_twin.metrics.HIT_REPORTED_S`` of an obstacle coming at it (knocked, then falling into one);
+- without motion capture (``--sensing onboard``): the estimate's ``drift_per_m`` and ``final_drift_m``,
+  and the terrain segmenter's ``segmentation_iou`` over every apex view of the group, pooled
+  (the intersections' sum over the unions' sum, so a run with more views weighs more), with the
+  per-run IoU's spread;
 - percentiles (p50, p90, max) of ``final_goal_error_m`` and ``rms_tracking_error_m`` over the
   runs that report them; ``realtime_factor`` median and minimum.
 """
@@ -61,6 +65,17 @@ def _reported(reports: list[dict], field: str) -> list[float]:
     return [float(r[field]) for r in reports if r.get(field) is not None]
 
 
+def _segmentation(reports: list[dict]) -> dict:
+    """The terrain segmenter's IoU over the group's apex views (module docstring), or nothing."""
+    seg = [r["segmentation"] for r in reports if r.get("segmentation")]
+    if not seg:
+        return {}
+    union = sum(s["union"] for s in seg)
+    return {"segmentation_iou": round(sum(s["intersection"] for s in seg) / union, 4) if union else None,
+            "segmentation_views": sum(s["views"] for s in seg),
+            "segmentation_iou_per_run": _spread([s["iou"] for s in seg if s["views"]])}
+
+
 def summarize(records: list[dict]) -> dict:
     """The campaign's figures per group (see the module docstring), groups in first-seen order."""
     groups: dict[str, list[dict]] = {}
@@ -96,6 +111,7 @@ def summarize(records: list[dict]) -> dict:
             **({"drift_per_m": _spread(_reported(reports, "drift_per_m")),
                 "final_drift_m": _spread(_reported(reports, "final_drift_m"))}
                if any("drift_per_m" in r for r in reports) else {}),
+            **_segmentation(reports),
             "final_goal_error_m": _spread(_reported(reports, "final_goal_error_m")),
             "rms_tracking_error_m": _spread(_reported(reports, "rms_tracking_error_m")),
             "realtime_factor_median": round(float(np.median(rtf)), 2) if rtf else None,
@@ -134,6 +150,9 @@ def table(summary: dict) -> str:
             d, f = g["drift_per_m"], g["final_drift_m"]
             lines.append(f"{g['group']}: drift per metre p50/p90/max {_fmt(d['p50'], 4)}/{_fmt(d['p90'], 4)}/{_fmt(d['max'], 4)}, "
                          f"final drift p50/p90 {_fmt(f['p50'])}/{_fmt(f['p90'])} m")
+        if "segmentation_iou" in g:
+            lines.append(f"{g['group']}: segmentation IoU {_fmt(g['segmentation_iou'])} over {g['segmentation_views']} "
+                         f"apex views (per run p50 {_fmt(g['segmentation_iou_per_run']['p50'])})")
     lines.append(f"{summary['runs']} runs, {summary['errors']} errors"
                  + (f", {summary['campaign_wall_s']} s wall ({summary['executor']})" if "campaign_wall_s" in summary else ""))
     return "\n".join(lines)
