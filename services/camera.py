@@ -3,7 +3,8 @@
 Subscribes: ``state`` (the pose that places each frame in the world), ``phase`` (apex events).
 Reads: a D435 over USB, or a recording of one, through librealsense (:mod:`drivers.realsense`,
 ``pip install '.[realsense]'``); a reader thread waits on the SDK. Every frame's sensor
-timestamp is mapped onto the stack's clock (:class:`ClockMap`); with ``capture = "apex"``
+timestamp is mapped onto the stack's clock (:class:`ClockMap`: librealsense's global time where
+it is plausible, else the least-delayed frame's offset); with ``capture = "apex"``
 the frame captured nearest each apex is kept (:class:`ApexPicker`), and only that one is
 filtered (decimation, spatial) and aligned (colour to depth).
 Computes: the camera's pose at the frame's capture time, the estimate nearest it (moved by
@@ -22,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import math
 import threading
+import time
 from collections import deque
 from typing import Any, ClassVar
 
@@ -38,7 +40,7 @@ from onboard.geometry import quaternion as qt
 from robot_description.params import CameraMount, camera_mount
 from services.runtime.service import Service
 
-STATE_HISTORY = 1000  # estimates kept to place a frame (1 s at 1 kHz)
+STATE_HISTORY = 3000  # estimates kept to place a frame (3 s at 1 kHz: a frame delivered late on a loaded host)
 PICK_WINDOW_S = 0.2  # frames kept for the apex picker
 
 
@@ -82,7 +84,7 @@ class CameraService(Service):
         self._apexes: deque[int] = deque()
         self.on_message("state", self._states.append)  # deque appends are atomic: no lock
         self.on_message("phase", self._on_phase)
-        self.clock_map = ClockMap(p.clock_window, round(p.min_latency_s * 1e9))
+        self.clock_map = ClockMap(p.clock_window, round(p.min_latency_s * 1e9), round(p.global_time_max_age_s * 1e9))
         keep = max(2, math.ceil(p.fps * PICK_WINDOW_S))
         self.picker: ApexPicker[RawFrame] = ApexPicker(round(p.apex_tolerance_s * 1e9), keep)
         self.camera: D435 | None = None
@@ -140,7 +142,8 @@ class CameraService(Service):
                 continue
             self._received.tick()
             self.frames += 1
-            stamp_ns = self.clock_map.stamp(raw.sensor_ns, self.clock.now_ns())
+            now_ns = self.clock.now_ns()
+            stamp_ns = self.clock_map.stamp(raw.sensor_ns, now_ns, raw.domain, time.time_ns() - now_ns)
             if p.capture == "every":
                 self._publish(cam, raw, stamp_ns)
                 continue
@@ -154,7 +157,8 @@ class CameraService(Service):
 
     def _state_near(self, at_ns: int, max_age_ns: int) -> m.StateEstimate | None:
         best = None
-        for state in reversed(self._states):  # newest first; the frame is older than most
+        # a copy (taken under the GIL in one C call): Zenoh's thread appends while this walks back
+        for state in reversed(list(self._states)):  # newest first; the frame is older than most
             if best is None or abs(state.stamp_ns - at_ns) < abs(best.stamp_ns - at_ns):
                 best = state
             elif state.stamp_ns < at_ns:
@@ -220,6 +224,6 @@ class CameraService(Service):
     def status_extra(self) -> dict[str, float]:
         cam: Any = self.camera
         return {"published": float(self._seq), "apex_missed": float(self.picker.missed), "frames": float(self.frames),
-                "apexes": float(self.apexes),
+                "apexes": float(self.apexes), "global_stamps": float(self.clock_map.global_stamps),
                 "apex_offset_ms": self.last_offset_ms,
                 "repeats": float(cam.repeats if cam else 0), "unpaired": float(cam.unpaired if cam else 0)}

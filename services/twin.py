@@ -37,6 +37,7 @@ import threading
 import time
 from typing import Any
 
+import msgspec
 import mujoco
 
 from onboard.contracts import messages as msgs
@@ -51,6 +52,7 @@ from sim_twin import scenarios as sc
 from sim_twin.actuation import Actuation
 from sim_twin.metrics import PhysicsMetrics
 from sim_twin import model_error as me
+from sim_twin.drift import EstimateDrift
 from sim_twin.sensors import SensorSuite
 from sim_twin.stack import TruthEstimator
 
@@ -350,6 +352,88 @@ class FirmwareTwinService(TwinService):
         out["board"] = self.board.summary()
         out["natnet"] = dict(self.natnet.counts)
         return out
+
+
+NOT_ON_BOARD = ("pose", "depth")  # outdoors: no motion capture; the D435 (the camera service) instead of the twin's depth
+DRIFT_EVERY_TICKS = 100  # the estimate against the truth at 10 Hz: the drift changes over hops, not ticks
+
+
+class OnboardSensing:
+    """A twin without motion capture, outdoors as ARCHER is built (``archer sim --mode realtime
+    --sensing onboard``; mixed into :class:`TwinService` or :class:`FirmwareTwinService`).
+
+    It publishes no ``pose`` and none of its own depth images: the D435 is ``depth_camera``
+    (:class:`services.cli.realsense_realtime.RealsenseRig`), started on this twin's compiled model and
+    handed the scene every tick. The estimate's drift from the truth (:class:`sim_twin.drift.EstimateDrift`)
+    is measured on the loop at ``DRIFT_EVERY_TICKS`` and goes into the summary.
+    """
+
+    def __init__(self, *args: Any, depth_camera: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.depth_camera = depth_camera
+        self.drift: EstimateDrift | None = None
+        self._drift_ticks = 0
+
+    async def setup(self) -> None:
+        await super().setup()  # type: ignore[misc]
+        self.drift = EstimateDrift(self.truth)  # type: ignore[attr-defined]
+        self.depth_camera.start(self.model, self.scenario.traversable, self.params["twin"].seed)  # type: ignore[attr-defined]
+
+    def _sensor_suite(self, tp: TwinParams) -> SensorSuite:
+        suite = super()._sensor_suite(tp)  # type: ignore[misc]
+        suite.capture_depth = False  # nobody reads the twin's own depth: no ray casting on the loop
+        return suite
+
+    def _deliver(self, topic: str, msg: Any) -> None:
+        if topic not in NOT_ON_BOARD:
+            super()._deliver(topic, msg)  # type: ignore[misc]
+
+    def _after_step(self, now_ns: int) -> None:
+        super()._after_step(now_ns)  # type: ignore[misc]
+        data = self.data  # type: ignore[attr-defined]
+        self.depth_camera.write(now_ns, data)
+        self._drift_ticks += 1
+        if self._drift_ticks % DRIFT_EVERY_TICKS == 0 and self.drift is not None:
+            got = self.state_slot.get()  # type: ignore[attr-defined]
+            if got is not None and got[0].valid:
+                self.drift.update(now_ns, data, _estimate_at(got[0], now_ns))
+
+    async def main(self) -> None:
+        physics = asyncio.create_task(super().main())  # type: ignore[misc]
+        try:
+            while not physics.done():
+                await asyncio.wait({physics}, timeout=STATUS_POLL_S)
+                failure = self.depth_camera.poll()
+                if failure is not None:
+                    self.fail(failure)  # type: ignore[attr-defined]
+                    raise RuntimeError(failure)
+            physics.result()
+        finally:
+            physics.cancel()
+            await asyncio.gather(physics, return_exceptions=True)
+
+    def summary(self) -> dict[str, Any]:
+        out = super().summary()  # type: ignore[misc]
+        out["sensing"] = "onboard"
+        if self.drift is not None:
+            out.update(self.drift.summary())
+        return out
+
+
+def _estimate_at(state: msgs.StateEstimate, now_ns: int) -> msgs.StateEstimate:
+    """The estimate moved on by its velocity to ``now_ns`` (a few ms older than the truth it is held
+    against: at a hop's 1 m/s, millimetres of drift that are only age)."""
+    dt = (now_ns - state.stamp_ns) / NS
+    moved = [p + v * dt for p, v in zip(state.position, state.velocity)]
+    return msgspec.structs.replace(state, position=moved)
+
+
+class OnboardTwinService(OnboardSensing, TwinService):
+    """:class:`TwinService` without motion capture (:class:`OnboardSensing`)."""
+
+
+class OnboardFirmwareTwinService(OnboardSensing, FirmwareTwinService):
+    """:class:`FirmwareTwinService` without motion capture (:class:`OnboardSensing`)."""
 
 
 class ScenarioReferenceService(Service):

@@ -45,6 +45,7 @@ from sim_twin import perception_plug
 from sim_twin import scenarios as sc
 from sim_twin import stack as st
 from sim_twin.actuation import Actuation
+from sim_twin.drift import EstimateDrift
 from sim_twin.metrics import PhysicsMetrics, Trace
 from sim_twin.sensors import SensorOutage, SensorSuite
 
@@ -239,7 +240,7 @@ class LockstepRunner:
         t = 0.0
         k = 0
         no_pose = cfg.sensing == "onboard"
-        drift = _Drift(self.truth) if no_pose else None
+        drift = EstimateDrift(self.truth) if no_pose else None
         vo = self.visual_odometry
         planner_feed = getattr(planner, "feed", None)
         perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
@@ -399,38 +400,6 @@ def _as_estimated(img: DepthImage, truth: m.StateEstimate, est: m.StateEstimate)
     cam_quat = np.array(quat.normalize(quat.mul(rel_q, list(img.cam_quat))))
     return DepthImage(img.depth, img.fx, img.fy, img.cx, img.cy, cam_pos, cam_quat, img.stamp_ns, img.seq)
 DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
-
-
-class _Drift:
-    """How far the estimate's position wanders from the truth, per metre the robot travels."""
-
-    def __init__(self, truth: st.TruthEstimator) -> None:
-        self.truth = truth
-        self.distance_m = 0.0
-        self.last_xy: tuple[float, float] | None = None
-        self.max_drift_m = 0.0
-        self.final_drift_m = 0.0
-        self.final_drift_z_m = 0.0
-        self.final_pos_std_m = 0.0
-
-    def update(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate) -> None:
-        true = self.truth.estimate(now_ns, data).position
-        xy = (true[0], true[1])
-        if self.last_xy is not None:
-            self.distance_m += math.dist(xy, self.last_xy)
-        self.last_xy = xy
-        est = state.position
-        self.final_drift_m = math.dist((est[0], est[1]), xy)
-        self.final_drift_z_m = est[2] - true[2]
-        self.final_pos_std_m = math.sqrt(max(state.pos_vel_cov[0], 0.0))
-        self.max_drift_m = max(self.max_drift_m, self.final_drift_m)
-
-    def summary(self) -> dict:
-        d = self.distance_m
-        return {"distance_travelled_m": round(d, 3), "final_drift_m": round(self.final_drift_m, 4),
-                "final_drift_z_m": round(self.final_drift_z_m, 4), "max_drift_m": round(self.max_drift_m, 4),
-                "drift_per_m": round(self.final_drift_m / d, 5) if d > 0.1 else None,
-                "final_pos_std_m": round(self.final_pos_std_m, 4)}
 
 
 class SimulationError(RuntimeError):

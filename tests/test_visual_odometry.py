@@ -127,6 +127,10 @@ def test_the_estimator_refuses_a_displacement_it_cannot_place() -> None:
     est = StateEstimator(odo, rd.robot_params("outdoor"))
     assert est.update_imu(imu, 400 * MS)
     assert not est.feed("visual_odometry", delta, 400 * MS) and est.rejections()["vo_before_anchor"] == 1
+    # as late as the odometry kept to compare it with (vo_history_s), not only input_max_age_s: one 1 s late is
+    # not refused for its age (it meets the missing anchor), one 1.6 s late is
+    assert not est.feed("visual_odometry", delta, 1400 * MS) and est.rejections()["vo_before_anchor"] == 2
+    assert "vo_past" not in est.rejections()
     assert not est.feed("visual_odometry", delta, 2000 * MS) and est.rejections()["vo_past"] == 1
     off = StateEstimator(with_overrides(EstimatorParams(), {"position_source": "odometry", "visual_odometry": False}),
                          rd.robot_params("outdoor"))

@@ -39,9 +39,12 @@ class SoftwareD435:
 
     def __init__(self, rs: ModuleType, cfg: StreamConfig, depth_intrinsics: Intrinsics,
                  color_intrinsics: Intrinsics | None = None, depth_to_color_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 depth_units: float = DEPTH_UNITS_M, record_to: str = "") -> None:
+                 depth_units: float = DEPTH_UNITS_M, record_to: str = "", global_time: bool = False) -> None:
         cfg.check()
         self.rs = rs
+        # global_time: what :meth:`push` is given is the host's wall clock [ms], as librealsense stamps a
+        # camera's frames with its global time on; else the camera's own clock (hardware_clock)
+        self._domain = rs.timestamp_domain.global_time if global_time else rs.timestamp_domain.hardware_clock
         self.cfg = cfg
         self.depth_scale = depth_units
         self.device = dev = rs.software_device()
@@ -99,7 +102,7 @@ class SoftwareD435:
         f.bpp = bpp
         f.stride = width * bpp
         f.timestamp = sensor_ms
-        f.domain = rs.timestamp_domain.hardware_clock
+        f.domain = self._domain
         f.frame_number = self._number
         f.profile = profile.as_video_stream_profile()
         return f

@@ -26,6 +26,9 @@ def metres_to_z16(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     return np.where((counts > 0) & (counts <= np.iinfo(np.uint16).max), counts, 0).astype(np.uint16)
 
 
+GLOBAL_TIME = "global_time"  # librealsense's timestamp domain: the camera's clock on the host's wall clock
+
+
 class ClockMap:
     """A sensor's clock mapped onto the stack's monotonic clock.
 
@@ -33,20 +36,35 @@ class ClockMap:
     least-delayed frame bounds the transport delay from below; a sliding window follows the
     two clocks' drift), less ``min_latency_ns``, the delay no frame beats (exposure to the
     host, measured once). A frame's capture time is then ``sensor + offset``.
+
+    A frame in librealsense's ``global_time`` domain carries its capture time on the host's wall
+    clock already (the SDK's own regression of the camera's clock against the host's): that time,
+    moved onto the stack's clock, is taken as it is when it lies within ``global_max_age_ns``
+    before its receipt, whatever the delivery delay was (a camera triggered at an apex and
+    delivered late, a loaded host). A global time outside that (a recording played back, the
+    wall clock stepped) goes through the offset as any other.
     """
 
-    def __init__(self, window: int, min_latency_ns: int) -> None:
-        if window < 1 or min_latency_ns < 0:
-            raise ValueError("ClockMap needs window >= 1 and min_latency_ns >= 0")
+    def __init__(self, window: int, min_latency_ns: int, global_max_age_ns: int = 0) -> None:
+        if window < 1 or min_latency_ns < 0 or global_max_age_ns < 0:
+            raise ValueError("ClockMap needs window >= 1, min_latency_ns >= 0 and global_max_age_ns >= 0")
         self._gaps: deque[int] = deque(maxlen=window)
         self._min_latency_ns = min_latency_ns
+        self._global_max_age_ns = global_max_age_ns
         self._last_sensor_ns: int | None = None
+        self.global_stamps = 0  # frames stamped by their global time
 
-    def stamp(self, sensor_ns: int, receive_ns: int) -> int:
-        """The capture time on the stack's clock of a frame stamped ``sensor_ns``, received at ``receive_ns``.
+    def stamp(self, sensor_ns: int, receive_ns: int, domain: str = "", wall_minus_stack_ns: int = 0) -> int:
+        """The capture time on the stack's clock of a frame stamped ``sensor_ns`` in ``domain``, received
+        at ``receive_ns``; ``wall_minus_stack_ns``: the host's wall clock less the stack's, at receipt.
 
         A sensor clock that goes back (a camera reset, a recording played again) restarts the map.
         """
+        if domain == GLOBAL_TIME:
+            capture_ns = sensor_ns - wall_minus_stack_ns
+            if receive_ns - self._global_max_age_ns <= capture_ns <= receive_ns:
+                self.global_stamps += 1
+                return capture_ns
         if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
             self._gaps.clear()
         self._last_sensor_ns = sensor_ns

@@ -155,6 +155,9 @@ class StateEstimator:
         self.mocap = MocapPoses(p, self._gate, self._gate3)
         self.odometry = Odometry(p, self._gate, self._gate3, self._gate2)
         self._vo_record = self._odometry and p.visual_odometry  # keep the odometry's positions for late VO
+        # a displacement is as late as the camera's chain (frame pairs, drawing, matching): it may be as old
+        # as the odometry kept to compare it with, not only input_max_age_s
+        self._vo_max_age_ns = int(p.vo_history_s * NS)
 
     # --- input ------------------------------------------------------------------
 
@@ -383,7 +386,7 @@ class StateEstimator:
         whenever it arrives within ``vo_history_s`` of them."""
         if not self._odometry:
             return self._gate.reject("vo_not_odometry")  # the pose sensor's frame is absolute
-        refused = self._gate.stamp_refused("vo", msg.stamp_ns, arrival_ns)
+        refused = self._gate.stamp_refused("vo", msg.stamp_ns, arrival_ns, self._vo_max_age_ns)
         if refused:
             return self._gate.reject(refused)
         if self._pending is not None:

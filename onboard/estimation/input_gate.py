@@ -5,7 +5,8 @@ Part of :class:`~onboard.estimation.estimator.StateEstimator`, and shared with i
 sources (:mod:`onboard.estimation.position_sources`): parameters the filters cannot work with are
 refused at construction with a clear error (:func:`check_params`); at run time an input is
 refused, and counted by reason, when its stamp lies more than ``input_future_tolerance_s``
-after its arrival or ``input_max_age_s`` before it (:meth:`InputGate.stamp_refused`), and
+after its arrival or ``input_max_age_s`` before it (a visual odometry displacement: ``vo_history_s``,
+the odometry it is compared with; :meth:`InputGate.stamp_refused`), and
 for the reasons each update names (non-finite, out of order, out of range, gated outlier).
 Events that are not refusals (touchdowns, bounces, anchors) are counted beside them. The
 Mahalanobis gates themselves live in the filters (:mod:`onboard.estimation.com_filter`,
@@ -63,12 +64,13 @@ class InputGate:
     def count(self, name: str) -> None:
         self.counters[name] = self.counters.get(name, 0) + 1
 
-    def stamp_refused(self, topic: str, t: int, arrival_ns: int | None) -> str:
-        """The reason a stamp is refused against its arrival time ('' when it is not)."""
+    def stamp_refused(self, topic: str, t: int, arrival_ns: int | None, max_age_ns: int = -1) -> str:
+        """The reason a stamp is refused against its arrival time ('' when it is not); ``max_age_ns``:
+        the topic's own bound on age, where it has one (else ``input_max_age_s``)."""
         if arrival_ns is None:
             return ""
         if t > arrival_ns + self._future_ns:
             return f"{topic}_future"
-        if t < arrival_ns - self._max_age_ns:
+        if t < arrival_ns - (max_age_ns if max_age_ns >= 0 else self._max_age_ns):
             return f"{topic}_past"
         return ""

@@ -93,8 +93,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "view through the camera_overhead pipeline at camera_overhead.rate_hz; realtime: the twin "
                              "streams that view (MJPEG over HTTP, 127.0.0.1) to the camera_overhead service")
     parser.add_argument("--sensing", choices=("mocap", "onboard"), default="mocap",
-                        help="onboard: no motion capture (outdoors); the estimator keeps an odometry frame from the IMU "
-                             "and leg kinematics, and the run reports its drift per metre (lockstep)")
+                        help="onboard: no motion capture (outdoors); the estimator keeps an odometry frame from the IMU, "
+                             "leg kinematics and the D435's visual odometry, and the run reports its drift per metre "
+                             "(realtime: the D435 through librealsense's software device, triggered at each apex)")
     parser.add_argument("--obstacles", type=int, default=None, help="forest: number of obstacles")
     parser.add_argument("--config", default=None, help="TOML file overriding onboard.contracts.params sections")
     parser.add_argument("--no-noise", action="store_true", help="sensors read the true state")
@@ -367,8 +368,6 @@ def run_config(args: argparse.Namespace) -> dict[str, Any]:
 def run_realtime(args: argparse.Namespace) -> dict:
     """The services read their parameters from the config file: :func:`run_config`, in a
     temporary file for the run."""
-    if getattr(args, "sensing", "mocap") != "mocap":
-        raise ValueError("--sensing onboard runs in lockstep only (the twin service still publishes the pose)")
     user = run_config(args)
     fd, path = tempfile.mkstemp(prefix="archer-sim-", suffix=".toml")
     with os.fdopen(fd, "w") as f:
@@ -387,8 +386,10 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
     from onboard.contracts.topics import namespace
-    from services.twin import FirmwareTwinService, OverheadTwinService, ScenarioReferenceService, TwinService
+    from services.twin import (FirmwareTwinService, OnboardFirmwareTwinService, OnboardTwinService, OverheadTwinService,
+                               ScenarioReferenceService, TwinService)
     from services.cli.overhead_realtime import ObstacleProbe, OverheadRig
+    from services.cli.realsense_realtime import RealsenseRig
 
     if args.estimator != "kalman" or args.controller != "lowlevel":
         raise ValueError("realtime mode runs the estimator and control services: --estimator kalman --controller lowlevel only")
@@ -396,6 +397,9 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         raise ValueError("--record and --plot are lockstep options (the flight recorder service records real-time runs)")
     params = load_params(args.config)
     overhead_wanted = getattr(args, "obstacles_from", "truth") == "overhead"  # the camera service makes the world
+    onboard = getattr(args, "sensing", "mocap") == "onboard"  # no motion capture: the D435 rig, odometry
+    if onboard and overhead_wanted:
+        raise ValueError("--obstacles-from overhead is the indoor lab's camera; --sensing onboard is outdoors (the D435)")
     scenario = sc.make(args.scenario, args.seed, args.obstacles, sc.cruise_speed_for(rd.robot_params(args.variant)))
     duration = args.duration if args.duration is not None else scenario.default_duration_s
     if not (duration > 0 and math.isfinite(duration)):
@@ -424,8 +428,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                 raise ValueError("--obstacles-from overhead feeds the graph planner instead of perception: "
                                  "use --planner graph or auto and --perception truth")
             wanted.append("camera_overhead")
-        if firmware:
-            wanted = [*FIRMWARE_SERVICES, *wanted]
+        if firmware:  # outdoors no mocap service: there is no motion capture to read
+            wanted = [*(s for s in FIRMWARE_SERVICES if not (onboard and s == "mocap")), *wanted]
     else:
         wanted = [s for s in args.services.split(",") if s and s != "none"]
         unknown = [s for s in wanted if s not in SERVICES]
@@ -458,8 +462,13 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             # installed explicitly: a script's background job starts with SIGINT ignored
             loop.add_signal_handler(sig, on_signal, sig)
         twin_kwargs = {"ns": ns, "endpoint": endpoint, "params": {"twin": twin_params, "safety": params["safety"]}}
-        if rig is not None:
+        if rig is not None and d435 is not None:
+            twin = OnboardFirmwareTwinService(**twin_kwargs, board=rig.board, natnet_server=rig.natnet, mocap=rig.mocap,
+                                              depth_camera=d435)
+        elif rig is not None:
             twin = FirmwareTwinService(**twin_kwargs, board=rig.board, natnet_server=rig.natnet, mocap=rig.mocap)
+        elif d435 is not None:
+            twin = OnboardTwinService(**twin_kwargs, depth_camera=d435)
         elif overhead is not None:
             twin = OverheadTwinService(**twin_kwargs, stream=overhead.stream, rate_hz=overhead.rate_hz)
         else:
@@ -484,6 +493,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         probe = None
         camera_status: dict[str, Any] = {}
         planner_latency: dict[str, float] = {}
+        vo_counts: dict[str, int] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -527,6 +537,10 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                 if status is not None:
                     camera_status = {"state": status.state, "last_error": status.last_error, **status.counters,
                                      **{k: round(v, 3) for k, v in status.extra.items()}}
+            if d435 is not None and "estimator" in units:  # what the estimator made of the camera's odometry
+                status = await asyncio.to_thread(query_status, twin.session, ns, "estimator")
+                if status is not None:
+                    vo_counts = {k[len("est."):]: int(v) for k, v in status.extra.items() if k.startswith("est.vo_")}
             if "planner" in units:  # how it planned, as the lockstep runner reports it
                 status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
                 if status is not None:
@@ -565,6 +579,9 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             served = overhead.stream.finish()
             out["overhead"] = {**probe.report(served["stamps_ns"]), **planner_latency, "camera": camera_status,
                                "stream": served["summary"]}
+        if d435 is not None:
+            out["depth_camera"] = d435.finish()
+            out["visual_odometry"] = vo_counts
         if scenario.flip_requests_s:
             out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
@@ -579,7 +596,11 @@ def _run_realtime(args: argparse.Namespace) -> dict:
     services_config = rig.config_path if rig is not None else args.config
     view_config = None
     overhead = None
+    d435 = None
     try:
+        if onboard:
+            d435 = RealsenseRig(services_config, _toml, args.variant, endpoint, ns)
+            services_config = d435.config_path
         if overhead_wanted:
             overhead = OverheadRig(services_config, _toml, scenario, args.seed)
             services_config = overhead.config_path
@@ -592,6 +613,8 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             view_config.close()
         if overhead is not None:
             overhead.close()
+        if d435 is not None:
+            d435.close()
         if rig is not None:
             rig.close()
 
