@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
 import subprocess
 import sys
+import threading
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 DEFAULT_TIMEOUT_S = 30.0  # generous: the CI machine may be loaded
 POLL_S = 0.01
@@ -59,3 +64,73 @@ def stop_emulator(proc: subprocess.Popen) -> dict:
     assert proc.returncode == 0, err
     assert out == ""  # exactly one line on stdout
     return next(json.loads(line)["final"] for line in err.splitlines() if line.startswith('{"final"'))
+
+
+def cmdline(pid: int) -> str | None:
+    """A running process's command line (None: gone, or a zombie that has exited)."""
+    try:
+        if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+            return None
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return None
+
+
+def descendants(root: int) -> dict[int, str]:
+    """Every live process below ``root``, with its command line."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parents[int(entry.name)] = int(Path(f"/proc/{entry.name}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out: set[int] = set()
+    todo = [root]
+    while todo:
+        parent = todo.pop()
+        for pid, ppid in parents.items():
+            if ppid == parent and pid not in out:
+                out.add(pid)
+                todo.append(pid)
+    return {pid: cmd for pid in out if (cmd := cmdline(pid)) is not None}
+
+
+@dataclass
+class WatchedRun:
+    returncode: int
+    out: str
+    err: str
+    children: dict[int, str]  # every process seen below it while it ran
+
+    def left_running(self, wait_s: float = 10.0) -> list[str]:
+        """Its children still running after up to ``wait_s`` (a straggler's parent-death signal is bounded too)."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            left = [cmd for pid, cmd in self.children.items() if cmdline(pid) == cmd]
+            if not left or time.monotonic() > deadline:
+                return left
+            time.sleep(0.1)
+
+
+def run_watched(argv: list[str], timeout_s: float) -> WatchedRun:
+    """``argv`` in a session of its own, the processes it starts recorded while it runs; killed with
+    its whole group if it outlives ``timeout_s``."""
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    children: dict[int, str] = {}
+
+    def watch() -> None:
+        while proc.poll() is None:
+            children.update(descendants(proc.pid))
+            threading.Event().wait(0.5)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        watcher.join(timeout=5.0)
+    return WatchedRun(proc.returncode, out, err, children)

@@ -12,46 +12,17 @@ import sys
 import threading
 import urllib.error
 import urllib.request
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from helpers import run_watched
 
 from drivers.camera_overhead.emulator import MjpegServer
 from services.camera_overhead import is_live
 
 CAPTURE_TIMEOUT_MS = 30_000  # a loaded 2-core machine: the stream's open and each read, bounded
 REALTIME_SIM_TIMEOUT_S = 420.0  # a 25 s run: the planner's kernels, start-up and shutdown on a loaded machine
-
-
-def _cmdline(pid: int) -> str | None:
-    """A running process's command line (None: gone, or a zombie that has exited)."""
-    try:
-        if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
-            return None
-        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
-    except OSError:
-        return None
-
-
-def _descendants(root: int) -> dict[int, str]:
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                parents[int(entry.name)] = int(Path(f"/proc/{entry.name}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out: set[int] = set()
-    todo = [root]
-    while todo:
-        parent = todo.pop()
-        for pid, ppid in parents.items():
-            if ppid == parent and pid not in out:
-                out.add(pid)
-                todo.append(pid)
-    return {pid: cmd for pid in out if (cmd := _cmdline(pid)) is not None}
 
 
 def _grey(level: int) -> np.ndarray:
@@ -128,25 +99,9 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     argv = [sys.executable, "-m", "services.cli.main", "sim", "--scenario", "kicked", "--mode", "realtime",
             "--obstacles-from", "overhead", "--duration", "25", "--endpoint", free_endpoint(),
             "--namespace", "archer/overheadrt", "--json", "--quiet", "--keep-going"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    children: dict[int, str] = {}
-
-    def watch() -> None:  # every process the run starts, while it runs
-        while proc.poll() is None:
-            children.update(_descendants(proc.pid))
-            threading.Event().wait(0.5)
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:
-        out, err = proc.communicate(timeout=REALTIME_SIM_TIMEOUT_S)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-        watcher.join(timeout=5.0)
-    assert proc.returncode == 0, err[-4000:]
-    metrics = json.loads(out.strip().splitlines()[-1])
+    run = run_watched(argv, REALTIME_SIM_TIMEOUT_S)
+    assert run.returncode == 0, run.err[-4000:]
+    metrics = json.loads(run.out.strip().splitlines()[-1])
     assert {"camera_overhead", "planner", "estimator", "control"} <= set(metrics["services_started"])
     cam = metrics["overhead"]
     assert cam["messages"] > 0 and cam["obstacles_p50"] > 0, cam
@@ -156,13 +111,8 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     assert 0.0 < cam["camera"]["calibration_rms_px"] < 1.5, cam  # the floor calibrated on the twin's markers
     assert metrics["planner_plans"] >= 1, metrics
     assert metrics["collisions_by_robot"] == 0, metrics
-    assert len(children) >= 6  # router, estimator, control, planner, camera_overhead, the twin's camera
-    gone = threading.Event()
-    for _ in range(100):  # the run has stopped its services; a straggler's parent-death signal is bounded too
-        left = [cmd for pid, cmd in children.items() if _cmdline(pid) == cmd]
-        if not left or gone.wait(0.1):
-            break
-    assert left == [], left
+    assert len(run.children) >= 6  # router, estimator, control, planner, camera_overhead, the twin's camera
+    assert run.left_running() == []
 
 
 def test_archer_emulate_overhead_streams_the_twins_view_to_the_camera_pipeline() -> None:

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import asyncio
 import math
+import sys
 import threading
 import time
+from collections import deque
 
 import mujoco
 import numpy as np
@@ -16,7 +18,7 @@ import pytest
 from drivers.realsense import load
 from drivers.realsense.device import D435, PipelineSource, StreamConfig
 from drivers.realsense.emulator import Intrinsics, SoftwareD435
-from drivers.realsense.frames import ApexPicker, ClockMap, metres_to_z16, z16_to_metres
+from drivers.realsense.frames import GLOBAL_TIME, ApexPicker, ClockMap, metres_to_z16, z16_to_metres
 from robot_description.d435 import DEPTH_HFOV_DEG, DEPTH_VFOV_DEG, check_mode, depth_rms_m, nominal_focal_px
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import decode_color, decode_depth
@@ -91,6 +93,48 @@ def test_clock_map_takes_the_least_delayed_frame_and_restarts_when_the_sensor_cl
         stamp = cm.stamp(s, base + s + 30_000_000)
     assert stamp == base + s + 29_000_000
     assert cm.stamp(1_000_000, base + 500_000_000) == base + 499_000_000  # sensor clock went back: restart
+
+
+def test_clock_map_takes_librealsenses_global_time_where_it_is_plausible() -> None:
+    """A global time (the host's wall clock) is the capture time however late the frame came; one older than
+    the bound (a recording's times) or in the future goes through the offset as any other."""
+    cm = ClockMap(window=3, min_latency_ns=1_000_000, global_max_age_ns=2_000_000_000)
+    base, wall = 10**12, 1_800_000_000 * 10**9  # the stack's clock, and the wall clock ahead of it
+    receive = base + 900_000_000
+    assert cm.stamp(wall + base + 100_000_000, receive, GLOBAL_TIME, wall) == base + 100_000_000  # drawn 0.8 s late
+    assert cm.global_stamps == 1
+    old = wall + base - 5_000_000_000  # 5.9 s before its receipt
+    assert cm.stamp(old, receive, GLOBAL_TIME, wall) == receive - 1_000_000  # the offset's first frame: its own delay
+    assert cm.stamp(wall + receive + 5_000_000, receive, GLOBAL_TIME, wall) != receive + 5_000_000  # no future stamps
+    assert cm.global_stamps == 1
+
+
+def test_the_camera_places_frames_while_estimates_keep_arriving() -> None:
+    """The reader walks back through the estimates while Zenoh's thread appends to them: never 'deque
+    mutated during iteration' (it took the camera service down in a real-time run)."""
+    service = CameraService.__new__(CameraService)
+    service._states = deque(maxlen=3000)
+    for k in range(3000):
+        service._states.append(state_at(k * 1_000_000, [0.0, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0]))
+    stop = threading.Event()
+
+    def estimates() -> None:
+        k = 3000
+        while not stop.is_set():
+            service._states.append(state_at(k * 1_000_000, [0.0, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0]))
+            k += 1
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # the threads take turns within one walk, as a loaded host makes them
+    writer = threading.Thread(target=estimates, daemon=True)
+    writer.start()
+    try:
+        found = [service._state_near(service._states[-1].stamp_ns - 1_000_000_000, 50_000_000) for _ in range(200)]
+    finally:
+        stop.set()
+        writer.join(5.0)
+        sys.setswitchinterval(interval)
+    assert all(s is not None for s in found)
 
 
 def test_apex_picker_answers_each_apex_with_the_nearest_frame() -> None:
