@@ -493,7 +493,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
         probe = None
         camera_status: dict[str, Any] = {}
         planner_latency: dict[str, float] = {}
-        vo_counts: dict[str, int] = {}
+        estimator_counts: dict[str, int] = {}
         try:
             sup.start()
             if not await asyncio.to_thread(sup.wait_active, None, SERVICES_START_TIMEOUT_S, stop_requested):
@@ -540,7 +540,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             if d435 is not None and "estimator" in units:  # what the estimator made of the camera's odometry
                 status = await asyncio.to_thread(query_status, twin.session, ns, "estimator")
                 if status is not None:
-                    vo_counts = {k[len("est."):]: int(v) for k, v in status.extra.items() if k.startswith("est.vo_")}
+                    estimator_counts = {k[len("est."):]: int(v) for k, v in status.extra.items() if k.startswith("est.")}
             if "planner" in units:  # how it planned, as the lockstep runner reports it
                 status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
                 if status is not None:
@@ -581,7 +581,9 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                                "stream": served["summary"]}
         if d435 is not None:
             out["depth_camera"] = d435.finish()
-            out["visual_odometry"] = vo_counts
+            # the estimator's own counts, as lockstep reports them: touchdowns, anchors, what it fused and refused
+            out["estimator_counters"] = estimator_counts
+            out["visual_odometry"] = {k: v for k, v in estimator_counts.items() if k.startswith("vo_")}
         if scenario.flip_requests_s:
             out["flip"] = {**flip_counts, "requests_sent": len(flip_errors), "request_errors": [e for e in flip_errors if e]}
         out["endpoint"] = endpoint
