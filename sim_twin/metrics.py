@@ -17,8 +17,9 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   from the true body rate;
 - ``recoveries``: fall episodes that ended (the robot was back up, by itself or by a push);
 - ``collisions``: contact episodes between the robot and an obstacle, whoever moved; each is put down at
-  its first contact to the one that moved into the other (``collisions_by_robot``: the robot's CoM velocity
-  toward the obstacle along the contact normal exceeds the obstacle's toward the robot;
+  its first contact to the one that moved into the other (``collisions_by_robot``: the velocity of the
+  robot's touching point toward the obstacle along the contact normal is at least the obstacle's toward
+  the robot;
   ``collisions_by_obstacle`` otherwise: a mover of the scenario, ``Scenario.velocities``, came at it);
   ``collision_events`` lists each with its time, who moved, the robot's tilt at that contact and the
   seconds since an obstacle last came at it, so a robot knocked over by one mover and falling into
@@ -96,6 +97,7 @@ class ContactClassifier:
                 index[g] = int(tail) if tail.isdigit() else -1
         self.robot, self.foot, self.ground, self.obstacle = robot.tolist(), feet.tolist(), ground.tolist(), obstacle.tolist()
         self.obstacle_index = index
+        self.body_of: list[int] = [int(b) for b in model.geom_bodyid]
 
     def classify(self, data: mujoco.MjData) -> tuple[bool, bool, bool]:
         """(foot on ground, other robot part on ground, robot touching an obstacle)."""
@@ -117,9 +119,10 @@ class ContactClassifier:
                 obstacle = True
         return foot_ground, body_ground, obstacle
 
-    def obstacle_contacts(self, data: mujoco.MjData) -> list[tuple[float, float, int]]:
+    def obstacle_contacts(self, data: mujoco.MjData) -> list[tuple[float, float, int, int, int]]:
         """Each robot-obstacle contact: its horizontal normal from the robot toward the obstacle (unit;
-        zero for a vertical one) and the obstacle's index in the scenario."""
+        zero for a vertical one), the obstacle's index in the scenario, the robot's body that touches
+        and the contact's index in ``data.contact``."""
         out = []
         geoms = data.contact.geom
         frames = data.contact.frame
@@ -136,7 +139,7 @@ class ContactClassifier:
                 nx, ny = nx / norm, ny / norm
             else:
                 nx = ny = 0.0
-            out.append((nx, ny, self.obstacle_index[b]))
+            out.append((nx, ny, self.obstacle_index[b], self.body_of[a], k))
         return out
 
 
@@ -161,6 +164,8 @@ class PhysicsMetrics:
         self.truth = truth
         self.safety = safety
         self.contacts = ContactClassifier(model)
+        self.model = model
+        self._body_velocity = np.zeros(6)  # mj_objectVelocity's output, reused
         self.wheel_dof = [int(model.joint(n).dofadr[0]) for n in rd.WHEEL_JOINTS]
         self.qp_root = int(model.joint(rd.ROOT_JOINT).qposadr[0])
         self.qv_root = int(model.joint(rd.ROOT_JOINT).dofadr[0])
@@ -306,12 +311,21 @@ class PhysicsMetrics:
             tr.tracking_error.append(err)
 
     def _obstacle_came(self, data: mujoco.MjData) -> bool:
-        """Whether the obstacle moved into the robot (faster along a contact normal than the robot moved into it)."""
-        _, (vx, vy, _) = self.truth.com(data)
+        """Whether the obstacle moved into the robot: faster along a contact normal than the robot's
+        touching point moved into it. The point's velocity, not the CoM's: a body tipping or swinging
+        into an obstacle closes the gap while its CoM may move away (sliding-fast seed 1033 touched a
+        slider with both CoMs moving apart). A tie (both still or separating) is the robot's."""
         vel = self.scenario.velocities
+        spin = self._body_velocity
         robot_in = obstacle_in = 0.0
-        for nx, ny, k in self.contacts.obstacle_contacts(data):
-            robot_in = max(robot_in, vx * nx + vy * ny)
+        for nx, ny, k, body, c in self.contacts.obstacle_contacts(data):
+            mujoco.mj_objectVelocity(self.model, data, mujoco.mjtObj.mjOBJ_BODY, body, spin, 0)  # [w; v] at the body's origin
+            wx, wy, wz, vx, vy, _ = spin.tolist()
+            px, py, pz = data.contact.pos[c].tolist()
+            ox, oy, oz = data.xpos[body].tolist()
+            rx, ry, rz = px - ox, py - oy, pz - oz
+            # the touching point: v + w x r
+            robot_in = max(robot_in, (vx + wy * rz - wz * ry) * nx + (vy + wz * rx - wx * rz) * ny)
             if 0 <= k < len(vel):
                 obstacle_in = max(obstacle_in, -(float(vel[k, 0]) * nx + float(vel[k, 1]) * ny))
         return obstacle_in > robot_in

@@ -154,6 +154,38 @@ def test_the_robot_moving_into_a_still_obstacle_is_the_robots_collision() -> Non
     assert all(e["since_hit_s"] is None for e in report["collision_events"])  # nothing came at it first
 
 
+def test_a_robot_tipping_into_an_obstacle_that_comes_slowly_is_the_robots_collision() -> None:
+    """What moved into whom is read at the touching point: the robot's top swings into a walker that
+    closes at 0.1 m/s while the robot's CoM drifts away from it; by the CoMs alone it was the walker's."""
+    scn, model, data = _built("crossing", 0)
+    model.opt.gravity[:] = 0.0  # a body tipping in the air, no floor or foot in the way
+    metrics = _metrics(scn, model)
+    root = int(model.joint(rd.ROOT_JOINT).qposadr[0])
+    dof = int(model.joint(rd.ROOT_JOINT).dofadr[0])
+    cx, cy, r = sc._centre_radius(scn.obstacles[0])
+    direction = np.array([0.0, math.copysign(1.0, cy)])
+    data.qpos[root:root + 2] = (cx, cy) - direction * (r + 0.2)
+    data.qpos[root + 2] += 0.3
+    mujoco.mj_forward(model, data)
+    torso = model.body(rd.TORSO).id
+    omega = np.array([-direction[1] * 4.0, 0.0, 0.0])  # the top toward the walker (upright: body axes are world axes)
+    com_velocity = np.append(-direction * 0.05, 0.0)  # the CoM away from it
+    data.qvel[dof:dof + 3] = com_velocity - np.cross(omega, data.subtree_com[torso] - data.xpos[torso])
+    data.qvel[dof + 3:dof + 6] = omega
+    for tick in range(500):
+        t = tick * 1e-3
+        scn.offsets[0] = -direction * 0.1 * t  # from where the scenario placed it
+        scn.velocities[0] = -direction * 0.1
+        scn.move_obstacles(model, data)
+        mujoco.mj_step(model, data)
+        metrics.update(t, int(t * 1e9), data, None, None, (0.0, 0.0, 0.0, 0.0))
+        if metrics.collisions:
+            break
+    _, (vx, vy, _) = metrics.truth.com(data)
+    assert metrics.collisions == 1 and vx * direction[0] + vy * direction[1] < 0.0  # its CoM still moving away
+    assert [e["by"] for e in metrics.collision_events] == ["robot"]
+
+
 def _actuation(model: mujoco.MjModel):
     from sim_twin.actuation import Actuation
 
