@@ -221,6 +221,38 @@ def test_swept_polygon_is_the_hull_of_both_places() -> None:
     assert mo.sweep_obstacles([sq], np.zeros((1, 2)), 1.0, 1.0)[0] is sq
 
 
+def test_every_bands_sweep_is_the_hull_of_both_places_to_the_bit() -> None:
+    """One hull order per obstacle serves every window: each band's polygon is ``swept`` of where the
+    obstacle is at the window's ends, bit for bit; a window past the travel cap is the obstacle where
+    it stopped; still obstacles are left out."""
+    rng = np.random.default_rng(4)
+    polys, vels = [], []
+    for k in range(12):
+        n = int(rng.integers(3, 9))
+        angles = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+        polys.append(np.c_[np.cos(angles), np.sin(angles)] * rng.uniform(0.1, 0.6) + rng.uniform(-5.0, 5.0, 2))
+        vels.append(rng.uniform(-0.5, 0.5, 2) if k % 4 else np.zeros(2))
+    vel = np.array(vels)
+    windows = np.array([[0.5 * b, 0.5 * b + 1.7] for b in range(10)])
+    max_m = 1.5
+    got = mo.band_polygons(polys, vel, mo.sweep_orders(polys, vel), windows, max_m)
+    stopped = 0
+    for (t0, t1), band in zip(windows.tolist(), got):
+        want = []
+        for poly, (vx, vy) in zip(polys, vel.tolist()):
+            speed = math.hypot(vx, vy)
+            if speed < mo.STILL:
+                continue
+            a, b = min(t0, max_m / speed), min(t1, max_m / speed)
+            p0 = poly + np.array([vx * a, vy * a])
+            stopped += b <= a
+            want.append(p0 if b <= a else mo.swept(p0, np.array([vx * (b - a), vy * (b - a)])))
+        assert len(band) == len(want) == 9
+        for g, w in zip(band, want):
+            assert g.shape == w.shape and np.array_equal(g, w)
+    assert stopped > 0  # some windows lie past a fast one's cap
+
+
 def _planner(**kw) -> GraphPlanner:
     prm = PlannerParams(nodes=1500, **kw)
     pl = GraphPlanner(prm, robot_radius=0.13, bounds=(-1.0, -2.0, 5.0, 2.0))

@@ -23,23 +23,30 @@ SWEEP_LEVELS = (1.0, 0.5, 0.0)  # shares of the horizon tried in turn when the l
 STILL = 1e-6  # [m/s] slower than this an obstacle is static
 
 
-def swept(poly: np.ndarray, displacement: np.ndarray) -> np.ndarray:
-    """The convex hull of ``poly`` ((k, 2), convex) and ``poly`` shifted by ``displacement`` [m], counter-clockwise."""
+def hull_order(poly: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """Indices into ``[poly; poly + displacement]`` of their convex hull, counter-clockwise (``poly``
+    (k, 2) convex). For a non-zero displacement they depend on its direction only: a convex polygon
+    swept along a segment keeps the vertices its direction picks, however long the segment."""
     pts = np.concatenate([poly, poly + displacement])
-    order = np.lexsort((pts[:, 1], pts[:, 0]))
-    pts = pts[order].tolist()
+    p = pts.tolist()
 
-    def half(seq: list) -> list:
-        out: list = []
-        for p in seq:
-            while len(out) >= 2 and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
-                                     - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])) <= 1e-12:
+    def half(seq: list[int]) -> list[int]:
+        out: list[int] = []
+        for i in seq:
+            while len(out) >= 2 and ((p[out[-1]][0] - p[out[-2]][0]) * (p[i][1] - p[out[-2]][1])
+                                     - (p[out[-1]][1] - p[out[-2]][1]) * (p[i][0] - p[out[-2]][0])) <= 1e-12:
                 out.pop()
-            out.append(p)
+            out.append(i)
         return out
 
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1], dtype=float)
+    order = np.lexsort((pts[:, 1], pts[:, 0])).tolist()
+    lower, upper = half(order), half(order[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=np.int64)
+
+
+def swept(poly: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+    """The convex hull of ``poly`` ((k, 2), convex) and ``poly`` shifted by ``displacement`` [m], counter-clockwise."""
+    return np.concatenate([poly, poly + displacement])[hull_order(poly, displacement)]
 
 
 def check_velocities(velocities: object, count: int) -> np.ndarray:
@@ -65,17 +72,31 @@ def sweep_obstacles(polygons: list[np.ndarray], velocities: np.ndarray, horizon_
     return out
 
 
-def band_polygons(polygons: list[np.ndarray], velocities: np.ndarray, t0: float, t1: float, max_m: float) -> list[np.ndarray]:
-    """Each moving polygon over the time window ``[t0, t1]`` [s]: the hull of where it is at both ends,
-    its travel capped at ``max_m`` [m] (a kick stops); still ones are left out."""
-    out = []
-    for poly, (vx, vy) in zip(polygons, velocities.tolist()):
-        speed = math.hypot(vx, vy)
-        if speed < STILL:
+def sweep_orders(polygons: list[np.ndarray], velocities: np.ndarray) -> list[np.ndarray | None]:
+    """Each polygon's :func:`hull_order` along its velocity (None for a still one): computed once per
+    world, every band's sweep of it is then a few array operations."""
+    return [hull_order(np.asarray(poly, dtype=float), np.array([vx, vy])) if math.hypot(vx, vy) >= STILL else None
+            for poly, (vx, vy) in zip(polygons, velocities.tolist())]
+
+
+def band_polygons(polygons: list[np.ndarray], velocities: np.ndarray, orders: list[np.ndarray | None],
+                  windows: np.ndarray, max_m: float) -> list[list[np.ndarray]]:
+    """Per time window ``[t0, t1]`` of ``windows`` ((n, 2) [s]), each moving polygon over it: the hull
+    of where it is at both ends (by its :func:`sweep_orders` entry), its travel capped at ``max_m`` [m]
+    (a kick stops); still ones are left out. Each hull is ``swept(poly + v t0, v (t1 - t0))``, to the bit."""
+    windows = np.asarray(windows, dtype=float).reshape(-1, 2)
+    out: list[list[np.ndarray]] = [[] for _ in range(len(windows))]
+    for poly, (vx, vy), order in zip(polygons, velocities.tolist(), orders):
+        if order is None:
             continue
-        a, b = min(t0, max_m / speed), min(t1, max_m / speed)
-        p0 = poly + np.array([vx * a, vy * a])
-        out.append(p0 if b <= a else swept(p0, np.array([vx * (b - a), vy * (b - a)])))
+        cap = max_m / math.hypot(vx, vy)
+        a, b = np.minimum(windows[:, 0], cap), np.minimum(windows[:, 1], cap)
+        v = np.array([vx, vy])
+        start = poly[None] + a[:, None, None] * v  # (n, k, 2): where it is at t0
+        shifted = (order >= len(poly)).astype(float)  # the hull's vertices from the copy at t1
+        hulls = start[:, order % len(poly)] + ((b - a)[:, None] * shifted)[..., None] * v
+        for w in range(len(windows)):
+            out[w].append(hulls[w] if b[w] > a[w] else start[w])
     return out
 
 

@@ -43,7 +43,7 @@ class PlannerWorld:
         self._sweep_level = 0
         self._static = pg.pack_polygons([])  # with moving obstacles: the still ones
         self._band_origin = np.zeros(2)  # where the robot is: the cut in time measures from here
-        self._bands: dict[int, list[np.ndarray]] = {}  # moving obstacles per distance band, at the current level
+        self._sweep_orders: list[np.ndarray | None] = []  # each moving obstacle's swept hull, by vertex (mo.sweep_orders)
         self._banded: tuple[int, pg.PolygonSet, np.ndarray] | None = None  # bands 0..n-1 packed together, each polygon's band
         self._world_moves = False  # the obstacles come with velocities: a world that changes keeps a path still clear of it
         self._world_version = 0
@@ -74,8 +74,9 @@ class PlannerWorld:
                 raise PlanningError(f"obstacle: {exc}") from None
             if mo.moving(vel):
                 self._moving = (polys, vel)
+                self._sweep_orders = mo.sweep_orders(polys, vel)
                 self._sweep_level = 0
-                self._bands, self._banded = {}, None
+                self._banded = None
                 still = np.hypot(vel[:, 0], vel[:, 1]) < mo.STILL
                 self._static = pg.pack_polygons([p for p, s in zip(polys, still) if s])
                 polygons = self._swept()
@@ -87,7 +88,8 @@ class PlannerWorld:
         assert self._moving is not None
         polys, vel = self._moving
         still = [p for p, v in zip(polys, vel.tolist()) if math.hypot(*v) < mo.STILL]
-        return still + mo.band_polygons(polys, vel, 0.0, self._band_window(0)[1], self.params.obstacle_sweep_max_m)
+        window = np.array([[0.0, self._band_window(0)[1]]])
+        return still + mo.band_polygons(polys, vel, self._sweep_orders, window, self.params.obstacle_sweep_max_m)[0]
 
     def _band_window(self, band: int) -> tuple[float, float]:
         """The time window [s] in which the robot may be on curves of distance band ``band`` and must
@@ -97,18 +99,13 @@ class PlannerWorld:
         t0 = band * prm.obstacle_band_m / prm.v_max
         return t0, t0 + mo.SWEEP_LEVELS[self._sweep_level] * (prm.obstacle_band_m / prm.v_max + prm.obstacle_sweep_s)
 
-    def _band_polygons(self, band: int) -> list[np.ndarray]:
-        got = self._bands.get(band)
-        if got is None:
-            assert self._moving is not None
-            polys, vel = self._moving
-            got = self._bands[band] = mo.band_polygons(polys, vel, *self._band_window(band), self.params.obstacle_sweep_max_m)
-        return got
-
     def _bands_packed(self, count: int) -> tuple[pg.PolygonSet, np.ndarray]:
         """The moving obstacles of bands ``0..count-1`` in one set, and each polygon's band."""
         if self._banded is None or self._banded[0] < count:
-            lists = [self._band_polygons(b) for b in range(count)]
+            assert self._moving is not None
+            polys, vel = self._moving
+            windows = np.array([self._band_window(b) for b in range(count)])
+            lists = mo.band_polygons(polys, vel, self._sweep_orders, windows, self.params.obstacle_sweep_max_m)
             group = np.repeat(np.arange(count, dtype=np.int64), [len(p) for p in lists])
             self._banded = (count, pg.pack_polygons([p for ps in lists for p in ps]), group)
         return self._banded[1], self._banded[2]
@@ -137,7 +134,7 @@ class PlannerWorld:
         if self._moving is None or level == self._sweep_level or not 0 <= level < len(mo.SWEEP_LEVELS):
             return False
         self._sweep_level = level
-        self._bands, self._banded = {}, None
+        self._banded = None
         self.obstacles = pg.pack_polygons(self._swept())
         self._world_version += 1
         return True
