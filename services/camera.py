@@ -49,6 +49,10 @@ def stream_config(p: CameraParams) -> StreamConfig:
                         color_height=p.color_height, color_fps=p.color_fps, decimation=p.decimation, spatial=p.spatial)
 
 
+def _stamp(state: m.StateEstimate) -> int:
+    return state.stamp_ns
+
+
 def camera_pose(state: m.StateEstimate, at_ns: int, mount: CameraMount) -> tuple[list[float], list[float]]:
     """Optical centre [m] and optical->world quaternion at ``at_ns`` from an estimate near it."""
     dt = (at_ns - state.stamp_ns) * 1e-9
@@ -80,9 +84,9 @@ class CameraService(Service):
         self._vo_seq = 0
         self._published = self.rate("depth")
         self._received = self.rate("frames")
-        self._states: deque[m.StateEstimate] = deque(maxlen=STATE_HISTORY)
+        # decoded only where a frame is placed: a few a second of the estimator's 1 kHz
+        self._states = self.sampled_history("state", STATE_HISTORY)
         self._apexes: deque[int] = deque()
-        self.on_message("state", self._states.append)  # deque appends are atomic: no lock
         self.on_message("phase", self._on_phase)
         self.clock_map = ClockMap(p.clock_window, round(p.min_latency_s * 1e9), round(p.global_time_max_age_s * 1e9))
         keep = max(2, math.ceil(p.fps * PICK_WINDOW_S))
@@ -119,7 +123,7 @@ class CameraService(Service):
     def _read(self) -> None:
         try:
             # A frame no estimate can place is of no use: the stream starts with the estimates.
-            while not self._stop.is_set() and not any(s.valid for s in list(self._states)[-1:]):
+            while not self._stop.is_set() and not self._estimates_ready():
                 self._stop.wait(WAIT_SLICE_MS / 1000.0)
             while not self._stop.is_set():
                 p: CameraParams = self.params["camera"]
@@ -155,14 +159,12 @@ class CameraService(Service):
                 self.last_offset_ms = picked.offset_ns / 1e6
                 self._publish(cam, picked.frame, picked.stamp_ns)
 
+    def _estimates_ready(self) -> bool:
+        newest = self._states.newest()
+        return newest is not None and newest.valid
+
     def _state_near(self, at_ns: int, max_age_ns: int) -> m.StateEstimate | None:
-        best = None
-        # a copy (taken under the GIL in one C call): Zenoh's thread appends while this walks back
-        for state in reversed(list(self._states)):  # newest first; the frame is older than most
-            if best is None or abs(state.stamp_ns - at_ns) < abs(best.stamp_ns - at_ns):
-                best = state
-            elif state.stamp_ns < at_ns:
-                break
+        best = self._states.nearest(at_ns, _stamp)
         if best is None or abs(best.stamp_ns - at_ns) > max_age_ns or not best.valid:
             return None
         return best

@@ -9,7 +9,6 @@ import math
 import sys
 import threading
 import time
-from collections import deque
 
 import mujoco
 import numpy as np
@@ -25,7 +24,8 @@ from onboard.contracts.binary_messages import decode_color, decode_depth
 from onboard.contracts.params import CameraParams
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
-from services.camera import CameraService, camera_pose
+from services.camera import CameraService, _stamp, camera_pose
+from services.runtime.service import LazyHistory
 from services.runtime.zenoh_session import open_session
 from sim_twin.model import load_model
 
@@ -109,27 +109,52 @@ def test_clock_map_takes_librealsenses_global_time_where_it_is_plausible() -> No
     assert cm.global_stamps == 1
 
 
+def _estimate_history(maxlen: int) -> tuple[LazyHistory, list[Exception]]:
+    rejected: list[Exception] = []
+    return LazyHistory(maxlen, lambda b: m.decode(b, m.StateEstimate), rejected.append), rejected
+
+
+def _received(history: LazyHistory, stamp_ns: int, latency_ns: int) -> None:
+    history.put_payload(m.encode(state_at(stamp_ns, [stamp_ns * 1e-9, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0])), stamp_ns + latency_ns)
+
+
+def test_the_estimate_nearest_a_frame_is_found_decoding_a_few() -> None:
+    """Estimates kept as payloads: the one stamped nearest a frame is found by receipt, then stamps
+    (received up to 3 ms after their stamps); a payload that does not decode is skipped and counted."""
+    history, rejected = _estimate_history(3000)
+    assert history.nearest(5, _stamp) is None and history.newest() is None
+    for k in range(2000):
+        _received(history, k * 1_000_000, 3_000_000 if k % 7 else 400_000)
+    history.put_payload(b"{not json", 2_000 * 1_000_000 + 3_000_000)
+    for at in (0, 1, 499_999, 500_001, 1_234_567_890, 1_998_700_000, 5_000_000_000):
+        got = history.nearest(at, _stamp)
+        assert got is not None and got.stamp_ns == min(1_999_000_000, round(at / 1e6) * 1_000_000), at
+    assert history.newest().stamp_ns == 1_999_000_000 and len(rejected) >= 1  # the bad one skipped, counted
+
+
 def test_the_camera_places_frames_while_estimates_keep_arriving() -> None:
-    """The reader walks back through the estimates while Zenoh's thread appends to them: never 'deque
-    mutated during iteration' (it took the camera service down in a real-time run)."""
+    """The reader searches the estimates while Zenoh's thread appends to them: never 'deque mutated
+    during iteration' (it took the camera service down in a real-time run)."""
     service = CameraService.__new__(CameraService)
-    service._states = deque(maxlen=3000)
+    service._states, _ = _estimate_history(3000)
     for k in range(3000):
-        service._states.append(state_at(k * 1_000_000, [0.0, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0]))
+        _received(service._states, k * 1_000_000, 1_000_000)
     stop = threading.Event()
+    newest = [2_999_000_000]
 
     def estimates() -> None:
         k = 3000
         while not stop.is_set():
-            service._states.append(state_at(k * 1_000_000, [0.0, 0.0, 0.5], [1.0, 0.0, 0.0, 0.0]))
+            _received(service._states, k * 1_000_000, 1_000_000)
+            newest[0] = k * 1_000_000
             k += 1
 
     interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)  # the threads take turns within one walk, as a loaded host makes them
+    sys.setswitchinterval(1e-6)  # the threads take turns within one search, as a loaded host makes them
     writer = threading.Thread(target=estimates, daemon=True)
     writer.start()
     try:
-        found = [service._state_near(service._states[-1].stamp_ns - 1_000_000_000, 50_000_000) for _ in range(200)]
+        found = [service._state_near(newest[0] - 1_000_000_000, 50_000_000) for _ in range(200)]
     finally:
         stop.set()
         writer.join(5.0)

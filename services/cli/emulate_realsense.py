@@ -50,10 +50,8 @@ class EmulatedCamera(CameraService):
             return super()._state_near(at_ns, max_age_ns)
         return self._truth(at_ns)
 
-    async def setup(self) -> None:
-        await super().setup()
-        if self._truth is not None:  # no estimator to wait for
-            self._states.append(self._truth(self.clock.now_ns()))
+    def _estimates_ready(self) -> bool:
+        return self._truth is not None or super()._estimates_ready()  # the truth needs no estimator to wait for
 
 
 def run(args: argparse.Namespace, make_plant) -> int:

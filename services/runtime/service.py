@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import json
 import logging
 import os
@@ -26,7 +27,9 @@ import socket
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
+from operator import itemgetter
 from typing import Any, ClassVar, Generic, TypeVar
 
 import msgspec
@@ -196,6 +199,57 @@ class LazyLatestSlot(LatestSlot[M]):
             except msgs.MessageError as exc:
                 self._reject(exc)
         return self._value
+
+
+class LazyHistory(Generic[M]):
+    """The last ``maxlen`` payloads of a topic with their receipt times, decoded (and validated) only
+    where a reader looks (see :meth:`Service.sampled_history`). Appended on Zenoh's thread; read
+    from another: each read takes a copy in one C call under the GIL."""
+
+    def __init__(self, maxlen: int, decode: Callable[[bytes], M], reject: Callable[[Exception], None]) -> None:
+        self._raw: deque[tuple[int, bytes]] = deque(maxlen=maxlen)
+        self._decode = decode
+        self._reject = reject
+
+    def put_payload(self, payload: bytes, recv_ns: int) -> None:
+        self._raw.append((recv_ns, payload))
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    def _decoded(self, entry: tuple[int, bytes]) -> M | None:
+        try:
+            return self._decode(entry[1])
+        except msgs.MessageError as exc:
+            self._reject(exc)
+            return None
+
+    def newest(self) -> M | None:
+        """The newest message that decodes (None: none yet)."""
+        for entry in reversed(list(self._raw)):
+            msg = self._decoded(entry)
+            if msg is not None:
+                return msg
+        return None
+
+    def nearest(self, at_ns: int, stamp_of: Callable[[M], int]) -> M | None:
+        """The message whose stamp is nearest ``at_ns``: found by receipt time, then a walk over the
+        neighbours' stamps (a message is stamped before its receipt, in order), a few decoded."""
+        entries = list(self._raw)
+        i = bisect.bisect_left(entries, at_ns, key=itemgetter(0))
+        best: M | None = None
+        for step in (1, -1):  # forward to the first stamp at or after at_ns, back to the last before it
+            j = i if step == 1 else i - 1
+            while 0 <= j < len(entries):
+                msg = self._decoded(entries[j])
+                j += step
+                if msg is None:
+                    continue
+                if best is None or abs(stamp_of(msg) - at_ns) < abs(stamp_of(best) - at_ns):
+                    best = msg
+                if (stamp_of(msg) >= at_ns) if step == 1 else (stamp_of(msg) <= at_ns):
+                    break
+        return best
 
 
 class TypedPublisher(Generic[M]):
@@ -473,6 +527,24 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
         return slot
+
+    def sampled_history(self, topic_name: str, maxlen: int) -> LazyHistory:
+        """The last ``maxlen`` payloads of a topic, decoded (and validated) only where the reader looks.
+
+        For a fast topic searched now and then (the camera service places a few frames a second by
+        the 1 kHz estimate): decoding and validating every message cost the camera's process more
+        than its work. A payload that fails to decode when read is counted and logged as usual.
+        """
+        topic = self._reads(topic_name)
+        rate = self.rate(f"rx.{topic_name}")
+        history: LazyHistory = LazyHistory(maxlen, self._decoder(topic), lambda exc: self._reject(topic, exc))
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            rate.tick()
+            history.put_payload(sample.payload.to_bytes(), self.clock.now_ns())
+
+        self._declared.append(self.session.declare_subscriber(topic.key(self.ns), on_sample))
+        return history
 
     def subscribe(self, topic_name: str, callback: Callable[[Any], Awaitable[None]]) -> None:
         """Deliver each decoded message to ``callback`` on the asyncio loop."""
