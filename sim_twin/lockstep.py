@@ -35,7 +35,8 @@ from threadpoolctl import threadpool_limits
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import DepthImage
 from onboard.geometry import quaternion as quat
-from onboard.contracts.params import ControlParams, EstimatorParams, SafetyLimits, TwinParams, with_overrides
+from onboard.contracts.params import (CameraParams, ControlParams, EstimatorParams, PerceptionParams, SafetyLimits, TwinParams,
+                                      with_overrides)
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
 from sim_twin import compiled
@@ -174,8 +175,11 @@ class LockstepRunner:
 
             self.visual_odometry = ApexVisualOdometry(self.model, self.scenario.traversable, cfg.variant, estimator_params,
                                                       cfg.twin, cfg.seed, perception=cfg.perception_params)
+        perception_params = cfg.perception_params
+        if self.visual_odometry is not None and perception_params is not None:
+            perception_params = stand_in_stride(perception_params, cfg.twin, CameraParams())
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
-                                                    cfg.perception_params)
+                                                    perception_params)
         if cfg.world is not None:
             if not isinstance(self.planner, st.GraphPlannerPlug) or isinstance(self.planner, perception_plug.PerceivedGraphPlannerPlug):
                 raise ValueError("a world source feeds the graph planner on ground truth (--planner graph, --perception truth)")
@@ -400,6 +404,15 @@ def _as_estimated(img: DepthImage, truth: m.StateEstimate, est: m.StateEstimate)
     cam_quat = np.array(quat.normalize(quat.mul(rel_q, list(img.cam_quat))))
     return DepthImage(img.depth, img.fx, img.fy, img.cx, img.cy, cam_pos, cam_quat, img.stamp_ns, img.seq)
 DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
+
+
+def stand_in_stride(perception: PerceptionParams, twin: TwinParams, camera: CameraParams) -> PerceptionParams:
+    """Perception's parameters for the twin's stand-in depth image (``twin.depth_width``), from those written for
+    the D435 frame the robot's perception reads (``camera.width / camera.decimation``; the VO and the segmenter's
+    score read that one in lockstep too): ``pixel_stride`` scaled by the widths, so that the stand-in is read as
+    densely as the robot reads its camera (``archer-outdoor``'s 4 on 424 px is 1 on 64 px, not 16 x 12 points)."""
+    scale = twin.depth_width / (camera.width / camera.decimation)
+    return with_overrides(perception, {"pixel_stride": max(1, round(perception.pixel_stride * scale))})
 
 
 class SimulationError(RuntimeError):

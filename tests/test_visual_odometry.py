@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from onboard.contracts import messages as m
-from onboard.contracts.params import EstimatorParams, with_overrides
+from onboard.contracts.params import CameraParams, EstimatorParams, PerceptionParams, TwinParams, with_overrides
 from onboard.estimation.estimator import StateEstimator
 from onboard.geometry import quaternion as quat
 from onboard.perception.visual_odometry import REASONS, VisualOdometry, VoFrame
@@ -243,3 +243,16 @@ def test_camera_service_publishes_the_displacement_between_its_frames(sidewalk: 
         err = np.array(delta.displacement) - true
         assert math.hypot(err[0], err[1]) < 0.015, (i, err)
         assert delta.seq == i + 1 and delta.stamp_ns > delta.from_stamp_ns
+
+
+def test_lockstep_perception_reads_the_twins_stand_in_as_densely_as_the_robot_reads_its_d435() -> None:
+    """The outdoor profile's stride is for the D435's 424 px frame; lockstep's perception reads the twin's
+    64 px stand-in, at the stride scaled by the widths (never below 1)."""
+    from sim_twin.lockstep import stand_in_stride
+
+    twin, camera = TwinParams(), CameraParams()
+    assert (twin.depth_width, camera.width // camera.decimation) == (64, 424)
+    for given, scaled in ((4, 1), (1, 1), (16, 2), (64, 10)):
+        pp = with_overrides(PerceptionParams(), {"pixel_stride": given, "segmenter": "color"})
+        out = stand_in_stride(pp, twin, camera)
+        assert out.pixel_stride == scaled and out.segmenter == "color"
