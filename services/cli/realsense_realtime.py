@@ -18,7 +18,7 @@ that feeds it):
   stamped with its capture time in librealsense's ``global_time`` domain (the host's wall clock, as
   the SDK stamps a camera's frames), which the service's clock map takes as it is: a frame drawn
   late on a loaded host keeps its capture time. Drawing every frame of a 30 Hz stream would take
-  this host 1-8 cores of ray casting (424 x 240: 50-75 ms a frame; 848 x 480: 150-280 ms) for
+  this host 1.5-8 cores of ray casting (424 x 240: 50-80 ms a frame; 848 x 480: 150-280 ms) for
   frames the service drops: it keeps the one nearest each apex;
 - the ``camera`` service places each frame by the estimate and publishes ``depth``, ``color`` and
   ``visual_odometry``; with ``--perception depth`` the ``perception`` service reads the first two.
