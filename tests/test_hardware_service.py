@@ -187,7 +187,8 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
             await wait_for(lambda: applied() == [0.0] * 4, SAFETY.command_stale_s + SLACK_S)
             assert time.monotonic() - last <= SAFETY.command_stale_s + SLACK_S
             await wait_for(lambda: any(e.trip == "command_stale" for e in events))
-            assert all(d.state == c.DriveState.READY_TO_SWITCH_ON for d in emulator.drives)  # disabled, not faulted
+            # disabled, not faulted: the trip's event can reach the test before the drives have taken the disable
+            await wait_for(lambda: all(d.state == c.DriveState.READY_TO_SWITCH_ON for d in emulator.drives))
             commander.running.set()  # fresh armed commands re-enable: staleness is not a fault
             await wait_for(driving)
 
