@@ -78,15 +78,16 @@ OBSERVE_END_S = 1.0  # observation ends this long before the run does (then the 
 CONTROL_LOOP_RUNNING_S = 0.2  # commands this recent: a control loop is there to take over after a put back
 
 
-def commanded_armed(payload: bytes) -> bool | None:
-    """A torque command's armed flag, or None for a payload the stack itself refuses.
+def commanded_armed(payload: bytes) -> tuple[bool, int] | None:
+    """A torque command's armed flag and stamp, or None for a payload the stack itself refuses.
 
     Decoded whole, as the twin decodes it: a malformed flood on ``torque_cmd`` (a field missing,
     an unknown one) must not read as the commander disarming."""
     try:
-        return m.decode(payload, m.TorqueCommand).armed
+        cmd = m.decode(payload, m.TorqueCommand)
     except m.MessageError:
         return None
+    return cmd.armed, cmd.stamp_ns
 
 
 class Observer:
@@ -94,7 +95,7 @@ class Observer:
 
     def __init__(self, session: zenoh.Session, ns: str, goals: list[tuple[float, float]], period_s: float) -> None:
         self.session, self.ns, self.goals, self.period_s = session, ns, goals, period_s
-        self.streams = Streams(torque_rx=array("q"), torque_armed=bytearray())
+        self.streams = Streams(torque_rx=array("q"), torque_armed=bytearray(), torque_sent=array("q"))
         self._live: set[str] = set()
         self._live_lock = threading.Lock()  # written by a Zenoh thread, read by the soak's
         self._stop = threading.Event()
@@ -118,11 +119,13 @@ class Observer:
 
     def _on_torque(self, sample: zenoh.Sample) -> None:
         rx = time.monotonic_ns()
-        armed = commanded_armed(sample.payload.to_bytes())
-        if armed is None:
+        command = commanded_armed(sample.payload.to_bytes())
+        if command is None:
             return
+        armed, sent_ns = command
         self.streams.torque_rx.append(rx)  # type: ignore[attr-defined]
         self.streams.torque_armed.append(1 if armed else 0)  # type: ignore[attr-defined]
+        self.streams.torque_sent.append(sent_ns)  # type: ignore[attr-defined]
 
     def _on_phase(self, sample: zenoh.Sample) -> None:
         rx = time.monotonic_ns()

@@ -52,7 +52,8 @@ NS = 1_000_000_000
 ROUTINE_TRIPS = frozenset({"arm", "wheel_torque", "foot_torque", "wheel_speed"})  # arming and clamps: normal hopping
 ZERO_TORQUE_TRIPS = frozenset({"command_stale", "command_refused"})  # the twin stopped applying torque
 FALL_TRIP = "tilt"  # the control's own (estimated) fall trip
-ARMED_AT_INJECTION_S = 0.05  # an armed command this recent: the robot was under control
+ARMED_AT_INJECTION_S = 0.05  # an armed command sent this recently: the robot was under control
+LATE_RECEIPT_S = 1.0  # [s] a command received this long after an injection may still have been sent before it
 ARMED_HOLD_S = 1.0  # re-armed means armed this long without a disarmed command
 REFERENCE_GAP_S = 0.5  # a reference gap this long is a disturbance (SafetyLimits.reference_stale_s)
 # Signs of a fault (detection, zero torque) count up to this long after its action ended: later
@@ -94,7 +95,8 @@ class Streams:
 
     safety: list[tuple[int, str]] = field(default_factory=list)  # (event stamp, trip)
     torque_rx: Sequence[int] = field(default_factory=list)  # receipt of each torque_cmd ...
-    torque_armed: Sequence[int] = field(default_factory=list)  # ... and its armed flag (0/1)
+    torque_armed: Sequence[int] = field(default_factory=list)  # ... and its armed flag (0/1) ...
+    torque_sent: Sequence[int] = field(default_factory=list)  # ... and its stamp (the commander's clock, the same host's)
     reference_rx: list[int] = field(default_factory=list)
     touchdowns: list[int] = field(default_factory=list)  # receipt of each touchdown phase event
     liveliness: list[tuple[int, str, bool]] = field(default_factory=list)  # (receipt, service, alive)
@@ -168,9 +170,17 @@ def detection_signals(s: Streams, inj: Injection) -> dict[str, int]:
 
 
 def armed_at(s: Streams, t: int) -> bool:
-    """The last command before ``t`` was armed and recent."""
-    i = _first_at_or_after(s.torque_rx, t) - 1
-    return i >= 0 and bool(s.torque_armed[i]) and t - s.torque_rx[i] <= ARMED_AT_INJECTION_S * NS
+    """The last command sent before ``t`` was armed and recent.
+
+    By the commands' own stamps: on a loaded host the soak's subscriber receives them late and in
+    bursts, and a command sent just before ``t`` may arrive well after it."""
+    i = _first_at_or_after(s.torque_rx, t)
+    last = i - 1
+    while i < len(s.torque_rx) and s.torque_rx[i] - t <= LATE_RECEIPT_S * NS:
+        if s.torque_sent[i] <= t:
+            last = i
+        i += 1
+    return last >= 0 and bool(s.torque_armed[last]) and t - s.torque_sent[last] <= ARMED_AT_INJECTION_S * NS
 
 
 def zero_torque(s: Streams, inj: Injection) -> tuple[int | None, str]:

@@ -148,6 +148,8 @@ class CameraService(Service):
             self.frames += 1
             now_ns = self.clock.now_ns()
             stamp_ns = self.clock_map.stamp(raw.sensor_ns, now_ns, raw.domain, time.time_ns() - now_ns)
+            if stamp_ns is None:  # counted by the map; too late to place or to pick for an apex
+                continue
             if p.capture == "every":
                 self._publish(cam, raw, stamp_ns)
                 continue
@@ -227,5 +229,6 @@ class CameraService(Service):
         cam: Any = self.camera
         return {"published": float(self._seq), "apex_missed": float(self.picker.missed), "frames": float(self.frames),
                 "apexes": float(self.apexes), "global_stamps": float(self.clock_map.global_stamps),
+                "stale_frames": float(self.clock_map.stale),
                 "apex_offset_ms": self.last_offset_ms,
                 "repeats": float(cam.repeats if cam else 0), "unpaired": float(cam.unpaired if cam else 0)}

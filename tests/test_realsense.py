@@ -109,6 +109,22 @@ def test_clock_map_takes_librealsenses_global_time_where_it_is_plausible() -> No
     assert cm.global_stamps == 1
 
 
+def test_clock_map_drops_a_live_streams_frame_delivered_later_than_the_bound() -> None:
+    """Once a global time came fresh the stream is live: a frame 2.5 s old at receipt is too late (dropped,
+    counted), not a recording; a camera reset (the clock back) decides afresh, and old times then go through
+    the offset."""
+    cm = ClockMap(window=3, min_latency_ns=0, global_max_age_ns=2_000_000_000)
+    base, wall = 10**12, 1_700_000_000 * 10**9
+    assert cm.stamp(wall + base, base + 50_000_000, GLOBAL_TIME, wall) == base
+    late = base + 100_000_000
+    assert cm.stamp(wall + late, late + 2_500_000_000, GLOBAL_TIME, wall) is None
+    assert (cm.stale, cm.global_stamps) == (1, 1)
+    assert cm.stamp(wall + base + 200_000_000, base + 400_000_000, GLOBAL_TIME, wall) == base + 200_000_000
+    replayed = wall + base - 9_000_000_000  # the clock went back: a recording's times
+    assert cm.stamp(replayed, base + 500_000_000, GLOBAL_TIME, wall) == base + 500_000_000
+    assert cm.stale == 1
+
+
 def _estimate_history(maxlen: int) -> tuple[LazyHistory, list[Exception]]:
     rejected: list[Exception] = []
     return LazyHistory(maxlen, lambda b: m.decode(b, m.StateEstimate), rejected.append), rejected
