@@ -148,6 +148,34 @@ def test_shutdown_leaves_no_thread_or_session(zenoh_router):
     assert leaked == []
 
 
+class CrashingService(RelayService):
+    async def main(self) -> None:
+        raise RuntimeError("lost the device")
+
+
+def test_run_until_serves_on_a_thread_of_its_own_until_the_other_thread_says_done(zenoh_router):
+    """What a process running a service beside its own work does (the camera rig): the service runs
+    until the event is set, then stops and closes; one that crashes ends the wait by itself."""
+    done = threading.Event()
+    service = RelayService(ns=NS, endpoint=zenoh_router)
+    runner = threading.Thread(target=service.run_until, args=(done,))
+    runner.start()
+    try:
+        deadline = time.monotonic() + TIMEOUT_S
+        while service.state != "running" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert service.state == "running" and runner.is_alive()
+    finally:
+        done.set()
+        runner.join(TIMEOUT_S)
+    assert not runner.is_alive() and service.session.is_closed()
+
+    crashing = CrashingService(ns=NS, endpoint=zenoh_router)
+    with pytest.raises(RuntimeError, match="lost the device"):
+        crashing.run_until(threading.Event())  # nobody will set it
+    assert "lost the device" in crashing.last_error
+
+
 def test_sigterm_stops_a_service_process():
     """`archer run router` serves the endpoint; a client finds it; SIGTERM ends it cleanly."""
     endpoint = free_endpoint()

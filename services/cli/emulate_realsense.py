@@ -16,7 +16,6 @@ Prints one JSON line (namespace, endpoint, mode), serves until SIGINT/SIGTERM.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import os
 import signal
@@ -119,15 +118,8 @@ def run(args: argparse.Namespace, make_plant) -> int:
                       "mode": f"{p.width}x{p.height}@{p.fps}", "truth_pose": bool(args.truth_pose),
                       "pid": os.getpid()}), flush=True)
 
-    async def serve() -> None:
-        task = asyncio.create_task(service.run())
-        while not done.is_set() and not task.done():
-            await asyncio.sleep(0.1)
-        service.stopping.set()
-        await asyncio.wait_for(task, 10.0)
-
     try:
-        asyncio.run(serve())
+        service.run_until(done)
     finally:
         done.set()
         renderer.join(5.0)

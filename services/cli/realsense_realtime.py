@@ -29,7 +29,6 @@ time, capture to the SDK, and the camera service's own counters.
 
 from __future__ import annotations
 
-import asyncio
 import multiprocessing
 import os
 import pickle
@@ -302,18 +301,11 @@ def _rig_main(conn: Any, model_bytes: bytes, traversable: list[str], seed: int, 
     drawer = threading.Thread(target=draw_loop, name="d435-draw", daemon=True)
     watcher = threading.Thread(target=watch_pipe, name="d435-pipe", daemon=True)
 
-    async def serve() -> None:
-        task = asyncio.create_task(service.run())
-        while not done.is_set() and not task.done():
-            await asyncio.sleep(0.1)
-        service.stopping.set()
-        await asyncio.wait_for(task, 10.0)
-
     drawer.start()
     watcher.start()
     conn.send({"ready": True})
     try:
-        asyncio.run(serve())
+        service.run_until(done)
         if not done.is_set():  # the service ended by itself: a crash it caught
             conn.send({"error": f"the camera service stopped: {service.last_error or service.state}"})
     except BaseException as exc:  # noqa: BLE001 (reported to the twin)

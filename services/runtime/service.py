@@ -48,6 +48,8 @@ from services.runtime.zenoh_session import (Mode, default_endpoint, endpoint_in_
 JSON_ENCODING = "application/json"
 REJECT_LOG_INTERVAL_S = 1.0  # one log line per burst of rejections per topic
 SHUTDOWN_GRACE_S = 2.0  # how long main() may take to notice ``stopping``
+STOP_WAIT_S = 8.0  # run_until(): teardown and the session's close after that
+DONE_POLL_S = 0.1  # run_until(): how often the other thread's event is looked at
 EXIT_DEADLINE_S = 2.8  # after a stop signal the process is gone by then, clean or not
 ASYNC_QUEUE_DEPTH = 64  # per subscription; the oldest sample is dropped beyond it
 PEER_QUERY_TIMEOUT_S = 1.0  # liveliness and status queries to another instance
@@ -888,6 +890,19 @@ class Service:
             if self._own_session and self.session is not None:
                 await asyncio.to_thread(self.session.close)
             self.log.info("stopped")
+
+    def run_until(self, done: threading.Event) -> None:
+        """Run the service on an event loop of this thread's own until ``done`` is set by another
+        thread, or the service ends by itself (a crash: raised here, and in ``last_error``)."""
+
+        async def serve() -> None:
+            task = asyncio.create_task(self.run())
+            while not done.is_set() and not task.done():
+                await asyncio.sleep(DONE_POLL_S)
+            self.stopping.set()
+            await asyncio.wait_for(task, SHUTDOWN_GRACE_S + STOP_WAIT_S)
+
+        asyncio.run(serve())
 
     def call_in_loop(self, fn: Callable[..., Any], *args: Any) -> None:
         """Run ``fn(*args)`` on the service's event loop; safe from any thread."""
