@@ -88,7 +88,8 @@ class CameraService(Service):
         self._states = self.sampled_history("state", STATE_HISTORY)
         self._apexes: deque[int] = deque()
         self.on_message("phase", self._on_phase)
-        self.clock_map = ClockMap(p.clock_window, round(p.min_latency_s * 1e9), round(p.global_time_max_age_s * 1e9))
+        self.clock_map = ClockMap(p.clock_window, round(p.min_latency_s * 1e9), round(p.global_time_max_age_s * 1e9),
+                                  live=p.source != "file")
         keep = max(2, math.ceil(p.fps * PICK_WINDOW_S))
         self.picker: ApexPicker[RawFrame] = ApexPicker(round(p.apex_tolerance_s * 1e9), keep)
         self.camera: D435 | None = None

@@ -278,6 +278,11 @@ class PlannerService(Service):
                 why = self.planner.last_densify.reason if self.planner.last_densify else "densification off"
                 self.last_error = f"no path to goal {self.planner.goal.tolist()}: {why}"
                 self.count("no_path")
+            elif self.planner.path is None:  # no path, an obstacle coming: the step out of its way, held
+                self._has_path = False  # until a replan finds a path (it searches again at the next one)
+                self._hold_xy = list(ref.segments[-1].control_points[-1])
+                self._hold_ref = ref
+                self.count("evasions")
             else:
                 self.state = "running"
                 self._hold_xy = None

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import sys
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -55,21 +56,26 @@ def test_the_rigs_config_forces_the_cameras_mode_and_no_pose_source_and_keeps_th
 
 
 @pytest.mark.timing_sensitive(reason="the whole stack and the camera rig as processes in real time on a shared host")
-def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435() -> None:
+def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435(tmp_path: Path) -> None:
     """25 s on the sidewalk: no mocap service, the twin's pose off the bus (the estimator fuses none),
     frames drawn at apexes reach the camera service through librealsense and are published with their
     capture time (global time), its visual odometry reaches the estimator, the drift is reported from
     the physics, the robot hops without a fall, and every process the run started is gone after it."""
     from services.runtime.zenoh_session import free_endpoint
 
+    # On two loaded cores the rig draws a frame every 0.6-3 s (the stack's loops come first), where the
+    # D435 gives one every hop: pairs up to 3 s apart, and odometry kept to meet them, so that the chain
+    # is tested whatever the host leaves the drawing
+    config = tmp_path / "sparse_frames.toml"
+    config.write_text("[estimator]\nvo_max_interval_s = 3.0\nvo_history_s = 6.0\n")
     argv = [sys.executable, "-m", "services.cli.main", "sim", "--scenario", "sidewalk", "--variant", "outdoor",
             "--mode", "realtime", "--sensing", "onboard", "--duration", "25", "--endpoint", free_endpoint(),
-            "--namespace", "archer/onboardrt", "--json", "--quiet"]
+            "--namespace", "archer/onboardrt", "--config", str(config), "--json", "--quiet"]
     run = run_watched(argv, REALTIME_SIM_TIMEOUT_S)
     assert run.returncode == 0, run.err[-4000:]
     metrics = json.loads(run.out.strip().splitlines()[-1])
     assert metrics["sensing"] == "onboard" and "mocap" not in metrics["services_started"]
-    assert metrics["falls"] == 0 and metrics["hops"] > 20, metrics
+    assert metrics["falls"] == 0 and metrics["hops"] > 20, {k: metrics.get(k) for k in ("fall_time_s", "fall_reason", "hops", "max_drift_m", "realtime_factor", "loop_overruns", "estimate_rms_error_m", "estimator_counters", "visual_odometry")}
     assert metrics["distance_travelled_m"] > 0.3 and metrics["final_drift_m"] is not None, metrics
     assert metrics["final_drift_m"] < 0.5, metrics  # an odometry, not a lost estimate
     cam = metrics["depth_camera"]
@@ -79,7 +85,7 @@ def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435
     assert status["published"] >= 2 and status["global_stamps"] >= status["published"], cam
     assert cam["camera_counters"].get("vo_published", 0) >= 1, cam
     vo = metrics["visual_odometry"]
-    assert sum(v for k, v in vo.items() if k in ("vo_fused", "vo_outliers", "vo_past", "vo_stamps_not_kept")) >= 1, vo
+    assert sum(v for k, v in vo.items() if k in ("vo_fused", "vo_outliers", "vo_past", "vo_stamps_not_kept")) >= 1, metrics["estimator_counters"]
     assert len(run.children) >= 5  # router, estimator, control, planner, the D435 rig
     assert any("multiprocessing" in cmd for cmd in run.children.values())  # the rig is one of them
     assert run.left_running() == []

@@ -218,6 +218,37 @@ def test_a_goal_the_planner_cannot_take_is_refused_once_and_the_last_plan_kept(z
     asyncio.run(asyncio.wait_for(scenario(), 120))
 
 
+def _wall(x0: float, y0: float, x1: float, y1: float) -> m.Polytope:
+    verts = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]]
+    A, b = pg.polygon_halfspaces(np.array(verts))
+    return m.Polytope(A=A.tolist(), b=b.tolist(), vertices=verts)
+
+
+def test_with_no_path_and_an_obstacle_coming_the_robot_steps_out_of_its_way(zenoh_router, tmp_path):
+    """The goal walled in (no path) and a box sliding at the resting robot: the planner publishes the step
+    out of its way (not a hold where it stands) and keeps it; a real-time run crashed its tick here."""
+    async def scenario() -> None:
+        async with _running_planner(zenoh_router, NS + "evade", PARAMS, tmp_path) as (service, client, refs):
+            await asyncio.sleep(0.3)
+            room = [_wall(1.4, -0.7, 1.5, 0.7), _wall(2.5, -0.7, 2.6, 0.7), _wall(1.4, -0.8, 2.6, -0.7), _wall(1.4, 0.7, 2.6, 0.8)]
+            mover = _box(0.0, 0.45, 0.1)
+            mover.velocity = (0.0, -0.3)
+            world = m.PolytopeSet(mode="obstacles", polytopes=[*room, mover], source="ground_truth", stamp_ns=time.monotonic_ns())
+            client.put(TOPICS["polytopes"].key(NS + "evade"), m.encode(world))
+            client.put(TOPICS["goal"].key(NS + "evade"), m.encode(m.Goal(position=[2.0, 0.0], tolerance=0.1)))
+            await wait_for(lambda: service.counters.get("evasions") >= 1 or service.counters.get("errors") > 0, timeout_s=30.0)
+            assert service.counters.get("errors") == 0, service.last_error
+            await wait_for(lambda: any(not r.hold for r in refs))
+            step = next(r for r in refs if not r.hold)
+            end = np.array(step.segments[-1].control_points[-1])
+            assert np.linalg.norm(end) > 0.1 and end[1] < 0.45 - 0.1 - ROBOT_RADIUS  # away from where the box comes
+            await asyncio.sleep(0.5)
+            assert service.counters.get("errors") == 0, service.last_error
+            assert np.allclose(refs[-1].segments[-1].control_points[-1], end)  # kept, not replaced by a hold
+
+    asyncio.run(asyncio.wait_for(scenario(), 90))
+
+
 def test_stale_state_is_not_planned_from(zenoh_router, tmp_path):
     async def scenario() -> None:
         service = PlannerService(ns=NS + "2", endpoint=zenoh_router, params={"planner": PARAMS},

@@ -37,48 +37,45 @@ class ClockMap:
     two clocks' drift), less ``min_latency_ns``, the delay no frame beats (exposure to the
     host, measured once). A frame's capture time is then ``sensor + offset``.
 
-    A frame in librealsense's ``global_time`` domain carries its capture time on the host's wall
-    clock already (the SDK's own regression of the camera's clock against the host's): that time,
-    moved onto the stack's clock, is taken as it is when it lies within ``global_max_age_ns``
-    before its receipt, whatever the delivery delay was (a camera triggered at an apex and
-    delivered late, a loaded host). Such a frame marks the stream live: a later global time
-    older than the bound is then a frame delivered too late to use (:meth:`stamp` returns None,
-    counted in ``stale``), not a recording. A stream whose first global times are old (a
-    recording played back) or one in the future (the wall clock stepped) goes through the
-    offset as any other.
+    A frame in librealsense's ``global_time`` domain from a camera (``live``) carries its capture
+    time on the host's wall clock already (the SDK's own regression of the camera's clock against
+    the host's): that time, moved onto the stack's clock, is taken as it is, whatever the delivery
+    delay was (a camera triggered at an apex and delivered late, a loaded host), unless it is older
+    than ``global_max_age_ns`` at receipt: then the frame came too late to use (:meth:`stamp`
+    returns None, counted in ``stale``). A global time in the future (the wall clock stepped), and
+    every frame of a recording played back (its global times are the day it was recorded), go
+    through the offset as any other.
     """
 
-    def __init__(self, window: int, min_latency_ns: int, global_max_age_ns: int = 0) -> None:
+    def __init__(self, window: int, min_latency_ns: int, global_max_age_ns: int = 0, live: bool = True) -> None:
         if window < 1 or min_latency_ns < 0 or global_max_age_ns < 0:
             raise ValueError("ClockMap needs window >= 1, min_latency_ns >= 0 and global_max_age_ns >= 0")
         self._gaps: deque[int] = deque(maxlen=window)
         self._min_latency_ns = min_latency_ns
         self._global_max_age_ns = global_max_age_ns
+        self._live = live
         self._last_sensor_ns: int | None = None
-        self._live_global = False  # a global time has been seen fresh since the sensor clock last restarted
         self.global_stamps = 0  # frames stamped by their global time
-        self.stale = 0  # a live stream's frames delivered later than the bound
+        self.stale = 0  # frames delivered later than the bound
 
     def stamp(self, sensor_ns: int, receive_ns: int, domain: str = "", wall_minus_stack_ns: int = 0) -> int | None:
         """The capture time on the stack's clock of a frame stamped ``sensor_ns`` in ``domain``, received
-        at ``receive_ns`` (None: a live frame delivered too late); ``wall_minus_stack_ns``: the host's
-        wall clock less the stack's, at receipt.
+        at ``receive_ns`` (None: a camera's frame delivered too late); ``wall_minus_stack_ns``: the
+        host's wall clock less the stack's, at receipt.
 
         A sensor clock that goes back (a camera reset, a recording played again) restarts the map.
         """
-        if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
-            self._gaps.clear()
-            self._live_global = False
-        self._last_sensor_ns = sensor_ns
-        if domain == GLOBAL_TIME:
+        if domain == GLOBAL_TIME and self._live:
             capture_ns = sensor_ns - wall_minus_stack_ns
-            if receive_ns - self._global_max_age_ns <= capture_ns <= receive_ns:
-                self._live_global = True
-                self.global_stamps += 1
-                return capture_ns
-            if self._live_global and capture_ns < receive_ns:
+            if capture_ns < receive_ns - self._global_max_age_ns:
                 self.stale += 1
                 return None
+            if capture_ns <= receive_ns:
+                self.global_stamps += 1
+                return capture_ns
+        if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
+            self._gaps.clear()
+        self._last_sensor_ns = sensor_ns
         self._gaps.append(receive_ns - sensor_ns)
         return sensor_ns + min(self._gaps) - self._min_latency_ns
 

@@ -77,6 +77,12 @@ class SceneSnapshot:
             self._buf = np.frombuffer(self.array, dtype=np.float64)
         return self._buf
 
+    @property
+    def ready(self) -> bool:
+        """The rig's camera service is up (its start-up, which competes with the stack's loops for the
+        cores, is over)."""
+        return self._ready
+
     def write(self, stamp_ns: int, data: Any) -> None:
         buf, nq, nm = self._view(), self.nq, self.nmocap
         buf[0] += 1.0  # odd: being written
@@ -160,6 +166,12 @@ class RealsenseRig:
         self._proc.start()
         child.close()
         self._started = time.monotonic()
+
+    @property
+    def ready(self) -> bool:
+        """The rig's camera service is up (its start-up, which competes with the stack's loops for the
+        cores, is over)."""
+        return self._ready
 
     def write(self, stamp_ns: int, data: Any) -> None:
         if self.snapshot is not None:
@@ -291,6 +303,10 @@ def _rig_main(conn: Any, model_bytes: bytes, traversable: list[str], seed: int, 
         done.set()
 
     class TriggeredCamera(EmulatedCamera):
+        async def setup(self) -> None:
+            await super().setup()
+            conn.send({"ready": True})  # its session open and its pipeline started: the start-up's cost is paid
+
         def _on_phase(self, event: Any) -> None:
             super()._on_phase(event)
             if event.event == "apex":
@@ -303,7 +319,6 @@ def _rig_main(conn: Any, model_bytes: bytes, traversable: list[str], seed: int, 
 
     drawer.start()
     watcher.start()
-    conn.send({"ready": True})
     try:
         service.run_until(done)
         if not done.is_set():  # the service ended by itself: a crash it caught

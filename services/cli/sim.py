@@ -69,6 +69,7 @@ PROGRESS_MIN_S = 10.0  # [s of sim] shorter runs get no progress bar
 # it ends anyway after this many times the duration of wall time (the twin stalled).
 REALTIME_WALL_CAP = 3.0
 BAR_WIDTH = 30
+FINAL_STATUS_TRIES = 3  # the run's end is a busy moment on a small host: a status query may time out once
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -381,7 +382,7 @@ def run_realtime(args: argparse.Namespace) -> dict:
 def _run_realtime(args: argparse.Namespace) -> dict:
     from services.table import SERVICES, missing_dependencies
     from services.runtime.service import exit_by_deadline, stop_signal_exit_code
-    from services.runtime.peers import query_status, request_once
+    from services.runtime.peers import request_once
     from services.runtime.supervisor import Supervisor, process_of, sim_specs
     from onboard.contracts.topics import STANDBY_SERVICES, STANDBY_SUFFIX
     from services.runtime.zenoh_session import default_endpoint, endpoint_holder, endpoint_in_use
@@ -517,7 +518,7 @@ def _run_realtime(args: argparse.Namespace) -> dict:
             twin_started = time.monotonic()
             cpu0 = sup.cpu_seconds(), time.process_time()
             flips_due = list(scenario.flip_requests_s)  # sent as an operator would: control.flip_request
-            while (twin.sim_ns / 1e9 < duration and time.perf_counter() - wall0 < REALTIME_WALL_CAP * duration
+            while (twin.sim_ns / 1e9 < duration and twin.physics_wall_s < REALTIME_WALL_CAP * duration
                    and not stop_requested.is_set()):
                 await asyncio.sleep(0.1)
                 progress(min(twin.sim_ns / 1e9, duration), duration)
@@ -529,20 +530,20 @@ def _run_realtime(args: argparse.Namespace) -> dict:
                 if twin.metrics.fell and not args.keep_going:
                     break
             if scenario.flip_requests_s and "control" in units:  # what became of the requests, as in lockstep
-                status = await asyncio.to_thread(query_status, twin.session, ns, "control")
+                status = await _final_status(twin.session, ns, "control")
                 if status is not None:
                     flip_counts = {k: int(status.extra[k]) for k in ("flips", "flips_dropped", "flips_refused") if k in status.extra}
             if "camera_overhead" in units:  # what the camera made of the frames
-                status = await asyncio.to_thread(query_status, twin.session, ns, "camera_overhead")
+                status = await _final_status(twin.session, ns, "camera_overhead")
                 if status is not None:
                     camera_status = {"state": status.state, "last_error": status.last_error, **status.counters,
                                      **{k: round(v, 3) for k, v in status.extra.items()}}
             if d435 is not None and "estimator" in units:  # what the estimator made of the camera's odometry
-                status = await asyncio.to_thread(query_status, twin.session, ns, "estimator")
+                status = await _final_status(twin.session, ns, "estimator")
                 if status is not None:
                     estimator_counts = {k[len("est."):]: int(v) for k, v in status.extra.items() if k.startswith("est.")}
             if "planner" in units:  # how it planned, as the lockstep runner reports it
-                status = await asyncio.to_thread(query_status, twin.session, ns, "planner")
+                status = await _final_status(twin.session, ns, "planner")
                 if status is not None:
                     planner_counts = {f"planner_{k}": int(status.extra[k]) for k in PLANNER_COUNTS if k in status.extra}
                     if overhead is not None:  # how the planner fared on the camera's world (what it refused, and why)
@@ -638,6 +639,17 @@ class _ViewConfig:
 
     def close(self) -> None:
         os.unlink(self.path)
+
+
+async def _final_status(session: Any, ns: str, service: str) -> Any:
+    """A service's status for the report, asked again where a query goes unanswered."""
+    from services.runtime.peers import query_status
+
+    for _ in range(FINAL_STATUS_TRIES):
+        status = await asyncio.to_thread(query_status, session, ns, service)
+        if status is not None:
+            return status
+    return None
 
 
 def _cpu_cores(before: tuple[dict[str, float], float], after: tuple[dict[str, float], float], wall_s: float) -> dict[str, float]:

@@ -254,9 +254,9 @@ class CameraParams(_Section, section="camera"):
     apex_tolerance_s: Annotated[float, above(0.0, 1.0)] = 0.05  # [s] a frame further from the apex is not its frame
     min_latency_s: Annotated[float, within(0.0, 1.0)] = 0.010  # [s] exposure to host that no frame beats (clock map)
     clock_window: Annotated[int, within(1, 100_000)] = 300  # frames over which the clock offset is the smallest delay
-    # [s] a frame's global time (librealsense's, on the host's wall clock) is its capture time when at most this
-    # old at receipt: a frame delivered late keeps its capture time; once the stream is live, one older than this is
-    # dropped (counted `stale_frames`); a recording's old times go through the offset
+    # [s] a camera's frame in global time (librealsense's, on the host's wall clock) keeps it as its capture time
+    # however late it came, up to this old at receipt; an older one is dropped (counted `stale_frames`). A
+    # recording's frames (source = "file") go through the offset
     global_time_max_age_s: Annotated[float, within(0.0, 60.0)] = 2.0
     state_max_age_s: Annotated[float, above(0.0, 10.0)] = 0.05  # [s] an estimate further from the frame cannot pose it
     robot_variant: Literal["indoor", "outdoor", "sim15nm"] = "outdoor"  # MJCF whose camera site is the extrinsic
