@@ -77,12 +77,6 @@ class SceneSnapshot:
             self._buf = np.frombuffer(self.array, dtype=np.float64)
         return self._buf
 
-    @property
-    def ready(self) -> bool:
-        """The rig's camera service is up (its start-up, which competes with the stack's loops for the
-        cores, is over)."""
-        return self._ready
-
     def write(self, stamp_ns: int, data: Any) -> None:
         buf, nq, nm = self._view(), self.nq, self.nmocap
         buf[0] += 1.0  # odd: being written
