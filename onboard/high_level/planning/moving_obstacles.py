@@ -151,7 +151,7 @@ def evasion_directions(position: np.ndarray, centre: np.ndarray, velocity: np.nd
     if float(across @ (np.asarray(position, dtype=float)[:2] - centre)) < 0.0:
         across = -across
     # turned away from the obstacle's motion first (positive turns toward +v are tried after)
-    sign = 1.0 if float(np.cross(across, v)) > 0 else -1.0
+    sign = 1.0 if across[0] * v[1] - across[1] * v[0] > 0 else -1.0  # the 2D cross product's sign
     out = []
     for turn in EVADE_TURNS:
         a = sign * turn
