@@ -9,6 +9,7 @@ prepare_environment()  # as the archer entry point does, before a test module lo
 import os  # noqa: E402
 
 import pytest  # noqa: E402
+import zenoh  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 # The suite's property tests draw the same examples on every run (CI's verdict is the code's, not
@@ -22,6 +23,44 @@ from services.runtime.zenoh_session import free_endpoint, open_session  # noqa: 
 
 TIMING_RERUNS = 1  # a failure that does not repeat is the machine's, one that does is ours
 TIMING_RERUN_DELAY_S = 2
+
+
+# A Zenoh session left open with callback subscribers keeps their (non-daemon) callback threads, and
+# the interpreter waits for them at exit: pytest reported its result and then never ended (a CI run
+# hung so). Every session the tests open is recorded with the test that opened it; those still open
+# when the run ends are closed then and named, so that a leak is seen and fixed, not waited on.
+_sessions_opened: list[tuple[str, zenoh.Session]] = []
+_opening_test = ["(collection)"]
+_zenoh_open = zenoh.open
+
+
+def _recorded_open(*args, **kwargs) -> zenoh.Session:
+    session = _zenoh_open(*args, **kwargs)
+    _sessions_opened.append((_opening_test[0], session))
+    return session
+
+
+zenoh.open = _recorded_open
+
+
+def pytest_runtest_setup(item) -> None:
+    _opening_test[0] = item.nodeid
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    leaked = []
+    for nodeid, zsession in _sessions_opened:
+        if not zsession.is_closed():
+            zsession.close()
+            leaked.append(nodeid)
+    _sessions_opened.clear()
+    if leaked:
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        line = f"Zenoh sessions left open by the tests, closed at the end: {sorted(set(leaked))}"
+        if reporter is not None:
+            reporter.write_line(line, yellow=True)
+        else:
+            print(line)
 
 
 def pytest_collection_modifyitems(config, items):
