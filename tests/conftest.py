@@ -7,6 +7,9 @@ from services.runtime.process_env import prepare_environment
 prepare_environment()  # as the archer entry point does, before a test module loads numba
 
 import os  # noqa: E402
+import threading  # noqa: E402
+import traceback  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 import zenoh  # noqa: E402
@@ -32,11 +35,14 @@ TIMING_RERUN_DELAY_S = 2
 _sessions_opened: list[tuple[str, zenoh.Session]] = []
 _opening_test = ["(collection)"]
 _zenoh_open = zenoh.open
+OPENER_FRAMES = 4  # of the opener's stack, named with a leak (a thread an earlier test left may be the opener)
 
 
 def _recorded_open(*args, **kwargs) -> zenoh.Session:
     session = _zenoh_open(*args, **kwargs)
-    _sessions_opened.append((_opening_test[0], session))
+    frames = traceback.extract_stack(limit=OPENER_FRAMES + 1)[:-1]
+    where = " < ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(frames))
+    _sessions_opened.append((f"{_opening_test[0]} [thread {threading.current_thread().name}: {where}]", session))
     return session
 
 
