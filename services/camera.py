@@ -149,7 +149,10 @@ class CameraService(Service):
             self.frames += 1
             now_ns = self.clock.now_ns()
             stamp_ns = self.clock_map.stamp(raw.sensor_ns, now_ns, raw.domain, time.time_ns() - now_ns)
-            if stamp_ns is None:  # counted by the map; too late to place or to pick for an apex
+            if stamp_ns is None:  # too late to place or to pick for an apex: counted (status: stale_frames)
+                if self.clock_map.stale == 1:  # said once; the count says how many followed
+                    self.log.warning("camera: a frame came more than %.1f s after its capture: dropped",
+                                     p.global_time_max_age_s)
                 continue
             if p.capture == "every":
                 self._publish(cam, raw, stamp_ns)

@@ -19,6 +19,8 @@ from services.cli.realsense_realtime import SIL_CAMERA, SceneSnapshot, rig_overr
 from sim_twin import model as tm
 
 REALTIME_SIM_TIMEOUT_S = 420.0  # a 25 s run: start-up (librealsense, MuJoCo, Zenoh in the rig too) and shutdown, loaded host
+FALL_REPORT = ("fall_time_s", "fall_reason", "hops", "max_drift_m", "realtime_factor", "loop_overruns",
+               "estimate_rms_error_m", "estimator_counters", "visual_odometry")  # what says why it fell
 
 
 def _model() -> mujoco.MjModel:
@@ -75,7 +77,7 @@ def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435
     assert run.returncode == 0, run.err[-4000:]
     metrics = json.loads(run.out.strip().splitlines()[-1])
     assert metrics["sensing"] == "onboard" and "mocap" not in metrics["services_started"]
-    assert metrics["falls"] == 0 and metrics["hops"] > 20, {k: metrics.get(k) for k in ("fall_time_s", "fall_reason", "hops", "max_drift_m", "realtime_factor", "loop_overruns", "estimate_rms_error_m", "estimator_counters", "visual_odometry")}
+    assert metrics["falls"] == 0 and metrics["hops"] > 20, {k: metrics.get(k) for k in FALL_REPORT}
     assert metrics["distance_travelled_m"] > 0.3 and metrics["final_drift_m"] is not None, metrics
     assert metrics["final_drift_m"] < 0.5, metrics  # an odometry, not a lost estimate
     cam = metrics["depth_camera"]
