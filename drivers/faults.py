@@ -20,4 +20,4 @@ class LatchedFaults:
         if reason not in self.faults:
             self.faults.append(reason)
             self.stats.faults_latched += 1  # type: ignore[attr-defined]
-            self.fault_log.error(f"{self.device_name} fault latched", extra={"fields": {"reason": reason}})
+            self.fault_log.error(f"{self.device_name} fault latched: {reason}", extra={"fields": {"reason": reason}})

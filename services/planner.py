@@ -192,7 +192,7 @@ class PlannerService(Service):
         # Load every compiled kernel now, before the service reports ready: done later, it
         # would cost the robot's first seconds CPU that the hard-rate loops need.
         await asyncio.to_thread(warm_up, params, radius)
-        self.state_in = self.latest("state")
+        self.state_in = self.latest_sampled("state")  # 1 kHz, read at the tick: only what is read is decoded
         self.goal_in = self.latest("goal")
         self._pending_goal: msgs.Goal | None = None  # arrived, judged once a state says where the robot is
         self.polytopes_in = self.latest("polytopes")

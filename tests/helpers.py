@@ -77,23 +77,18 @@ def cmdline(pid: int) -> str | None:
 
 
 def descendants(root: int) -> dict[int, str]:
-    """Every live process below ``root``, with its command line."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                parents[int(entry.name)] = int(Path(f"/proc/{entry.name}/stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out: set[int] = set()
+    """Every live process below ``root``, with its command line (walked through the kernel's lists
+    of children: a scan of /proc reads every kernel thread's stat, slow on a loaded VM)."""
+    from deploy.soak_faults import children
+
+    out: dict[int, str] = {}
     todo = [root]
     while todo:
-        parent = todo.pop()
-        for pid, ppid in parents.items():
-            if ppid == parent and pid not in out:
-                out.add(pid)
+        for pid, argv in children(todo.pop()):
+            if pid not in out:
+                out[pid] = b"\0".join(argv).decode(errors="replace")
                 todo.append(pid)
-    return {pid: cmd for pid in out if (cmd := cmdline(pid)) is not None}
+    return out
 
 
 @dataclass

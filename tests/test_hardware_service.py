@@ -32,6 +32,10 @@ from services.runtime.zenoh_session import open_session
 
 NS = "archer/hwtest"
 SAFETY = SafetyLimits()
+# The drives and the host in one process on a loaded 2-core CI host: a thread starved past the
+# robot's 100 ms latched "heartbeat lost" / "feedback lost" (seen in CI). Those bounds have their
+# own tests (test_elmo_drive.py); here they only need to hold a running bus.
+BUS_SAFETY = SafetyLimits(heartbeat_timeout_s=1.0)
 STALE_NS = int(SAFETY.command_stale_s * 1e9)
 SLACK_S = 0.15  # scheduling on a loaded 2-core machine
 TIMEOUT_S = 30.0  # an event wait returns when it happens: the bound is for a loaded machine
@@ -134,7 +138,7 @@ def test_service_drives_the_emulated_drives_and_trips_its_watchdog_and_reports_f
     host_bus = can.Bus(interface="virtual", channel=channel)
     emulator = make_emulator(params)
     runner = VirtualBusRunner(emulator, emu_bus).start()
-    backend = CanBackend(params, SAFETY, gear_ratios(), bus=host_bus)
+    backend = CanBackend(params, BUS_SAFETY, gear_ratios(), bus=host_bus)
     service = HardwareService(ns=NS, endpoint=zenoh_router, backend=backend)
     client = open_session(zenoh_router, "peer")
     joints: list[m.JointSensors] = []

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import descendants
 
 from onboard.contracts.topics import liveliness_key
 from services.runtime.service import EXIT_CONFLICT, EXIT_SIGINT
@@ -42,19 +43,7 @@ def _alive(pid: int) -> bool:
 
 
 def _descendants(root: int) -> set[int]:
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            info = _ppid_and_state(int(entry.name))
-            if info is not None:
-                children.setdefault(info[0], []).append(int(entry.name))
-    out, todo = set(), [root]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            if child not in out:
-                out.add(child)
-                todo.append(child)
-    return out
+    return set(descendants(root))
 
 
 def _wait_gone(pids: set[int], bound_s: float) -> tuple[float, set[int]]:

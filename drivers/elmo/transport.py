@@ -77,7 +77,7 @@ class CanTransport:
     def _latch(self, reason: str) -> None:
         if not self.fault:
             self.fault = reason
-            log.error("CAN fault latched", extra={"fields": {"reason": reason}})
+            log.error(f"CAN fault latched: {reason}", extra={"fields": {"reason": reason}})
 
     def clear_fault(self) -> None:
         """Recovery on command: forget the latched fault."""
