@@ -272,6 +272,11 @@ class Soak:
             while not endpoint_in_use(self.endpoint):
                 self._check_sim(sim, deadline)
                 time.sleep(0.1)
+            # every helper set up now, each waiting for its word: one started at the fault before took
+            # 3-12 s to import and connect beside the real-time stack, longer than the gap to its fault;
+            # started at arming, 11 s were not enough on a loaded 2-core host (the flood went in 16 s late)
+            faults = list(self.schedule.faults)
+            helpers = [self._start_helper(fault) for fault in faults]
             session = open_session(self.endpoint, "peer")  # a peer, as the services: a router restart does not blind it
             goals = [tuple(float(v) for v in g.split(",")) for g in self.args.goals.split(";")]
             observer = Observer(session, self.ns, goals, self.args.goal_period)  # type: ignore[arg-type]
@@ -284,11 +289,7 @@ class Soak:
             observer.start()
             poller = StatusPoller(session, self.ns, observer, self.out / "status.jsonl")
             poller.start()
-            faults = list(self.schedule.faults)
             run_end = t0 + int(self.duration_s * 1e9)
-            # every helper set up now, each waiting for its word: one started at the fault before took
-            # 3-12 s to import and connect beside the real-time stack, longer than the gap to its fault
-            helpers = [self._start_helper(fault) for fault in faults]
             for k, fault in enumerate(faults):
                 helper = helpers[k]
                 start = t0 + int(fault.at_s * 1e9)

@@ -15,7 +15,7 @@ their own, started with ``python -m deploy.soak_faults hog|flood``; each dies wi
   a schema example where nothing is live) stamped ``offset`` seconds from now, ``seq`` 0 so
   that no sequence check takes them for the real publisher's.
 
-Each helper is started when the schedule starts (a starved host takes seconds to import and open a
+Each helper is started with the stack, before it arms (a starved host takes seconds to import and open a
 session), prints ``READY_LINE`` once set up (a flood: its session open), waits for ``GO_LINE`` on
 stdin, then acts, and prints one JSON line of what it did when it ends (nothing, if stdin closes
 first: the soak went away).
@@ -267,14 +267,20 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
         rates = {t: rate_hz or TOPICS[t].rate_hz or 10.0 for t in topics}
         if mode == "malformed":
             payloads = {t: malformed_payloads(t) for t in topics}
+            ready_then_go()
 
             def make(t: str, k: int) -> bytes:
                 return payloads[t][k % len(payloads[t])]
         else:
+            # the live message to copy is the one last seen at the word (the helper is set up
+            # long before, maybe before the stack publishes), and at least LIVE_COPY_WAIT_S after
+            # its subscription
             latest: dict[str, Any] = {}
             subs = [session.declare_subscriber(TOPICS[t].key(ns), lambda s, t=t: latest.__setitem__(t, s.payload.to_bytes()))
                     for t in topics]
-            time.sleep(LIVE_COPY_WAIT_S)
+            subscribed = time.monotonic()
+            ready_then_go()
+            time.sleep(max(0.0, subscribed + LIVE_COPY_WAIT_S - time.monotonic()))
             for s in subs:
                 s.undeclare()
             templates = {}
@@ -289,7 +295,6 @@ def run_flood(endpoint: str, ns: str, topics: list[str], mode: str, rate_hz: flo
 
             def make(t: str, k: int) -> bytes:
                 return m.encode(msgspec.structs.replace(templates[t], stamp_ns=time.monotonic_ns() + offset_ns, seq=0))
-        ready_then_go()
         t0 = time.monotonic()
         while (elapsed := time.monotonic() - t0) < duration_s:
             for t in topics:
