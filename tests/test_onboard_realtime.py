@@ -65,11 +65,11 @@ def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435
     the physics, the robot hops without a fall, and every process the run started is gone after it."""
     from services.runtime.zenoh_session import free_endpoint
 
-    # On two loaded cores the rig draws a frame every 0.6-3 s (the stack's loops come first), where the
-    # D435 gives one every hop: pairs up to 3 s apart, and odometry kept to meet them, so that the chain
-    # is tested whatever the host leaves the drawing
+    # On two loaded cores the rig draws a frame every 0.6-5 s (the stack's loops come first; 10 frames
+    # in 25 s seen), where the D435 gives one every hop: pairs up to 8 s apart, and odometry kept to
+    # meet them, so that the chain is tested whatever the host leaves the drawing
     config = tmp_path / "sparse_frames.toml"
-    config.write_text("[estimator]\nvo_max_interval_s = 3.0\nvo_history_s = 6.0\n")
+    config.write_text("[estimator]\nvo_max_interval_s = 8.0\nvo_history_s = 10.0\n")
     argv = [sys.executable, "-m", "services.cli.main", "sim", "--scenario", "sidewalk", "--variant", "outdoor",
             "--mode", "realtime", "--sensing", "onboard", "--duration", "25", "--endpoint", free_endpoint(),
             "--namespace", "archer/onboardrt", "--config", str(config), "--json", "--quiet"]
@@ -87,7 +87,9 @@ def test_realtime_onboard_sensing_hops_on_its_own_odometry_and_the_emulated_d435
     assert status["published"] >= 2 and status["global_stamps"] >= status["published"], cam
     assert cam["camera_counters"].get("vo_published", 0) >= 1, cam
     vo = metrics["visual_odometry"]
-    assert sum(v for k, v in vo.items() if k in ("vo_fused", "vo_outliers", "vo_past", "vo_stamps_not_kept")) >= 1, metrics["estimator_counters"]
+    assert sum(v for k, v in vo.items() if k in ("vo_fused", "vo_outliers", "vo_past", "vo_stamps_not_kept")) >= 1, \
+        json.dumps({"visual_odometry": vo, "camera_counters": cam["camera_counters"],
+                    "estimator_vo": {k: v for k, v in metrics["estimator_counters"].items() if "vo" in k or "visual" in k}})
     assert len(run.children) >= 5  # router, estimator, control, planner, the D435 rig
     assert any("multiprocessing" in cmd for cmd in run.children.values())  # the rig is one of them
     assert run.left_running() == []
