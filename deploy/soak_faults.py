@@ -58,10 +58,16 @@ def children(pid: int) -> list[tuple[int, list[bytes]]]:
         kids = [int(e.name) for e in Path("/proc").iterdir() if e.name.isdigit()]
     else:
         try:
-            kids = sorted({int(k) for task in Path(f"/proc/{pid}/task").iterdir()
-                           for k in (task / "children").read_text().split()})
+            tasks = list(Path(f"/proc/{pid}/task").iterdir())
         except OSError:
             return []  # pid itself is gone
+        found: set[int] = set()
+        for task in tasks:
+            try:
+                found.update(int(k) for k in (task / "children").read_text().split())
+            except OSError:
+                continue  # a thread that ended meanwhile (its children went to another thread)
+        kids = sorted(found)
     out = []
     for kid in kids:
         entry = Path(f"/proc/{kid}")

@@ -24,7 +24,7 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 from services.runtime.zenoh_session import free_endpoint, open_session  # noqa: E402
 
 
-TIMING_RERUNS = 0  # a failure that does not repeat is the machine's, one that does is ours
+TIMING_RERUNS = 1  # a failure that does not repeat is the machine's, one that does is ours
 TIMING_RERUN_DELAY_S = 2
 
 

@@ -413,7 +413,8 @@ def test_a_short_soak_detects_a_stall_and_a_flood_and_leaves_no_process(tmp_path
         # the recorder was not killed in either fault: it lost nothing
         assert set(fault["lost"]) >= {"imu", "joints", "torque_cmd", "state"} and all(n == 0 for n in fault["lost"].values()), fault["lost"]
     assert totals["totals"]["detected"] == 2 and totals["totals"]["falls"] == 0
-    assert summary["metrics"]["mode"] == "realtime" and summary["metrics"]["sim_time_s"] > 15.0
+    # the twin ran the whole soak (17 s after arming): at 0.6-0.9 of real time on a loaded 2-core host
+    assert summary["metrics"]["mode"] == "realtime" and summary["metrics"]["sim_time_s"] > 17.0 * 0.5
     assert summary["recorder"]["imu"]["received"] > 10_000
     # nothing of the run is left: every process carrying its endpoint is gone
     assert sf_processes(summary["run"]["endpoint"]) == []
