@@ -32,6 +32,10 @@ def test_hops_without_motion_capture_and_its_drift_is_within_its_covariance(scen
     # the horizontal drift is what the published covariance allows, and it grows with the way
     assert got["final_drift_m"] < 3.0 * got["final_pos_std_m"] + 0.01, got
     assert got["final_pos_std_m"] > EstimatorParams().anchor_std_m
+    # the attitude: no absolute heading without motion capture, the gyro's bias integrates; the tilt
+    # is held by gravity (what places a camera's ground at range)
+    assert 0.0 < got["final_heading_err_deg"] <= got["max_heading_err_deg"] < 3.0, got
+    assert 0.0 < got["final_tilt_err_deg"] <= got["max_tilt_err_deg"] < 2.0, got
     if scenario == "setpoint":
         assert got["distance_travelled_m"] > 1.0 and got["final_goal_error_m"] < 0.3
 
