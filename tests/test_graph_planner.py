@@ -323,6 +323,48 @@ def test_moving_obstacle_triggers_a_replan_around_it(graph):
     assert not planner.needs_replan((1.0, 3.0), 100_000_000, 0.3)
 
 
+def test_a_perceived_world_that_changes_keeps_a_path_still_clear(graph):
+    # perception refits its obstacles from every view: a world that moved beside the path keeps it
+    # (replanned at every view, a hopper's reference restarted from rest and it crept)
+    planner = _planner(graph)
+    planner.set_obstacles([_box(3.0, 5.2, 0.3, 0.3)])
+    planner.set_goal((5.0, 3.0), 0.1)
+    assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
+    planner.set_obstacles([_box(3.02, 5.21, 0.31, 0.3)])
+    assert not planner.needs_replan((1.0, 3.0), 0, 0.3)
+    mid = _dense(planner.path.control_points[len(planner.path.control_points) // 2], 3)[1]
+    planner.set_obstacles([_box(3.02, 5.21, 0.31, 0.3), _box(mid[0], mid[1], 0.2, 0.2)])
+    assert planner.needs_replan((1.0, 3.0), 0, 0.3)
+
+
+def test_free_cells_that_change_replan(graph):
+    planner = _planner(graph)
+    planner.set_free_cells([_box(3.0, 3.0, 2.8, 1.0)])
+    planner.set_goal((5.0, 3.0), 0.1)
+    assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
+    planner.set_free_cells([_box(3.0, 3.0, 2.8, 1.1)])  # still holds the path, but the cells are new
+    assert planner.needs_replan((1.0, 3.0), 0, 0.3)
+
+
+def test_a_replan_starts_where_the_path_is_while_the_robot_keeps_to_its_tube(graph):
+    planner = _planner(graph)
+    planner.set_goal((5.0, 3.0), 0.1)
+    assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
+    stamp = 1_500_000_000
+    on_path = bg.path_states(planner.path.control_points, planner.path.tau, np.array([stamp * 1e-9]))[0]
+    assert math.hypot(*on_path[2:]) > 0.05  # under way: the stitch keeps its speed
+    near = on_path[:2] + (0.0, 0.8 * planner.tube)
+    assert planner.plan(near, (0.0, 0.0), stamp_ns=stamp) is not None
+    first = planner.path.control_points[0]
+    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    assert np.allclose(first[0], on_path[:2]) and np.allclose(start[2:], on_path[2:])
+    # off by more than the tube: the robot's own state
+    far = bg.path_states(planner.path.control_points, planner.path.tau, np.array([1.0]))[0, :2] + (0.0, 1.5 * planner.tube)
+    assert planner.plan(far, (0.0, 0.0), stamp_ns=stamp + 1_000_000_000) is not None
+    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    assert np.allclose(start, [far[0], far[1], 0.0, 0.0])
+
+
 def test_a_start_inside_the_margin_may_leave_keeping_its_clearance(graph):
     planner = _planner(graph)
     wall = _box(2.0, 3.0, 0.1, 1.0)

@@ -288,7 +288,7 @@ class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
         """
         if self.goal is None:
             raise PlanningError("no goal set")
-        x0 = self._state(position, velocity)
+        x0 = self._stitched(self._state(position, velocity), stamp_ns)
         if build or self.graph is None:
             self._ensure_graph(x0[:2])
         if self.mode == "obstacles" and self._moving is not None:  # moving obstacles: the full windows, from here
@@ -317,6 +317,22 @@ class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
             self.stats.no_path += 1
             return self.evade_reference(x0, stamp_ns) if self._moving is not None else None
         return self.committed(self.path_reference(stamp_ns), x0[:2], stamp_ns)
+
+    def _stitched(self, x: np.ndarray, stamp_ns: int) -> np.ndarray:
+        """Where a replan starts: the current path's state at ``stamp_ns`` while the robot keeps within
+        the tube of it, else the measured state ``x``. A hopper lags its reference by centimetres;
+        started from the measured state at every replan (the world's rate, with perception), each
+        new reference began where the robot was, at the speed it had, and the lead that drives it
+        forward was thrown away: on the sidewalk, half the pace of a run planned once."""
+        if self.path is None or self.tube <= 0.0:
+            return x
+        t = (stamp_ns - self.path_t0_ns) * 1e-9
+        if t < 0.0:
+            return x
+        on_path = path_states(self.path.control_points, self.path.tau, np.array([t]))[0]
+        if math.hypot(x[0] - on_path[0], x[1] - on_path[1]) > self.tube:
+            return x
+        return self._state(on_path[:2], on_path[2:])
 
     def _search(self, x0: np.ndarray, approach: bool = False) -> tuple[SearchResult | None, np.ndarray, np.ndarray]:
         """Search the cut graph from state ``x0`` to the goal at rest (free mode: else to a frontier,
@@ -406,13 +422,17 @@ class GraphPlanner(PlannerWorld, FrontierSearch, TubeContract, MpcRefinement):
         return view.result
 
     def needs_replan(self, position: np.ndarray, stamp_ns: int, deviation: float) -> bool:
-        """True when there is no path, the world changed since it was planned, or the
-        state is more than ``deviation`` [m] from where the path says it should be."""
+        """True when there is no path, the world changed since it was planned and the rest of the
+        path to the goal is no longer clear of it (free mode, or a path to a frontier: whenever the
+        world changed), or the state is more than ``deviation`` [m] from where the path says it
+        should be."""
         if self.path is None:
             return True
         if self.path_world_version != self._world_version:
-            # obstacles that move change the world at its rate; a path still clear of them (swept) is kept
-            if not (self._world_moves and self.mode == "obstacles" and self._path_clear(position, stamp_ns)):
+            # Obstacles that move, or that perception refits from every view, change the world at its
+            # rate; a path to the goal still clear of them (swept) is kept. Replanned at every view, a
+            # hopper's reference restarted from rest each time and it crept (sidewalk: 0.06 m/s).
+            if not (self.mode == "obstacles" and self.frontier_goal is None and self._path_clear(position, stamp_ns)):
                 return True
             self.path_world_version = self._world_version
         t = (stamp_ns - self.path_t0_ns) * 1e-9
