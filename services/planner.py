@@ -6,8 +6,9 @@ obstacles the robot is committed only over ground it saw free, ``onboard.high_le
 ``tube`` (TrackingTube, the low level's measured guarantee).
 Computes: :class:`onboard.high_level.planning.graph_planner.GraphPlanner`. Every tick (``refine_hz``,
 100 Hz by default) one SQP iteration of the MPC refines the current path; when the
-world, the goal or the tube changed, or the CoM strayed ``replan_deviation`` from the
-path, it recuts and replans, at most ``replan_hz`` times a second. The graph is built
+goal changed, the world or the tube changed and the rest of the path is no longer clear
+of it, or the CoM strayed ``replan_deviation`` from the path, it recuts and replans, at
+most ``replan_hz`` times a second (``GraphPlanner.needs_replan``). The graph is built
 (or loaded from the on-disk cache) in a background thread when the planning region
 changes; until it is ready the robot holds.
 Publishes: ``reference`` (ComReference: the refined path, or a hold reference -- hop in

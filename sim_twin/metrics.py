@@ -354,9 +354,10 @@ class PhysicsMetrics:
             "collisions": self.collisions,
             # who moved: only where obstacles move (a static world's collisions are all the robot's)
             **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle,
-                "collision_events": self.collision_events,
-                "time_to_goal_s": None if math.isnan(self.goal_time) else round(self.goal_time, 3)}
+                "collision_events": self.collision_events}
                if self.scenario.movers else {}),
+            # where the scenario has a goal to go to: when the CoM first came within its tolerance (the pace)
+            **({"time_to_goal_s": None if math.isnan(self.goal_time) else round(self.goal_time, 3)} if goal is not None else {}),
             "goal_reached": bool(final_err <= tol and not self.fell),
             "final_goal_error_m": round(final_err, 4),
             "rms_tracking_error_m": _rms(impact),

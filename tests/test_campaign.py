@@ -229,3 +229,20 @@ def test_the_summary_pools_the_segmenters_iou_over_every_apex_view() -> None:
     mocap = record(3, 0, 0, 0)
     del mocap["report"]["segmentation"]  # with motion capture no segmenter runs
     assert "segmentation_iou" not in summarize([mocap])["groups"][0]
+
+
+def test_the_summary_spreads_the_time_to_goal_of_the_runs_that_got_there() -> None:
+    """A scenario with a goal reports when the robot first came within its tolerance; a run that never
+    did reports None and is left out of the spread, not counted as zero."""
+    def record(seed: int, time_to_goal: float | None) -> dict:
+        report = {"goal_reached": time_to_goal is not None, "collisions": 0, "falls": 0, "final_goal_error_m": 0.01,
+                  "rms_tracking_error_m": 0.02, "realtime_factor": 5.0, "sim_time_s": 100.0, "time_to_goal_s": time_to_goal}
+        return {"spec": {"scenario": "sidewalk", "seed": seed, "variant": "outdoor", "options": {}}, "report": report}
+
+    summary = summarize([record(0, 40.0), record(1, 60.0), record(2, None)])
+    (group,) = summary["groups"]
+    assert group["time_to_goal_s"]["p50"] == 50.0 and group["time_to_goal_s"]["max"] == 60.0
+    assert "time to goal p50/p90/max 50.0/58.0/60.0 s" in table(summary)
+    hop = record(3, None)
+    del hop["report"]["time_to_goal_s"]  # hopping in place has no goal to go to
+    assert "time_to_goal_s" not in summarize([hop])["groups"][0]

@@ -7,6 +7,8 @@ Long runs (3000 hops, every scenario, the ZDP/LQR comparison) are for reports:
 
 from __future__ import annotations
 
+import math
+
 from onboard.contracts.params import SafetyLimits
 from sim_twin.lockstep import LockstepRunner, RunConfig, run
 
@@ -17,6 +19,7 @@ def test_hundreds_of_hops_in_place_without_a_fall():
     res = run(RunConfig(scenario="hop-in-place", estimator="truth", duration_s=80.0))
     m = res.metrics
     assert m["falls"] == 0
+    assert "time_to_goal_s" not in m  # nowhere to go
     assert m["hops"] >= 200
     assert m["final_goal_error_m"] < 0.05
     assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
@@ -31,6 +34,11 @@ def test_setpoint_two_metres_with_the_kalman_estimator():
     assert 0.0 < ctrl.saturation_fraction < 0.3  # the PD saturates at times, not always
     assert m["falls"] == 0
     assert m["goal_reached"] and m["final_goal_error_m"] <= 0.10
+    # the pace: the first time the CoM came within the goal's tolerance, no sooner than the robot's
+    # top speed allows and within the run (a run that never got there reports None)
+    goal = runner.scenario.goal()
+    to_go = math.dist(runner.scenario.start, goal.position) - goal.tolerance
+    assert to_go / runner.robot.hop_speed_max < m["time_to_goal_s"] <= m["sim_time_s"]
     assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
     assert m["rms_tracking_error_m"] < 0.10
 
