@@ -344,6 +344,13 @@ def test_free_cells_that_change_replan(graph):
     assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
     planner.set_free_cells([_box(3.0, 3.0, 2.8, 1.1)])  # still holds the path, but the cells are new
     assert planner.needs_replan((1.0, 3.0), 0, 0.3)
+    # and the replan starts where the robot is (its cells are fitted around it), not on the old path
+    stamp = 1_500_000_000
+    on_path = bg.path_states(planner.path.control_points, planner.path.tau, np.array([stamp * 1e-9]))[0]
+    near = on_path[:2] + (0.0, 0.5 * planner.tube)
+    assert planner.plan(near, (0.0, 0.0), stamp_ns=stamp) is not None
+    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    assert np.allclose(start, [near[0], near[1], 0.0, 0.0])
 
 
 def test_a_replan_starts_where_the_path_is_while_the_robot_keeps_to_its_tube(graph):
