@@ -338,3 +338,18 @@ def test_curve_bands_are_the_boxes_distances_in_bands() -> None:
     np.testing.assert_array_equal(bands, expected)
     inside = (aabb[:, 0] <= origin[0]) & (origin[0] <= aabb[:, 2]) & (aabb[:, 1] <= origin[1]) & (origin[1] <= aabb[:, 3])
     assert inside.any() and np.all(bands[inside] == 0)  # a box holding the origin is in the first band
+
+
+def test_among_moving_obstacles_a_replan_starts_where_the_robot_is() -> None:
+    # a replan there dodges an obstacle: from the robot's state, not from where its old path would be
+    from onboard.high_level.planning.bezier_graph import path_states
+
+    pl = _planner()
+    pl.set_obstacles([_square(2.0, 1.7, 0.15)], [(0.0, 0.0)])  # velocities given, none moving yet
+    assert pl.plan((0.0, 0.0), (0.0, 0.0), 0) is not None
+    stamp = 1_500_000_000
+    on_path = path_states(pl.path.control_points, pl.path.tau, np.array([stamp * 1e-9]))[0]
+    near = on_path[:2] + (0.0, 0.5 * pl.tube)
+    assert pl.plan(near, (0.0, 0.0), stamp) is not None
+    start = path_states(pl.path.control_points, pl.path.tau, np.array([0.0]))[0]
+    assert np.allclose(start, [near[0], near[1], 0.0, 0.0])

@@ -45,6 +45,7 @@ class PlannerWorld:
         self._band_origin = np.zeros(2)  # where the robot is: the cut in time measures from here
         self._sweep_orders: list[np.ndarray | None] = []  # each moving obstacle's swept hull, by vertex (mo.sweep_orders)
         self._banded: tuple[int, pg.PolygonSet, np.ndarray] | None = None  # bands 0..n-1 packed together, each polygon's band
+        self._world_moves = False  # the obstacles come with velocities (even still ones): a world that moves
         self._world_version = 0
         self._cut_key: tuple | None = None
         self.free: np.ndarray | None = None  # edge mask after the cut
@@ -64,6 +65,7 @@ class PlannerWorld:
         ``obstacle_sweep_max_m``); raises :class:`PlanningError` on a bad one."""
         polygons = list(polygons)
         self._moving = None
+        self._world_moves = velocities is not None
         if velocities is not None:
             try:
                 vel = mo.check_velocities(velocities, len(polygons))
