@@ -39,6 +39,11 @@ def _planner(graph: bg.BezierGraph, **kw) -> gp.GraphPlanner:
     return planner
 
 
+def _state_at(planner: gp.GraphPlanner, t: float) -> np.ndarray:
+    """``[px, py, vx, vy]`` of the planner's current path ``t`` [s] after its start."""
+    return bg.path_states(planner.path.control_points, planner.path.tau, np.array([t]))[0]
+
+
 def _dense(ctrl: np.ndarray, samples: int = 100) -> np.ndarray:
     return bz.evaluate(ctrl, 1.0, np.linspace(0.0, 1.0, samples))
 
@@ -346,10 +351,10 @@ def test_free_cells_that_change_replan(graph):
     assert planner.needs_replan((1.0, 3.0), 0, 0.3)
     # and the replan starts where the robot is (its cells are fitted around it), not on the old path
     stamp = 1_500_000_000
-    on_path = bg.path_states(planner.path.control_points, planner.path.tau, np.array([stamp * 1e-9]))[0]
+    on_path = _state_at(planner, stamp * 1e-9)
     near = on_path[:2] + (0.0, 0.5 * planner.tube)
     assert planner.plan(near, (0.0, 0.0), stamp_ns=stamp) is not None
-    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    start = _state_at(planner, 0.0)
     assert np.allclose(start, [near[0], near[1], 0.0, 0.0])
 
 
@@ -358,17 +363,17 @@ def test_a_replan_starts_where_the_path_is_while_the_robot_keeps_to_its_tube(gra
     planner.set_goal((5.0, 3.0), 0.1)
     assert planner.plan((1.0, 3.0), (0.0, 0.0), stamp_ns=0) is not None
     stamp = 1_500_000_000
-    on_path = bg.path_states(planner.path.control_points, planner.path.tau, np.array([stamp * 1e-9]))[0]
+    on_path = _state_at(planner, stamp * 1e-9)
     assert math.hypot(*on_path[2:]) > 0.05  # under way: the stitch keeps its speed
     near = on_path[:2] + (0.0, 0.8 * planner.tube)
     assert planner.plan(near, (0.0, 0.0), stamp_ns=stamp) is not None
     first = planner.path.control_points[0]
-    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    start = _state_at(planner, 0.0)
     assert np.allclose(first[0], on_path[:2]) and np.allclose(start[2:], on_path[2:])
     # off by more than the tube: the robot's own state
-    far = bg.path_states(planner.path.control_points, planner.path.tau, np.array([1.0]))[0, :2] + (0.0, 1.5 * planner.tube)
+    far = _state_at(planner, 1.0)[:2] + (0.0, 1.5 * planner.tube)
     assert planner.plan(far, (0.0, 0.0), stamp_ns=stamp + 1_000_000_000) is not None
-    start = bg.path_states(planner.path.control_points, planner.path.tau, np.array([0.0]))[0]
+    start = _state_at(planner, 0.0)
     assert np.allclose(start, [far[0], far[1], 0.0, 0.0])
 
 

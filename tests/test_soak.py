@@ -416,7 +416,7 @@ def test_a_short_soak_detects_a_stall_and_a_flood_and_leaves_no_process(tmp_path
     # the twin ran the whole soak (17 s after arming): at 0.6-0.9 of real time on a loaded 2-core host
     assert summary["metrics"]["mode"] == "realtime" and summary["metrics"]["sim_time_s"] > 17.0 * 0.5
     # the recorder took the twin's 1 kHz IMU through the soak (the twin's pace is the host's)
-    assert summary["recorder"]["imu"]["received"] > 0.5 * 1000.0 * summary["metrics"]["sim_time_s"]
+    assert summary["recorder"]["imu"]["received"] > 0.5 * TOPICS["imu"].rate_hz * summary["metrics"]["sim_time_s"]
     # nothing of the run is left: every process carrying its endpoint is gone
     assert sf_processes(summary["run"]["endpoint"]) == []
 

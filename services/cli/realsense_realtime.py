@@ -29,11 +29,11 @@ time, capture to the SDK, and the camera service's own counters.
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 import pickle
 import signal
-import sys
 import tempfile
 import threading
 import time
@@ -54,6 +54,7 @@ SIL_CAMERA = {"width": 424, "height": 240, "fps": 30, "color": True, "color_widt
 SIL_ESTIMATOR = {"vo_history_s": 4.0}
 # The outdoor profile's perception (deploy/config/archer-outdoor.toml), where the user's file says nothing.
 SIL_PERCEPTION = {"segmenter": "color", "pixel_stride": 4}
+log = logging.getLogger("archer.d435_rig")
 RIG_NICE = 0  # deploy/systemd/archer-camera.service's Nice=: the camera service's, as on the robot
 # The drawing stands in for the D435's own hardware, which takes no CPU from the robot's computer: on a
 # busy host it yields to the stack's loops (at Nice 0 it drew beside them on two cores and a fresh-clone
@@ -278,7 +279,7 @@ def _rig_main(conn: Any, model_bytes: bytes, traversable: list[str], seed: int, 
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), DRAW_NICE)  # this thread only (Linux)
         except OSError as exc:
-            print(f"d435 rig: the drawing keeps the rig's priority: {exc}", file=sys.stderr)
+            log.warning("d435 rig: the drawing keeps the rig's priority: %s", exc)
         while not done.is_set():
             if not triggered.wait(0.1):
                 continue
