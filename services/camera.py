@@ -4,7 +4,8 @@ Subscribes: ``state`` (the pose that places each frame in the world), ``phase`` 
 Reads: a D435 over USB, or a recording of one, through librealsense (:mod:`drivers.realsense`,
 ``pip install '.[realsense]'``); a reader thread waits on the SDK. Every frame's sensor
 timestamp is mapped onto the stack's clock (:class:`ClockMap`: librealsense's global time where
-it is plausible, else the least-delayed frame's offset); with ``capture = "apex"``
+it is plausible, else the least-delayed frame's offset, from the first frame that came as it was
+captured rather than from a queue); with ``capture = "apex"``
 the frame captured nearest each apex is kept (:class:`ApexPicker`), and only that one is
 filtered (decimation, spatial) and aligned (colour to depth).
 Computes: the camera's pose at the frame's capture time, the estimate nearest it (moved by
@@ -99,6 +100,7 @@ class CameraService(Service):
         self.frames = 0  # new frames read
         self.apexes = 0  # apex events received
         self.last_offset_ms = 0.0
+        self._said_stale = False
         self._reader = threading.Thread(target=self._read, name="camera-reader", daemon=True)
 
     def _on_phase(self, event: m.PhaseEvent) -> None:
@@ -149,8 +151,9 @@ class CameraService(Service):
             self.frames += 1
             now_ns = self.clock.now_ns()
             stamp_ns = self.clock_map.stamp(raw.sensor_ns, now_ns, raw.domain, time.time_ns() - now_ns)
-            if stamp_ns is None:  # too late to place or to pick for an apex: counted (status: stale_frames)
-                if self.clock_map.stale == 1:  # said once; the count says how many followed
+            if stamp_ns is None:  # too late, or read from a queue before the map settled: counted
+                if self.clock_map.stale == 1 and not self._said_stale:  # said once; the count says how many followed
+                    self._said_stale = True
                     self.log.warning("camera: a frame came more than %.1f s after its capture: dropped",
                                      p.global_time_max_age_s)
                 continue
@@ -233,6 +236,6 @@ class CameraService(Service):
         cam: Any = self.camera
         return {"published": float(self._seq), "apex_missed": float(self.picker.missed), "frames": float(self.frames),
                 "apexes": float(self.apexes), "global_stamps": float(self.clock_map.global_stamps),
-                "stale_frames": float(self.clock_map.stale),
+                "stale_frames": float(self.clock_map.stale), "queued_frames": float(self.clock_map.queued),
                 "apex_offset_ms": self.last_offset_ms,
                 "repeats": float(cam.repeats if cam else 0), "unpaired": float(cam.unpaired if cam else 0)}

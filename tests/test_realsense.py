@@ -85,14 +85,33 @@ def test_modes_units_and_error_model() -> None:
 def test_clock_map_takes_the_least_delayed_frame_and_restarts_when_the_sensor_clock_jumps() -> None:
     cm = ClockMap(window=3, min_latency_ns=1_000_000)
     base = 10**12
-    assert cm.stamp(5_000_000, base + 20_000_000) == base + 5_000_000 + 19_000_000 - 5_000_000
-    # a quicker frame lowers the offset; every stamp is sensor + offset
+    assert cm.stamp(5_000_000, base + 20_000_000) is None  # one frame: queued or fresh, nobody can say
+    # 25 ms after it, 33 ms captured after it: it waited for its capture. Every stamp is sensor + offset,
+    # the least delay of the window (this quicker frame's) less the latency no frame beats
     assert cm.stamp(38_000_000, base + 45_000_000) == base + 38_000_000 + 6_000_000
     for k in range(3):  # the quick frame leaves the window: the offset rises again
         s = 71_000_000 + 33_000_000 * k
         stamp = cm.stamp(s, base + s + 30_000_000)
     assert stamp == base + s + 29_000_000
-    assert cm.stamp(1_000_000, base + 500_000_000) == base + 499_000_000  # sensor clock went back: restart
+    assert cm.stamp(1_000_000, base + 500_000_000) is None  # sensor clock went back: the map restarts
+    assert cm.stamp(34_000_000, base + 530_000_000) == base + 34_000_000 + 495_000_000
+    assert cm.queued == 2
+
+
+def test_frames_read_from_a_queue_wait_until_one_comes_as_captured() -> None:
+    """A camera that streamed before its reader came: the queued frames are read back to back, each
+    delayed by its own wait, so the least delay among them is no offset at all. They are refused
+    (counted); the first frame read no sooner than half the camera's spacing after the one before
+    waited for its capture, and from it on frames are placed, with its delay as the offset."""
+    cm = ClockMap(window=300, min_latency_ns=0)
+    base, spacing = 10**12, 33_000_000
+    read = base + 16 * spacing  # the reader starts: sixteen frames wait in the queue
+    for k in range(16):
+        assert cm.stamp(base + k * spacing, read + k * 200_000) is None  # 0.2 ms apart
+    fresh = base + 16 * spacing
+    assert cm.stamp(fresh, fresh + 4_000_000) is None  # might have been queued a moment too
+    assert cm.stamp(fresh + spacing, fresh + spacing + 3_000_000) == fresh + spacing + 3_000_000
+    assert (cm.queued, cm.settled) == (17, True)
 
 
 def test_a_cameras_global_time_is_its_capture_time_however_late_up_to_the_bound() -> None:
@@ -105,9 +124,11 @@ def test_a_cameras_global_time_is_its_capture_time_however_late_up_to_the_bound(
     assert cm.stamp(wall + base - 2_500_000_000, receive, GLOBAL_TIME, wall) is None  # the first frame, 3.4 s late
     assert cm.stamp(wall + base + 100_000_000, receive, GLOBAL_TIME, wall) == base + 100_000_000  # drawn 0.8 s late
     assert (cm.global_stamps, cm.stale) == (1, 1)
-    ahead = cm.stamp(wall + receive + 5_000_000, receive, GLOBAL_TIME, wall)
-    assert ahead == receive - 1_000_000  # no future stamp: the offset's first frame, its own delay
-    assert (cm.global_stamps, cm.stale) == (1, 1)
+    # no future stamp: through the offset, which a first frame cannot set (it may have been queued)
+    assert cm.stamp(wall + receive + 5_000_000, receive, GLOBAL_TIME, wall) is None
+    ahead = cm.stamp(wall + receive + 38_000_000, receive + 33_000_000, GLOBAL_TIME, wall)
+    assert ahead == receive + 33_000_000 - 1_000_000  # the offset: its own delay, -5 ms, less the latency
+    assert (cm.global_stamps, cm.stale, cm.queued) == (1, 1, 1)
 
 
 def test_a_recordings_global_times_go_through_the_offset() -> None:

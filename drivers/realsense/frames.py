@@ -45,6 +45,13 @@ class ClockMap:
     returns None, counted in ``stale``). A global time in the future (the wall clock stepped), and
     every frame of a recording played back (its global times are the day it was recorded), go
     through the offset as any other.
+
+    A live camera's frames are placed by the offset only once the map has seen one come no sooner than
+    half its sensor spacing after the one before (``settled``): that frame waited for its capture, not
+    in a queue. Frames read from a queue at the stream's start (a camera that streamed before the
+    reader came, a reader held up) all carry a delay of their own; placing them by the least of those
+    put a frame captured 0.9 s before an apex at the apex. Until then :meth:`stamp` returns None,
+    counted in ``queued``. A recording played back (not ``live``) is placed from its first frame.
     """
 
     def __init__(self, window: int, min_latency_ns: int, global_max_age_ns: int = 0, live: bool = True) -> None:
@@ -55,13 +62,16 @@ class ClockMap:
         self._global_max_age_ns = global_max_age_ns
         self._live = live
         self._last_sensor_ns: int | None = None
+        self._last_receive_ns = 0
+        self.settled = not live
         self.global_stamps = 0  # frames stamped by their global time
         self.stale = 0  # frames delivered later than the bound
+        self.queued = 0  # frames read before the map settled
 
     def stamp(self, sensor_ns: int, receive_ns: int, domain: str = "", wall_minus_stack_ns: int = 0) -> int | None:
         """The capture time on the stack's clock of a frame stamped ``sensor_ns`` in ``domain``, received
-        at ``receive_ns`` (None: a camera's frame delivered too late); ``wall_minus_stack_ns``: the
-        host's wall clock less the stack's, at receipt.
+        at ``receive_ns`` (None: a camera's frame delivered too late, or read before the map settled);
+        ``wall_minus_stack_ns``: the host's wall clock less the stack's, at receipt.
 
         A sensor clock that goes back (a camera reset, a recording played again) restarts the map.
         """
@@ -75,8 +85,15 @@ class ClockMap:
                 return capture_ns
         if self._last_sensor_ns is not None and sensor_ns < self._last_sensor_ns:
             self._gaps.clear()
-        self._last_sensor_ns = sensor_ns
+            self._last_sensor_ns = None
+            self.settled = not self._live
+        if not self.settled and self._last_sensor_ns is not None:
+            self.settled = 2 * (receive_ns - self._last_receive_ns) >= sensor_ns - self._last_sensor_ns
+        self._last_sensor_ns, self._last_receive_ns = sensor_ns, receive_ns
         self._gaps.append(receive_ns - sensor_ns)
+        if not self.settled:
+            self.queued += 1
+            return None
         return sensor_ns + min(self._gaps) - self._min_latency_ns
 
 
