@@ -35,7 +35,7 @@ from threadpoolctl import threadpool_limits
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import DepthImage
 from onboard.geometry import quaternion as quat
-from onboard.contracts.params import (CameraParams, ControlParams, EstimatorParams, PerceptionParams, SafetyLimits, TwinParams,
+from onboard.contracts.params import (ControlParams, EstimatorParams, SafetyLimits, TwinParams,
                                       with_overrides)
 from onboard.contracts.topics import TOPICS
 from robot_description import params as rd
@@ -175,11 +175,8 @@ class LockstepRunner:
 
             self.visual_odometry = ApexVisualOdometry(self.model, self.scenario.traversable, cfg.variant, estimator_params,
                                                       cfg.twin, cfg.seed, perception=cfg.perception_params)
-        perception_params = cfg.perception_params
-        if self.visual_odometry is not None and perception_params is not None:
-            perception_params = stand_in_stride(perception_params, cfg.twin, CameraParams())
         self.planner = perception_plug.make_planner(cfg.planner, cfg.perception, self.scenario, self.robot, cfg.planner_params,
-                                                    perception_params)
+                                                    cfg.perception_params)
         if cfg.world is not None:
             if not isinstance(self.planner, st.GraphPlannerPlug) or isinstance(self.planner, perception_plug.PerceivedGraphPlannerPlug):
                 raise ValueError("a world source feeds the graph planner on ground truth (--planner graph, --perception truth)")
@@ -248,9 +245,13 @@ class LockstepRunner:
         vo = self.visual_odometry
         planner_feed = getattr(planner, "feed", None)
         perceives = isinstance(planner, perception_plug.PerceivedGraphPlannerPlug)
-        sensor_feed = planner_feed if perceives else None  # a perceiving planner eats the depth images
+        # A perceiving planner eats the depth images: the D435's apex frames, depth and colour, where the
+        # robot carries one (onboard sensing), as the camera service hands them to perception on the
+        # robot; else the twin's stand-in depth camera, as the twin service publishes it.
+        apex_frames = vo is not None and perceives
+        sensor_feed = planner_feed if perceives and not apex_frames else None
         # ray casting nobody reads is skipped (only a perceiving planner or a recording reads depth)
-        sensors.capture_depth = record or perceives
+        sensors.capture_depth = record or sensor_feed is not None
         # The low level's tube reaches the planner at the topic's rate (the contract check).
         tube_ns = int(NS / TOPICS["tube"].rate_hz) if planner_feed is not None and hasattr(controller, "tube") else 0
         next_tube_ns = tube_ns
@@ -308,7 +309,10 @@ class LockstepRunner:
                 planner_feed("tube", controller.tube(now_ns))
             phase = controller.drain_phase_events()
             if vo is not None and any(ev.event == "apex" for ev in phase):
-                vo.on_apex(now_ns, data, state, self.truth.estimate(now_ns, data).position)
+                frame = vo.on_apex(now_ns, data, state, self.truth.estimate(now_ns, data).position)
+                if apex_frames and frame is not None:
+                    planner_feed("color", frame[1])
+                    planner_feed("depth", frame[0])
             trips = controller.drain_safety_events()
             phase_events += len(phase)
             safety_events += len(trips)
@@ -403,16 +407,9 @@ def _as_estimated(img: DepthImage, truth: m.StateEstimate, est: m.StateEstimate)
     cam_pos = np.array([e + o for e, o in zip(est.position, offset)])
     cam_quat = np.array(quat.normalize(quat.mul(rel_q, list(img.cam_quat))))
     return DepthImage(img.depth, img.fx, img.fy, img.cx, img.cy, cam_pos, cam_quat, img.stamp_ns, img.seq)
+
+
 DRIFT_EVERY_TICKS = 10  # drift and distance sampled every 10 ms of a 1 kHz run
-
-
-def stand_in_stride(perception: PerceptionParams, twin: TwinParams, camera: CameraParams) -> PerceptionParams:
-    """Perception's parameters for the twin's stand-in depth image (``twin.depth_width``), from those written for
-    the D435 frame the robot's perception reads (``camera.width / camera.decimation``; the VO and the segmenter's
-    score read that one in lockstep too): ``pixel_stride`` scaled by the widths, so that the stand-in is read as
-    densely as the robot reads its camera (``archer-outdoor``'s 4 on 424 px is 1 on 64 px, not 16 x 12 points)."""
-    scale = twin.depth_width / (camera.width / camera.decimation)
-    return with_overrides(perception, {"pixel_stride": max(1, round(perception.pixel_stride * scale))})
 
 
 class SimulationError(RuntimeError):

@@ -24,6 +24,8 @@ Shared by the lockstep runner and the real-time twin service. Definitions:
   ``collision_events`` lists each with its time, who moved, the robot's tilt at that contact and the
   seconds since an obstacle last came at it, so a robot knocked over by one mover and falling into
   another can be read apart from one that walked into it (movers only);
+- ``keep_out_touchdowns``: touchdowns with the foot on ground the scenario keeps the robot off (a
+  sidewalk's grass, ``Scenario.keep_out``; no geom, so no contact says so), where it has any;
 - tracking errors: horizontal distance between the true CoM and the active reference evaluated at
   the same time, at every touchdown (``rms_/max_tracking_error_m``, the issue-4 definition) and over
   the whole run sampled every ``TRACE_EVERY`` ticks (``*_continuous_m``);
@@ -174,6 +176,10 @@ class PhysicsMetrics:
         self.trace = Trace()
         self.ticks = 0
         self.hops = self.falls = self.recoveries = self.collisions = 0
+        # ground the robot must not hop on (a sidewalk's grass): no geom to collide with, so its touchdowns are counted
+        self._keep_out = [(np.array(p.A, dtype=float), np.array(p.b, dtype=float)) for p in (o.polytope() for o in scenario.keep_out)]
+        self._foot_body = model.body(rd.FOOT).id
+        self.keep_out_touchdowns = 0
         self.collisions_by_robot = self.collisions_by_obstacle = 0
         goal = scenario.goal()
         self._goal_tol = goal.tolerance if goal is not None else sc.GOAL_TOLERANCE
@@ -217,6 +223,10 @@ class PhysicsMetrics:
         if foot_ground and not self._on_ground:
             if self._airborne_since and t - self._airborne_since >= MIN_FLIGHT_S:
                 self.hops += 1
+            if self._keep_out:
+                foot = data.xpos[self._foot_body, :2]
+                if any(bool(np.all(a @ foot <= b)) for a, b in self._keep_out):
+                    self.keep_out_touchdowns += 1
             if self._aerial_turns:
                 self.turn_max = max(self.turn_max, self._turned)
                 if self._turned >= TURN_REPORTED:
@@ -352,6 +362,7 @@ class PhysicsMetrics:
             "fall_time_s": None if math.isnan(self.fall_time) else round(self.fall_time, 4),
             "fall_reason": self.fall_reason,
             "collisions": self.collisions,
+            **({"keep_out_touchdowns": self.keep_out_touchdowns} if self._keep_out else {}),
             # who moved: only where obstacles move (a static world's collisions are all the robot's)
             **({"collisions_by_robot": self.collisions_by_robot, "collisions_by_obstacle": self.collisions_by_obstacle,
                 "collision_events": self.collision_events}

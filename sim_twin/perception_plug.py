@@ -2,7 +2,8 @@
 twin's depth camera, instead of the scenario's ground-truth obstacles.
 
 Depth images are fused as the sensors deliver them (with the robot's estimated
-position); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
+position), each with the colour image of its stamp where one came first (the D435's
+apex frames: ``color`` then ``depth``); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
 ``perception.mode = "free"``) replace the planner's world, which makes it replan. Before
 the first view the planner knows no obstacle at all; in obstacle mode it then commits the
 robot nowhere (``onboard.high_level.planning.seen_space``).
@@ -11,6 +12,7 @@ robot nowhere (``onboard.high_level.planning.seen_space``).
 from __future__ import annotations
 
 from onboard.contracts import messages as m
+from onboard.contracts.binary_messages import ColorImage, DepthImage
 from onboard.contracts.params import PerceptionParams
 from onboard.perception.pipeline import PerceptionLoop
 from onboard.high_level.planning.seen_space import SeenSpace
@@ -36,10 +38,19 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
         self._xy: tuple[float, float] = scenario.start
         self._goal = scenario.target()
         self.polygons = 0
+        self._color: ColorImage | None = None
+        self.views_with_color = 0
 
     def feed(self, topic: str, msg: object) -> None:
-        if topic == "depth":
-            self.loop.feed(msg, self._xy)  # type: ignore[arg-type]
+        if topic == "color":
+            assert isinstance(msg, ColorImage)
+            self._color = msg
+        elif topic == "depth":
+            assert isinstance(msg, DepthImage)
+            color = self._color.rgb if self._color is not None and self._color.stamp_ns == msg.stamp_ns else None
+            self._color = None
+            if self.loop.feed(msg, self._xy, color) and color is not None:
+                self.views_with_color += 1
         else:
             super().feed(topic, msg)
 

@@ -558,6 +558,8 @@ class Sidewalk(Scenario):
     X_RANGE = (1.2, 5.5)  # [m] obstacle centres along the sidewalk
     GAP = 0.45  # [m] free gap kept beside every obstacle (the robot is 0.26 m wide)
     GOAL_BEFORE_END = 0.5  # [m]
+    VERGE = 3.0  # [m] of grass kept out of beside the kerbs
+    END_GRASS = 1.0  # [m] of grass kept out of past either end of the paving
 
     def setup(self, obstacles: int | None) -> None:
         count = self.DEFAULT_COUNT if obstacles is None else obstacles
@@ -574,10 +576,12 @@ class Sidewalk(Scenario):
             self.terrain.append((f"kerb_{side}", {"type": mujoco.mjtGeom.mjGEOM_BOX, "size": [(x1 - x0) / 2, kw / 2, (slab + kh) / 2],
                                                   "pos": [(x0 + x1) / 2, sign * (w + kw / 2), (slab + kh) / 2]}))
             self.colors[f"kerb_{side}"] = self.KERB_RGBA
-            # the verge beyond the kerb: keep out (as far as the planner is concerned, a wall)
-            y_in, y_out = sign * w, sign * (w + 3.0)
-            self.keep_out.append(Obstacle(_ccw_hull(np.array([[x0 - 1.0, y_in], [x1 + 1.0, y_in], [x1 + 1.0, y_out],
-                                                              [x0 - 1.0, y_out]]))))
+        # the grass round the paving: keep out (as far as the planner is concerned, walls). The verges
+        # beyond the kerbs, and the grass past either end of the paving: with open ends, a planner that
+        # found no way between the posts went round the verges across the grass behind the start.
+        a, b, wide = x0 - self.END_GRASS, x1 + self.END_GRASS, w + self.VERGE
+        for x_lo, y_lo, x_hi, y_hi in ((a, w, b, wide), (a, -wide, b, -w), (a, -w, x0, w), (x1, -w, b, w)):
+            self.keep_out.append(Obstacle(_ccw_hull(np.array([[x_lo, y_lo], [x_hi, y_lo], [x_hi, y_hi], [x_lo, y_hi]]))))
         placed: list[tuple[float, float, float]] = []
         tries = 0
         while len(placed) < count:

@@ -3,7 +3,9 @@ odometry (:mod:`onboard.perception.visual_odometry`), into the estimator with it
 
 As the camera service does on the robot: one frame a hop, the one at the apex, at the published
 size (the D435's depth mode over the SDK's decimation), placed by the estimate (its attitude and
-the MJCF's camera mount), never by the truth. The displacement reaches the estimator
+the MJCF's camera mount), never by the truth. The same frame, depth and colour, is what a
+perceiving planner fuses (:meth:`ApexVisualOdometry.on_apex` returns it), as the perception
+service fuses the camera service's. The displacement reaches the estimator
 ``TwinParams.vo_latency_s`` after the frame's capture, stamped with the two frames' capture times.
 
 Beside the counts (pairs used, refused by reason, fused or gated by the estimator) the report
@@ -22,7 +24,7 @@ import mujoco
 import numpy as np
 
 from onboard.contracts import messages as m
-from onboard.contracts.binary_messages import DepthImage
+from onboard.contracts.binary_messages import ColorImage, DepthImage
 from onboard.contracts.params import CameraParams, EstimatorParams, PerceptionParams, TwinParams
 from onboard.geometry import quaternion as quat
 from onboard.perception.visual_odometry import VisualOdometry, VoFrame
@@ -58,10 +60,12 @@ class ApexVisualOdometry:
         self.segmenter = SEGMENTERS[pp.segmenter](pp)
         self.segmentation = Score()
 
-    def on_apex(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate, true_com: list[float]) -> None:
-        """Render the frame at this apex, place it by the estimate, and run the VO on it."""
+    def on_apex(self, now_ns: int, data: mujoco.MjData, state: m.StateEstimate,
+                true_com: list[float]) -> tuple[DepthImage, ColorImage] | None:
+        """Render the frame at this apex, place it by the estimate, and run the VO on it; the frame
+        (None: no estimate could place it)."""
         if not state.attitude_valid:
-            return  # nothing can place the frame (the camera service refuses it too)
+            return None  # nothing can place the frame (the camera service refuses it too)
         frame = self.camera.render(data)
         self.frames += 1
         q = quat.normalize(state.quat)
@@ -70,12 +74,18 @@ class ApexVisualOdometry:
         vf = VoFrame(now_ns, frame.rgb, frame.depth, self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy,
                      (cam_quat[0], cam_quat[1], cam_quat[2], cam_quat[3]), (lever[0], lever[1], lever[2]))
         cam_pos = [p - v for p, v in zip(state.position, lever)]  # the optical centre where the estimate puts it
-        img = DepthImage(frame.depth, self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy, cam_pos, list(cam_quat), now_ns)
+        intrinsics = (self.cam.fx, self.cam.fy, self.cam.cx, self.cam.cy)
+        img = DepthImage(frame.depth, *intrinsics, np.array(cam_pos), np.array(cam_quat), now_ns, self.frames)
+        rgb = ColorImage(frame.rgb, *intrinsics, img.cam_pos, img.cam_quat, now_ns, self.frames)
         score_frame(self.segmenter, img, frame, (state.position[0], state.position[1]), self.segmentation)
         self._truth[now_ns] = (np.array(true_com[:2], dtype=float), np.array(state.position[:2], dtype=float))
         delta = self.vo.step(vf)
-        if delta is None:
-            return
+        if delta is not None:
+            self._track(now_ns, delta)
+        return img, rgb
+
+    def _track(self, now_ns: int, delta: m.VisualOdometryDelta) -> None:
+        """Queue the displacement for the estimator; its error against the truth's."""
         self._queue.append((now_ns + self.latency_ns, delta))
         first = self._truth.get(delta.from_stamp_ns)
         if first is not None:

@@ -246,3 +246,21 @@ def test_the_summary_spreads_the_time_to_goal_of_the_runs_that_got_there() -> No
     hop = record(3, None)
     del hop["report"]["time_to_goal_s"]  # hopping in place has no goal to go to
     assert "time_to_goal_s" not in summarize([hop])["groups"][0]
+
+
+def test_a_run_that_hopped_on_the_grass_is_no_success() -> None:
+    """The grass beside a sidewalk has no geom to collide with: a run that reached its goal with a
+    touchdown on it is counted among the runs on kept-off ground, and not as a success."""
+    def record(seed: int, on_grass: int) -> dict:
+        report = {"goal_reached": True, "collisions": 0, "falls": 0, "final_goal_error_m": 0.01,
+                  "rms_tracking_error_m": 0.02, "realtime_factor": 5.0, "sim_time_s": 60.0,
+                  "keep_out_touchdowns": on_grass}
+        return {"spec": {"scenario": "sidewalk", "seed": seed, "variant": "outdoor", "options": {}}, "report": report}
+
+    summary = summarize([record(0, 0), record(1, 3), record(2, 0)])
+    (group,) = summary["groups"]
+    assert group["successes"] == 2 and group["runs_on_keep_out"] == 1 and group["keep_out_touchdowns"] == 3
+    assert "1 runs touched down on ground kept off (3 touchdowns)" in table(summary)
+    forest = record(3, 0)
+    del forest["report"]["keep_out_touchdowns"]  # nothing kept off in the forest
+    assert "runs_on_keep_out" not in summarize([forest])["groups"][0]

@@ -18,6 +18,7 @@ from onboard.perception.segmentation import (
     IGNORE,
     OCCUPIED,
     TRAVERSABLE,
+    UNTRAVERSABLE,
     Cloud,
     GeometricSegmenter,
     MaskSegmenter,
@@ -127,7 +128,7 @@ def test_learned_segmenter_plugs_in():
     seg = MaskSegmenter(lambda cloud: np.abs(cloud.points[..., 1]) < 0.5, PARAMS)
     labels = seg.segment(Cloud(pts, valid, img.cam_pos))
     assert np.all(labels[valid & (np.abs(pts[..., 1]) < 0.5)] == TRAVERSABLE)
-    assert np.all(labels[valid & (np.abs(pts[..., 1]) > 0.5)] == OCCUPIED)
+    assert np.all(labels[valid & (np.abs(pts[..., 1]) > 0.5)] == UNTRAVERSABLE)  # the floor outside the mask
     with pytest.raises(ValueError, match="mask"):
         MaskSegmenter(lambda cloud: np.ones((2, 2), dtype=bool)).segment(Cloud(pts, valid, img.cam_pos))
     # The perception chain takes it like the geometric default.

@@ -198,3 +198,38 @@ def test_the_600_cell_maze_joins_start_and_goal_with_room_for_the_robot(seed: in
                 frontier.append((a, b))
     assert goal in seen
     assert len(seen) > 0.9 * GridMaze.COLUMNS * GridMaze.ROWS  # nearly every cell is reachable, not just one corridor
+
+
+def test_the_sidewalks_grass_is_kept_off_all_round_the_paving() -> None:
+    """The keep-out ground rings the paving: a step off it past a kerb, or past either end, lands in it
+    (with open ends a planner that found no way between the posts went round the verges across the
+    grass behind the start); the paving itself is in none."""
+    scn = sc.make("sidewalk", seed=1)
+    zones = [(np.array(p.A), np.array(p.b)) for p in (o.polytope() for o in scn.keep_out)]
+
+    def kept_off(x: float, y: float) -> bool:
+        return any(np.all(a @ np.array([x, y]) <= b + 1e-9) for a, b in zones)
+
+    w, x0, x1 = sc.Sidewalk.HALF_WIDTH, -1.0, sc.Sidewalk.LENGTH
+    for x in np.linspace(x0 + 0.01, x1 - 0.01, 30):
+        assert kept_off(x, w + 0.05) and kept_off(x, -w - 0.05) and not kept_off(x, 0.0)
+    for y in np.linspace(-w, w, 10):
+        assert kept_off(x0 - 0.05, y) and kept_off(x1 + 0.05, y)
+        assert not kept_off(scn.start[0], y * 0.9) and not kept_off(scn.target()[0], y * 0.9)
+
+
+def test_touchdowns_on_the_grass_are_counted() -> None:
+    """No geom marks the grass, so no contact does: the metrics count the touchdowns whose foot lands
+    in the keep-out ground. The robot hopping in place on the verge: every one; on the paving: none."""
+    from sim_twin.lockstep import LockstepRunner, RunConfig
+
+    def touchdowns(y_offset: float) -> tuple[int, int]:
+        runner = LockstepRunner(RunConfig(scenario="sidewalk", seed=1, duration_s=2.0, variant="outdoor"))
+        runner.data.qpos[1] += y_offset  # the free joint's y: moved before the first step
+        m = runner.run().metrics
+        return m["hops"], m["keep_out_touchdowns"]
+
+    hops, on_grass = touchdowns(-1.5)
+    assert hops >= 3 and on_grass >= hops
+    hops, on_grass = touchdowns(0.0)
+    assert hops >= 3 and on_grass == 0

@@ -453,11 +453,12 @@ def bfs_labels(tflat, flat, rows, cols):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def carve(cu, cv, eu, ev, include_end, rows, cols, seen_free):  # pragma: no cover - compiled
+def carve(cu, cv, eu, ev, include_end, stoppable, stop, rows, cols, seen_free):  # pragma: no cover - compiled
     """Mark the cells a 2D ray from ``(cu, cv)`` to each ``(eu[i], ev[i])`` passes over.
 
     Cell units. Cells strictly before the end cell are marked, the end cell too when
-    ``include_end[i]`` (a ground return). Amanatides-Woo grid traversal.
+    ``include_end[i]`` (a ground return); a ray with ``stoppable[i]`` ends at the first cell
+    ``stop`` holds. Amanatides-Woo grid traversal.
     """
     for i in range(eu.shape[0]):
         x, y = cu, cv
@@ -476,6 +477,8 @@ def carve(cu, cv, eu, ev, include_end, rows, cols, seen_free):  # pragma: no cov
             if at_end and not include_end[i]:
                 break
             if 0 <= r < rows and 0 <= c < cols:
+                if stoppable[i] and stop[r, c]:
+                    break
                 seen_free[r, c] = True
             if at_end:
                 break

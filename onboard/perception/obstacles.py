@@ -4,8 +4,13 @@ Each 8-connected group of occupied cells becomes one convex polygon that contain
 of its cell squares: the convex hull of the squares (``method="hull"``) or the
 minimum-area rectangle around them (``method="rect"``, what the thesis fitted with
 OpenCV). A group that fills too little of its hull (an L-shaped wall, a ring of trees
-seen as one blob) is split with K-means into pieces that are each hulled, so the
-obstacles do not swallow the free space between their arms.
+seen as one blob), or leaves more than ``obstacle_slack_m2`` of it empty, is split with
+K-means into pieces that are each hulled, so the obstacles do not swallow the free space
+between their arms: the grass round a sidewalk, seen from its start, is one U-shaped blob
+whose hull held the whole paving. The largest groups are split first, within
+``obstacles_max`` splits; first the mask is closed over single cells (a gap of one cell
+is no way for any robot, and far terrain seen at the pixel stride came as hundreds of
+specks, each its own group).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon
 
 _SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.int32)
+_CLOSE = np.ones((3, 3), np.uint8)  # closes gaps of one cell
 
 
 def obstacles_from_mask(
@@ -31,7 +37,8 @@ def obstacles_from_mask(
     """
     if params.obstacle_method not in ("hull", "rect"):
         raise ValueError(f"obstacle_method must be 'hull' or 'rect', got {params.obstacle_method!r}")
-    occ = np.ascontiguousarray(occupied, dtype=np.uint8)
+    # OpenCV's default border: off the grid is no hindrance to either pass, so no cell is lost at the edge
+    occ = cv2.morphologyEx(np.ascontiguousarray(occupied, dtype=np.uint8), cv2.MORPH_CLOSE, _CLOSE)
     n, labels = cv2.connectedComponents(occ, connectivity=8)
     if n <= 1:
         return []
@@ -39,12 +46,14 @@ def obstacles_from_mask(
     lab = labels[rr, cc]
     order = np.argsort(lab, kind="stable")
     groups = np.split(order, np.cumsum(np.bincount(lab, minlength=n))[:-1])[1:]
+    groups.sort(key=len, reverse=True)
     cells = np.column_stack([cc, rr]).astype(np.int32)  # lower-left corners, cell units
     rng = np.random.default_rng(params.seed)
     pieces: list[np.ndarray] = []
-    budget = params.obstacles_max - len(groups)
+    budget = params.obstacles_max
+    slack_cells = params.obstacle_slack_m2 / (res * res)
     for g in groups:
-        budget = _split(cells[g], params, params.obstacle_split_depth, budget, pieces, rng)
+        budget = _split(cells[g], params, slack_cells, params.obstacle_split_depth, budget, pieces, rng)
     o = np.asarray(origin, dtype=float)
     out = []
     for corners in pieces:
@@ -62,16 +71,17 @@ def _squares_hull_area(cells: np.ndarray) -> float:
     return float(cv2.contourArea(hull)) + float(hi[0] - lo[0]) + float(hi[1] - lo[1]) + 1.0
 
 
-def _split(cells: np.ndarray, params: PerceptionParams, depth: int, budget: int, out: list[np.ndarray],
-           rng: np.random.Generator) -> int:
+def _split(cells: np.ndarray, params: PerceptionParams, slack_cells: float, depth: int, budget: int,
+           out: list[np.ndarray], rng: np.random.Generator) -> int:
     """Append ``cells`` (int lower-left corners) or its K-means halves to ``out``; returns the budget left."""
     if depth > 0 and budget > 0 and len(cells) >= params.obstacle_split_min_cells:
-        if len(cells) < params.obstacle_solidity_min * _squares_hull_area(cells):
+        hull = _squares_hull_area(cells)
+        if len(cells) < params.obstacle_solidity_min * hull or hull - len(cells) > slack_cells:
             lab = kmeans_labels(cells, 2, rng)
             if 0 < int(lab.sum()) < len(lab):
                 budget -= 1
-                budget = _split(cells[lab == 0], params, depth - 1, budget, out, rng)
-                return _split(cells[lab == 1], params, depth - 1, budget, out, rng)
+                budget = _split(cells[lab == 0], params, slack_cells, depth - 1, budget, out, rng)
+                return _split(cells[lab == 1], params, slack_cells, depth - 1, budget, out, rng)
     out.append(cells)
     return budget
 

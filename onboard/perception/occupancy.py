@@ -1,9 +1,15 @@
 """World-frame occupancy grid fused over views, with decay (thesis 3336: vertical binning).
 
 Labelled points are binned vertically into square cells. Each view adds evidence:
-``+hit`` to a cell holding at least ``min_points_per_cell`` obstacle points, ``-miss`` to a cell seen as ground (a
-ground return in it, or a ray passing over it on its way to a return within the
-carving range). Evidence saturates at ``+-evidence_max``; cells a view does not see
+``+hit`` to a cell holding at least ``min_points_per_cell`` obstacle points, or as many returns of
+untraversable ground (grass beside the path) and more of them than of traversable ground (one
+return was enough once, and paving misjudged at 4 m came out as specks in the way); ``-miss`` to a cell seen as ground (a ground return in it, or a ray
+passing over it on its way to a return within the carving range; one on its way to untraversable
+ground only up to ground known untraversable, or an obstacle), unless it holds a return of
+untraversable ground: a ray passing over flat ground says nothing of what that ground is. A cell
+last hit as untraversable ground is freed by its own traversable returns only, never by a ray
+passing over it (at the perception's pixel stride a distant cell of grass holds a return in one
+view and none in the next; the rays to the grass beyond it then carved it free). Evidence saturates at ``+-evidence_max``; cells a view does not see
 fade to unknown with a half-life, so what moved away is forgotten. The grid follows
 the robot by whole cells, so it stays aligned with the world axes.
 
@@ -26,7 +32,7 @@ import numpy as np
 from onboard.contracts.binary_messages import CELL_FREE, CELL_OCCUPIED, CELL_UNKNOWN, OccupancyGrid
 from onboard.contracts.params import PerceptionParams
 from onboard.perception import _kernels as K
-from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE
+from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, UNTRAVERSABLE
 
 
 class OccupancyMap:
@@ -39,6 +45,7 @@ class OccupancyMap:
         self.res = params.resolution_m
         n = params.grid_cells
         self.evidence = np.zeros((n, n), dtype=np.float32)
+        self.terrain = np.zeros((n, n), dtype=bool)  # last hit as untraversable ground (see the module docstring)
         half = 0.5 * n * self.res
         self.origin = (self._snap(centre[0] - half), self._snap(centre[1] - half))
         self.last_stamp_s: float | None = None
@@ -65,14 +72,18 @@ class OccupancyMap:
         n = self.params.grid_cells
         dc = int(round((x - cx) / self.res))
         dr = int(round((y - cy) / self.res))
-        shifted = np.zeros_like(self.evidence)
         src_r = slice(max(dr, 0), n + min(dr, 0))
         dst_r = slice(max(-dr, 0), n + min(-dr, 0))
         src_c = slice(max(dc, 0), n + min(dc, 0))
         dst_c = slice(max(-dc, 0), n + min(-dc, 0))
-        if abs(dr) < n and abs(dc) < n:
-            shifted[dst_r, dst_c] = self.evidence[src_r, src_c]
-        self.evidence = shifted
+
+        def shifted(layer: np.ndarray) -> np.ndarray:
+            out = np.zeros_like(layer)
+            if abs(dr) < n and abs(dc) < n:
+                out[dst_r, dst_c] = layer[src_r, src_c]
+            return out
+
+        self.evidence, self.terrain = shifted(self.evidence), shifted(self.terrain)
         self.origin = (self.origin[0] + dc * self.res, self.origin[1] + dr * self.res)
         return True
 
@@ -101,20 +112,28 @@ class OccupancyMap:
         inside = fin & (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
         c = np.where(inside, u, 0).astype(np.intp)
         r = np.where(inside, v, 0).astype(np.intp)
+        def per_cell(label: int) -> np.ndarray:
+            at = inside & (labels == label)
+            return np.bincount(r[at] * cols + c[at], minlength=rows * cols).reshape(rows, cols)
+
+        counts, on_ground, off_ground = per_cell(OCCUPIED), per_cell(TRAVERSABLE), per_cell(UNTRAVERSABLE)
         # Vertical binning: a real obstacle puts a column of returns into its cell, a
         # noisy ground return only one, so a cell needs a few obstacle points per view.
-        hit = inside & (labels == OCCUPIED)
-        counts = np.bincount(r[hit] * cols + c[hit], minlength=rows * cols).reshape(rows, cols)
-        occ = counts >= p.min_points_per_cell
-        ground = np.zeros(self.shape, dtype=bool)
-        ground[r[inside & (labels == TRAVERSABLE)], c[inside & (labels == TRAVERSABLE)]] = True
-        # Rays over the ground to every return within the carving range.
+        off_hit = (off_ground >= p.min_points_per_cell) & (off_ground > on_ground)
+        occ = (counts >= p.min_points_per_cell) | off_hit
+        self.terrain[off_hit] = True
+        self.terrain[on_ground > off_ground] = False
+        ground = on_ground > 0
+        # Rays over the ground to every return within the carving range. One to untraversable ground
+        # stops at the first cell known untraversable or occupied: beyond a kerb it passes over cells
+        # the kerb hides, and those, never seen, came out free.
         su, sv = (sensor_xy[0] - ox) / self.res, (sensor_xy[1] - oy) / self.res
         ray = fin & (labels != 0)
         ray &= np.hypot(u - su, v - sv) * self.res <= p.carve_range_m
         if math.isfinite(su) and math.isfinite(sv) and np.any(ray):
-            K.carve(float(su), float(sv), u[ray].astype(float), v[ray].astype(float),
-                    labels[ray] == TRAVERSABLE, rows, cols, ground)
+            stop = self.terrain | occ | (self.evidence >= p.occupied_threshold)
+            K.carve(float(su), float(sv), u[ray].astype(float), v[ray].astype(float), labels[ray] == TRAVERSABLE,
+                    labels[ray] == UNTRAVERSABLE, stop, rows, cols, ground)
         seen = occ | ground
         e = self.evidence
         if self.last_stamp_s is not None and p.decay_half_life_s > 0:
@@ -125,7 +144,7 @@ class OccupancyMap:
         if self.keep_free:
             e[occ] = np.maximum(e[occ], 0.0)
         e[occ] += p.hit_evidence
-        free_now = ground & ~occ
+        free_now = ground & ~occ & (off_ground == 0) & ~(self.terrain & (on_ground == 0))
         e[free_now] -= p.miss_evidence
         np.clip(e, -p.evidence_max, p.evidence_max, out=e)
         if footprint_xy is not None:
@@ -150,7 +169,9 @@ class OccupancyMap:
         su = np.clip((cu + np.outer(tu - cu, t)).astype(np.intp), 0, cols - 1)
         sv = np.clip((cv + np.outer(tv - cv, t)).astype(np.intp), 0, rows - 1)
         clear = ~np.any(self.evidence[sv, su] > 0.0, axis=1)
-        self.evidence[tv[clear].astype(np.intp), tu[clear].astype(np.intp)] = -self.params.evidence_max
+        cleared = tv[clear].astype(np.intp), tu[clear].astype(np.intp)
+        self.evidence[cleared] = -self.params.evidence_max
+        self.terrain[cleared] = False
 
     def clear_disc(self, xy: tuple[float, float], radius: float) -> None:
         """Set the cells whose centre is within ``radius`` [m] of ``xy`` [m] to free."""
@@ -158,6 +179,7 @@ class OccupancyMap:
         if found is not None:
             _, _, _, (r0, r1, c0, c1), _, _, disc = found
             self.evidence[r0:r1, c0:c1][disc] = -self.params.evidence_max
+            self.terrain[r0:r1, c0:c1][disc] = False
 
     def _disc(self, xy: tuple[float, float], radius: float) -> tuple | None:
         """The cells whose centre is within ``radius`` [m] of ``xy`` [m]: ``(cu, cv, k, (r0, r1,

@@ -19,7 +19,7 @@ from onboard.perception.geometry import ConvexPolygon
 from onboard.perception.obstacles import obstacles_from_mask
 from onboard.perception.occupancy import OccupancyMap
 from onboard.perception.pointcloud import depth_to_points
-from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, Cloud, GeometricSegmenter, Segmenter
+from onboard.perception.segmentation import OCCUPIED, TRAVERSABLE, UNTRAVERSABLE, Cloud, GeometricSegmenter, Segmenter
 from onboard.perception.terrain import ColorTerrainSegmenter
 
 MODES = ("free", "obstacles")
@@ -33,6 +33,7 @@ class ViewStats:
     points: int = 0
     traversable: int = 0
     occupied: int = 0
+    untraversable: int = 0
     ground_inliers: int = 0
 
 
@@ -76,6 +77,7 @@ class Perception:
             points=int(valid.sum()),
             traversable=int((flat_lab == TRAVERSABLE).sum()),
             occupied=int((flat_lab == OCCUPIED).sum()),
+            untraversable=int((flat_lab == UNTRAVERSABLE).sum()),
             ground_inliers=int(plane.inliers) if plane is not None else 0,
         )
 
@@ -129,11 +131,12 @@ class PerceptionLoop:
         self.sets = 0
         self.last_stamp_ns = -1
 
-    def feed(self, img: DepthImage, robot_xy: tuple[float, float] | None) -> bool:
-        """Fuse one depth image; False (and nothing fused) when it is older than the last."""
+    def feed(self, img: DepthImage, robot_xy: tuple[float, float] | None, color: np.ndarray | None = None) -> bool:
+        """Fuse one depth image (and the RGB image aligned to it); False (and nothing fused) when it
+        is older than the last."""
         if img.stamp_ns <= self.last_stamp_ns:
             return False
-        self.view.integrate(img, robot_xy)
+        self.view.integrate(img, robot_xy, color)
         self.last_stamp_ns = img.stamp_ns
         return True
 

@@ -20,7 +20,8 @@ from onboard.contracts.params import PerceptionParams
 
 IGNORE = 0  # no return, or above the height band (overhangs the robot passes under)
 TRAVERSABLE = 1
-OCCUPIED = 2
+OCCUPIED = 2  # an obstacle: stands above the ground
+UNTRAVERSABLE = 3  # ground the robot must not step on (grass beside the path): flat, so a ray passing over it clears nothing
 
 
 @dataclass
@@ -52,7 +53,7 @@ FLAT_GROUND = Plane(np.array([0.0, 0.0, 1.0]), 0.0, 0)  # fallback: the world pl
 
 class Segmenter(Protocol):
     def segment(self, cloud: Cloud) -> np.ndarray:
-        """Label per pixel ``(h, w)`` int8: IGNORE, TRAVERSABLE or OCCUPIED."""
+        """Label per pixel ``(h, w)`` int8: IGNORE, TRAVERSABLE, OCCUPIED or UNTRAVERSABLE."""
         ...
 
 
@@ -187,5 +188,6 @@ class MaskSegmenter:
         geo = self.geometric.segment(cloud)
         labels = np.full(cloud.valid.shape, IGNORE, dtype=np.int8)
         labels[cloud.valid & mask] = TRAVERSABLE
-        labels[cloud.valid & ~mask & (geo != IGNORE)] = OCCUPIED
+        labels[cloud.valid & ~mask & (geo == OCCUPIED)] = OCCUPIED
+        labels[cloud.valid & ~mask & (geo == TRAVERSABLE)] = UNTRAVERSABLE
         return labels

@@ -10,7 +10,8 @@ clusters that hold a good share of the seed pixels, or whose centre lies near th
 colour (remembered over views), are the traversable colours. A pixel is then
 
 - ``TRAVERSABLE``: geometric ground of a traversable colour;
-- ``OCCUPIED``: an obstacle by geometry, or ground of another colour (grass beside the path);
+- ``OCCUPIED``: an obstacle by geometry;
+- ``UNTRAVERSABLE``: ground of another colour (grass beside the path);
 - ``IGNORE``: no return, or above the height band.
 
 Without an image (a depth-only camera) it answers as the geometric segmenter does. A learned
@@ -23,7 +24,7 @@ import cv2
 import numpy as np
 
 from onboard.contracts.params import PerceptionParams
-from onboard.perception.segmentation import IGNORE, OCCUPIED, TRAVERSABLE, Cloud, GeometricSegmenter
+from onboard.perception.segmentation import IGNORE, TRAVERSABLE, UNTRAVERSABLE, Cloud, GeometricSegmenter
 
 KMEANS_SAMPLES = 4000  # pixels the clusters are fitted on (every pixel is then assigned)
 KMEANS_ITERATIONS = 12
@@ -115,6 +116,6 @@ class ColorTerrainSegmenter:
         kernel = np.ones((3, 3), np.uint8)  # specks of the wrong cluster inside a surface are texture
         colour_ok = cv2.morphologyEx(cv2.morphologyEx(colour_ok, cv2.MORPH_CLOSE, kernel), cv2.MORPH_OPEN, kernel) > 0
         out = labels.copy()
-        out[ground & ~colour_ok] = OCCUPIED
+        out[ground & ~colour_ok] = UNTRAVERSABLE
         out[~cloud.valid] = IGNORE
         return out

@@ -3,11 +3,13 @@
 Definitions, per group:
 
 - ``success``: the run produced a report, reached its goal (``goal_reached``: within tolerance
-  and never fell) and touched no obstacle (``collisions == 0``). A run that failed with an error
+  and never fell), touched no obstacle (``collisions == 0``) and never touched down on ground the
+  scenario keeps it off (``keep_out_touchdowns``, a sidewalk's grass). A run that failed with an error
   counts as a run without success, so the rate never looks better for a crashing stack;
 - ``success_ci95``: the Wilson score interval of the success rate at 95 % (sound at 0 or all
   successes and for small groups, where the normal approximation is not);
-- ``runs_with_falls`` / ``runs_with_collisions`` and the totals ``falls`` / ``collisions``;
+- ``runs_with_falls`` / ``runs_with_collisions`` and the totals ``falls`` / ``collisions``; where the
+  scenario keeps the robot off some ground, ``runs_on_keep_out`` and ``keep_out_touchdowns``;
 - where obstacles move: ``collisions_by_robot`` / ``collisions_by_obstacle`` (who moved into whom, at
   first contact), and ``collisions_by_robot_after_hit``: the robot's that came within
   ``sim_twin.metrics.HIT_REPORTED_S`` of an obstacle coming at it (knocked, then falling into one);
@@ -50,7 +52,8 @@ def group_name(spec: dict) -> str:
 
 def succeeded(record: dict) -> bool:
     report = record.get("report")
-    return report is not None and bool(report["goal_reached"]) and report["collisions"] == 0
+    return (report is not None and bool(report["goal_reached"]) and report["collisions"] == 0
+            and not report.get("keep_out_touchdowns"))
 
 
 def _spread(values: list[float]) -> dict[str, float | None]:
@@ -98,6 +101,10 @@ def summarize(records: list[dict]) -> dict:
             "falls": sum(r["falls"] for r in reports),
             "runs_with_collisions": sum(r["collisions"] > 0 for r in reports),
             "collisions": sum(r["collisions"] for r in reports),
+            # ground the robot must not hop on (where the scenario has any): runs that touched down on it
+            **({"runs_on_keep_out": sum(r["keep_out_touchdowns"] > 0 for r in reports),
+                "keep_out_touchdowns": sum(r["keep_out_touchdowns"] for r in reports)}
+               if any("keep_out_touchdowns" in r for r in reports) else {}),
             # obstacles that move: who moved into whom, replanning rate (where runs report them)
             **({"collisions_by_robot": sum(r["collisions_by_robot"] for r in reports if "collisions_by_robot" in r),
                 "collisions_by_obstacle": sum(r["collisions_by_obstacle"] for r in reports if "collisions_by_obstacle" in r),
@@ -147,6 +154,9 @@ def table(summary: dict) -> str:
         if "collisions_by_robot" in g:
             lines.append(f"{g['group']}: collisions by the robot {g['collisions_by_robot']} "
                          f"({g['collisions_by_robot_after_hit']} soon after it was hit), by an obstacle {g['collisions_by_obstacle']}")
+        if "keep_out_touchdowns" in g:
+            lines.append(f"{g['group']}: {g['runs_on_keep_out']} runs touched down on ground kept off "
+                         f"({g['keep_out_touchdowns']} touchdowns)")
         if "time_to_goal_s" in g:
             tg = g["time_to_goal_s"]
             lines.append(f"{g['group']}: time to goal p50/p90/max {_fmt(tg['p50'], 1)}/{_fmt(tg['p90'], 1)}/{_fmt(tg['max'], 1)} s "

@@ -151,8 +151,9 @@ class PerceptionParams(_Section, section="perception"):
     obstacle_method: Literal["hull", "rect"] = "hull"  # "hull" or "rect" (minimum-area rectangle, as the thesis)
     obstacle_solidity_min: Probability = 0.6  # cells / hull area below which a blob is split
     obstacle_split_min_cells: Annotated[int, within(1, 10_000_000)] = 8
-    obstacle_split_depth: Annotated[int, within(0, 64)] = 6  # halvings per blob at most
-    obstacles_max: Annotated[int, within(1, 100_000)] = 400
+    obstacle_slack_m2: Annotated[float, within(0.0, 1e6)] = 0.1  # [m^2] of its hull a blob may leave empty before it is split
+    obstacle_split_depth: Annotated[int, within(0, 64)] = 10  # halvings per blob at most
+    obstacles_max: Annotated[int, within(1, 100_000)] = 400  # splits over all blobs, the largest first
     # terrain segmentation from colour and depth (onboard/perception/terrain.py, thesis 8.2): outdoors
     segmenter: Literal["geometric", "color"] = "geometric"  # "color": the D435's aligned colour image too
     terrain_clusters: Annotated[int, within(2, 32)] = 6  # K-means colour clusters (CIE Lab) per image
