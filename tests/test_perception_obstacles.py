@@ -97,3 +97,26 @@ def test_random_masks_fully_covered(seed, density, method):
     assert _cells_not_inside(obstacles, occ, res, origin) == 0
     for p in obstacles:
         _convex_consistent(p)
+
+
+def test_a_u_of_grass_round_the_paving_is_split_however_many_specks_lie_beyond() -> None:
+    """The grass round a sidewalk seen from its start is one U-shaped blob, and far terrain at the pixel
+    stride comes as hundreds of specks, each its own blob: the U is split first (the largest), so that
+    no piece's hull reaches over the paving; with the specks counted against the splits it was hulled
+    whole, paving and all."""
+    occ = np.zeros((120, 160), dtype=bool)
+    occ[10:20, 10:150] = True  # a verge
+    occ[80:90, 10:150] = True  # the other
+    occ[10:90, 10:20] = True  # the grass behind the start
+    occ[100:120:2, 0:160:2] = True  # specks, far off, none touching another
+    assert cv2_groups(occ) > PARAMS.obstacles_max
+    obstacles = obstacles_from_mask(occ, 0.05, (0.0, 0.0), PARAMS)
+    assert _cells_not_inside(obstacles, occ, 0.05, (0.0, 0.0)) == 0
+    paving = np.array([[x, y] for x in np.arange(1.5, 7.0, 0.25) for y in (2.0, 2.5, 3.0, 3.5)])
+    assert not any(p.contains(paving).any() for p in obstacles)
+
+
+def cv2_groups(occ: np.ndarray) -> int:
+    import cv2
+
+    return cv2.connectedComponents(occ.astype(np.uint8), connectivity=8)[0] - 1

@@ -8,9 +8,10 @@ seen as one blob), or leaves more than ``obstacle_slack_m2`` of it empty, is spl
 K-means into pieces that are each hulled, so the obstacles do not swallow the free space
 between their arms: the grass round a sidewalk, seen from its start, is one U-shaped blob
 whose hull held the whole paving. The largest groups are split first, within
-``obstacles_max`` splits; first the mask is closed over single cells (a gap of one cell
-is no way for any robot, and far terrain seen at the pixel stride came as hundreds of
-specks, each its own group).
+``obstacles_max`` splits (far terrain seen at the pixel stride comes as hundreds of specks,
+each its own group; they left no budget to split the U). The mask is not closed first:
+closed over single cells, the colour segmenter's specks on a forest floor grew into
+obstacles that shut the ways between the trees (forest seeds 1007 and 1008 missed their goals).
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from onboard.perception.clustering import kmeans_labels
 from onboard.perception.geometry import ConvexPolygon
 
 _SQUARE = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.int32)
-_CLOSE = np.ones((3, 3), np.uint8)  # closes gaps of one cell
 
 
 def obstacles_from_mask(
@@ -37,8 +37,7 @@ def obstacles_from_mask(
     """
     if params.obstacle_method not in ("hull", "rect"):
         raise ValueError(f"obstacle_method must be 'hull' or 'rect', got {params.obstacle_method!r}")
-    # OpenCV's default border: off the grid is no hindrance to either pass, so no cell is lost at the edge
-    occ = cv2.morphologyEx(np.ascontiguousarray(occupied, dtype=np.uint8), cv2.MORPH_CLOSE, _CLOSE)
+    occ = np.ascontiguousarray(occupied, dtype=np.uint8)
     n, labels = cv2.connectedComponents(occ, connectivity=8)
     if n <= 1:
         return []
