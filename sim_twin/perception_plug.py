@@ -3,8 +3,9 @@ twin's depth camera, instead of the scenario's ground-truth obstacles.
 
 Depth images are fused as the sensors deliver them (with the robot's estimated
 position), each with the colour image of its stamp where one came first (the D435's
-apex frames: ``color`` then ``depth``); every ``perception.rate_hz`` the perceived convex obstacles (or free cells,
-``perception.mode = "free"``) replace the planner's world, which makes it replan. Before
+apex frames: ``color`` then ``depth``); every ``perception.rate_hz`` the perceived
+convex obstacles (or free cells, ``perception.mode = "free"``) replace the planner's
+world, which makes it replan. Before
 the first view the planner knows no obstacle at all; in obstacle mode it then commits the
 robot nowhere (``onboard.high_level.planning.seen_space``).
 """

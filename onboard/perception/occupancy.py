@@ -1,16 +1,17 @@
 """World-frame occupancy grid fused over views, with decay (thesis 3336: vertical binning).
 
 Labelled points are binned vertically into square cells. Each view adds evidence:
-``+hit`` to a cell holding at least ``min_points_per_cell`` obstacle points, or as many returns of
-untraversable ground (grass beside the path) and more of them than of traversable ground (one
-return was enough once, and paving misjudged at 4 m came out as specks in the way); ``-miss`` to a cell seen as ground (a ground return in it, or a ray
-passing over it on its way to a return within the carving range; one on its way to untraversable
-ground only up to ground known untraversable, or an obstacle), unless it holds a return of
-untraversable ground: a ray passing over flat ground says nothing of what that ground is. A cell
-last hit as untraversable ground is freed by its own traversable returns only, never by a ray
-passing over it (at the perception's pixel stride a distant cell of grass holds a return in one
-view and none in the next; the rays to the grass beyond it then carved it free). Evidence saturates at ``+-evidence_max``; cells a view does not see
-fade to unknown with a half-life, so what moved away is forgotten. The grid follows
+``+hit`` to a cell holding at least ``min_points_per_cell`` obstacle points, or as many returns
+of untraversable ground (grass beside the path) and more of them than of traversable ground (one
+return was enough once, and paving misjudged at 4 m came out as specks in the way); ``-miss`` to
+a cell seen as ground (a ground return in it, or a ray passing over it on its way to a return
+within the carving range; one on its way to untraversable ground only up to ground known
+untraversable, or an obstacle), unless it holds a return of untraversable ground: a ray passing
+over flat ground says nothing of what that ground is. A cell last hit as untraversable ground is
+freed by its own traversable returns only, never by a ray passing over it (at the perception's
+pixel stride a distant cell of grass holds a return in one view and none in the next; the rays to
+the grass beyond it then carved it free). Evidence saturates at ``+-evidence_max``; cells a view
+does not see fade to unknown with a half-life, so what moved away is forgotten. The grid follows
 the robot by whole cells, so it stays aligned with the world axes.
 
 In ``free`` mode the planner may only go where the grid holds free, so the grid keeps
@@ -112,6 +113,7 @@ class OccupancyMap:
         inside = fin & (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
         c = np.where(inside, u, 0).astype(np.intp)
         r = np.where(inside, v, 0).astype(np.intp)
+
         def per_cell(label: int) -> np.ndarray:
             at = inside & (labels == label)
             return np.bincount(r[at] * cols + c[at], minlength=rows * cols).reshape(rows, cols)
