@@ -26,6 +26,7 @@ from services.runtime.zenoh_session import free_endpoint
 
 NS = 1_000_000_000
 MS = 1_000_000
+RECORDER_DROPS_MAX = 10  # samples of a topic a recorder that ran throughout may miss in one fault window
 REPO = Path(__file__).resolve().parent.parent
 
 SCHEDULE_TOML = """
@@ -410,8 +411,11 @@ def test_a_short_soak_detects_a_stall_and_a_flood_and_leaves_no_process(tmp_path
     # 3000 due; the helper itself is starved at times on a shared host (2453 seen on a quiet one)
     assert flood["helper"]["sent"]["imu"] >= 1500 and flood["fell"] is False
     for fault in (stall, flood):
-        # the recorder was not killed in either fault: it lost nothing
-        assert set(fault["lost"]) >= {"imu", "joints", "torque_cmd", "state"} and all(n == 0 for n in fault["lost"].values()), fault["lost"]
+        # the recorder was not killed in either fault: it lost no more than a loaded host's transport drops
+        # (a fresh-clone CI run on 2 cores lost 3 imu and 3 joints samples of the 1 kHz streams, twice;
+        # a recorder killed loses every sample of its down time, hundreds)
+        assert set(fault["lost"]) >= {"imu", "joints", "torque_cmd", "state"}, fault["lost"]
+        assert all(n <= RECORDER_DROPS_MAX for n in fault["lost"].values()), fault["lost"]
     assert totals["totals"]["detected"] == 2 and totals["totals"]["falls"] == 0
     # the twin ran the whole soak (17 s after arming): at 0.6-0.9 of real time on a loaded 2-core host
     assert summary["metrics"]["mode"] == "realtime" and summary["metrics"]["sim_time_s"] > 17.0 * 0.5
