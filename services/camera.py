@@ -100,7 +100,6 @@ class CameraService(Service):
         self.frames = 0  # new frames read
         self.apexes = 0  # apex events received
         self.last_offset_ms = 0.0
-        self._said_stale = False
         self._reader = threading.Thread(target=self._read, name="camera-reader", daemon=True)
 
     def _on_phase(self, event: m.PhaseEvent) -> None:
@@ -150,10 +149,10 @@ class CameraService(Service):
             self._received.tick()
             self.frames += 1
             now_ns = self.clock.now_ns()
+            stale_before = self.clock_map.stale
             stamp_ns = self.clock_map.stamp(raw.sensor_ns, now_ns, raw.domain, time.time_ns() - now_ns)
             if stamp_ns is None:  # too late, or read from a queue before the map settled: counted
-                if self.clock_map.stale == 1 and not self._said_stale:  # said once; the count says how many followed
-                    self._said_stale = True
+                if stale_before == 0 and self.clock_map.stale == 1:  # the first late frame is said; the count says how many followed
                     self.log.warning("camera: a frame came more than %.1f s after its capture: dropped",
                                      p.global_time_max_age_s)
                 continue

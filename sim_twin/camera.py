@@ -5,8 +5,12 @@ geoms, group 0, as :class:`sim_twin.sensors.SensorSuite`'s depth), at the D435's
 (:mod:`robot_description.d435`). Per pixel:
 
 - depth: the z-distance with the D435's error (RMS growing with range squared,
-  :func:`robot_description.d435.depth_rms_m`), quantised to its depth unit (1 mm); no return
-  below ``MIN_RANGE_M`` or beyond the maximum range (0);
+  :func:`robot_description.d435.depth_rms_m`, at the focal length the stereo matching ran at),
+  quantised to its depth unit (1 mm); no return below ``MIN_RANGE_M`` or beyond the maximum
+  range (0). A mode drawn after the SDK's decimation filter (:attr:`CameraModel.decimation`) has
+  the filter's noise: the median the SDK picks (element ``d*d // 2`` of each ``d x d`` block,
+  sorted) of that many native pixels' errors. One ray per output pixel: the block's pixels are
+  taken to see the same surface (at a silhouette the SDK's median picks one side or the other);
 - colour: the hit geom's material colour (its material's rgba, else its own), a texture (a
   seeded value per 4 cm cell of the hit point, so grass, pavement and bark are not flat
   colours), lit by a sun (Lambert, with ambient light) and exposed as an auto-exposure would
@@ -52,14 +56,20 @@ class CameraModel:
     fy: float
     cx: float
     cy: float
-    depth_rms_per_m2: float  # depth RMS error = this * z^2 [1/m]
+    depth_rms_per_m2: float  # depth RMS error of one native (undecimated) pixel = this * z^2 [1/m]
+    decimation: int = 1  # the SDK's decimation filter between the sensor and this size (1: a native mode)
 
     @staticmethod
-    def d435(width: int = 848, height: int = 480, fps: int = 30) -> "CameraModel":
-        """The D435's depth stream in one of its modes (square pixels at the datasheet's horizontal field of view)."""
+    def d435(width: int = 848, height: int = 480, fps: int = 30, decimation: int = 1) -> "CameraModel":
+        """The D435's depth stream in one of its modes (square pixels at the datasheet's horizontal field of
+        view), drawn after the SDK's decimation by ``decimation`` (the size and focal length divided by it,
+        the noise the filter's median leaves of the mode's)."""
         d435.check_mode("depth", width, height, fps)
+        if not 1 <= decimation <= d435.MAX_DECIMATION or width % decimation or height % decimation:
+            raise ValueError(f"decimation {decimation} does not divide the {width}x{height} mode within 1..{d435.MAX_DECIMATION}")
         fx, _ = d435.nominal_focal_px(width, height, d435.DEPTH_HFOV_DEG, d435.DEPTH_VFOV_DEG)
-        return CameraModel(width, height, fx, fx, 0.5 * width, 0.5 * height, float(d435.depth_rms_m(1.0, fx)))
+        w, h, f = width // decimation, height // decimation, fx / decimation
+        return CameraModel(w, h, f, f, 0.5 * w, 0.5 * h, float(d435.depth_rms_m(1.0, fx)), decimation)
 
 
 @dataclass
@@ -107,6 +117,14 @@ class RgbdCamera:
                                       for nm in names], dtype=bool)
         self._sun = np.array(SUN_DIR) / np.linalg.norm(SUN_DIR)
 
+    def _depth_error(self, n: int) -> np.ndarray:
+        """Standardized depth errors of ``n`` output pixels: one native pixel's, or the decimation's median."""
+        d = self.cam.decimation
+        if d == 1:
+            return self.rng.standard_normal(n)
+        block = self.rng.standard_normal((n, d * d))
+        return np.partition(block, d * d // 2, axis=1)[:, d * d // 2]
+
     def render(self, data: mujoco.MjData) -> RgbdFrame:
         """One frame from the camera site's pose in ``data`` (last forward pass)."""
         cam, n = self.cam, self.cam.width * self.cam.height
@@ -119,7 +137,7 @@ class RgbdCamera:
         z = dist * self._ray_z
         hit = (dist >= 0.0) & (geom >= 0)
         if self.noise:
-            z = z + cam.depth_rms_per_m2 * z * z * self.rng.standard_normal(n)
+            z = z + cam.depth_rms_per_m2 * z * z * self._depth_error(n)
         ret = hit & (z >= MIN_RANGE_M) & (z <= MAX_RANGE_M)
         depth = np.where(ret, np.rint(z / d435.DEPTH_UNITS_M) * d435.DEPTH_UNITS_M, 0.0)
         g = np.where(hit, geom, 0)

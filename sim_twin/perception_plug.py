@@ -12,6 +12,8 @@ robot nowhere (``onboard.high_level.planning.seen_space``).
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 from onboard.contracts import messages as m
 from onboard.contracts.binary_messages import ColorImage, DepthImage
 from onboard.contracts.params import PerceptionParams
@@ -22,6 +24,14 @@ from sim_twin.scenarios import Scenario
 from sim_twin.stack import GraphPlannerPlug
 
 PERCEPTIONS = ("truth", "depth")
+
+T = TypeVar("T")
+
+
+def _expect(topic: str, msg: object, kind: type[T]) -> T:
+    if not isinstance(msg, kind):
+        raise TypeError(f"{topic}: expected a {kind.__name__}, got {type(msg).__name__}")
+    return msg
 
 
 class PerceivedGraphPlannerPlug(GraphPlannerPlug):
@@ -44,10 +54,9 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
 
     def feed(self, topic: str, msg: object) -> None:
         if topic == "color":
-            assert isinstance(msg, ColorImage)
-            self._color = msg
+            self._color = _expect(topic, msg, ColorImage)
         elif topic == "depth":
-            assert isinstance(msg, DepthImage)
+            msg = _expect(topic, msg, DepthImage)
             color = self._color.rgb if self._color is not None and self._color.stamp_ns == msg.stamp_ns else None
             self._color = None
             if self.loop.feed(msg, self._xy, color) and color is not None:

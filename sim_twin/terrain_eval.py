@@ -128,11 +128,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--views", type=int, default=15, help="views per seed")
-    ap.add_argument("--width", type=int, default=424)
+    ap.add_argument("--width", type=int, default=424, help="the frames' size, after the decimation")
     ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--decimation", type=int, default=2, help="the SDK's decimation the frames come out of (1: a native mode)")
     ap.add_argument("--stride", type=int, default=4, help="perception.pixel_stride: every n-th pixel (as on the robot)")
     args = ap.parse_args(argv)
-    cam = CameraModel.d435(args.width, args.height, 30)
+    cam = CameraModel.d435(args.width * args.decimation, args.height * args.decimation, 30, args.decimation)
     totals = {name: Score() for name in SEGMENTERS}
     per_seed: dict[str, list[float]] = {name: [] for name in SEGMENTERS}
     t0 = time.perf_counter()

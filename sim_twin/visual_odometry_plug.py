@@ -42,7 +42,7 @@ class ApexVisualOdometry:
                  est: EstimatorParams, twin: TwinParams, seed: int, camera: CameraParams | None = None,
                  perception: PerceptionParams | None = None) -> None:
         cp = camera or CameraParams()
-        self.cam = CameraModel.d435(cp.width // cp.decimation, cp.height // cp.decimation, cp.fps)
+        self.cam = CameraModel.d435(cp.width, cp.height, cp.fps, cp.decimation)
         self.camera = RgbdCamera(model, self.cam, list(traversable), seed=seed + SEED_SALT, noise=twin.noise)
         self.mount = rd.camera_mount(variant)
         self.vo = VisualOdometry(est)

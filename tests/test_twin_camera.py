@@ -7,6 +7,7 @@ import math
 
 import mujoco
 import numpy as np
+import pytest
 
 from robot_description import d435
 from robot_description import params as rd
@@ -31,9 +32,16 @@ def test_d435_model_has_the_datasheet_intrinsics() -> None:
     assert cam.depth_rms_per_m2 * 4.0 == float(d435.depth_rms_m(2.0, cam.fx))
 
 
-def test_flat_floor_depth_error_grows_with_range_squared_and_is_all_traversable() -> None:
+# (decimation, error std and mean over the native pixel's RMS): a native mode's error, and the SDK's 2x2
+# decimation's, which keeps element 2 of the 4 sorted (its order statistic: std 0.60, mean +0.30 of N(0, 1))
+DEPTH_ERRORS = [(1, 1.0, 0.0), (2, 0.60, 0.30)]
+
+
+@pytest.mark.parametrize("decimation, std_share, mean_share", DEPTH_ERRORS)
+def test_flat_floor_depth_error_grows_with_range_squared_and_is_all_traversable(decimation, std_share, mean_share) -> None:
     _, model, data = world("hop-in-place")
-    cam = CameraModel.d435(424, 240, 30)
+    cam = CameraModel.d435(424 * decimation, 240 * decimation, 30, decimation)
+    assert (cam.width, cam.height) == (424, 240)
     truth = RgbdCamera(model, cam, sc.Scenario.traversable, noise=False).render(data)
     noisy = [RgbdCamera(model, cam, sc.Scenario.traversable, seed=s).render(data) for s in range(8)]
     ret = truth.labels != NO_RETURN
@@ -45,9 +53,18 @@ def test_flat_floor_depth_error_grows_with_range_squared_and_is_all_traversable(
     for lo, hi in ((1.0, 1.5), (2.5, 3.5)):
         sel = (z >= lo) & (z < hi)
         zc = z[sel].mean()
-        rms = float(np.sqrt(np.mean(err[:, both][:, sel] ** 2)))
-        expected = cam.depth_rms_per_m2 * zc * zc
-        assert 0.8 * expected < rms < 1.25 * expected, (lo, rms, expected)
+        e = err[:, both][:, sel]
+        native = cam.depth_rms_per_m2 * zc * zc
+        assert 0.8 * std_share * native < float(e.std()) < 1.25 * std_share * native, (lo, float(e.std()), native)
+        assert abs(float(e.mean()) - mean_share * native) < 0.1 * native, (lo, float(e.mean()), native)
+
+
+def test_a_decimated_mode_is_the_native_mode_at_a_coarser_size() -> None:
+    native, decimated = CameraModel.d435(848, 480, 30), CameraModel.d435(848, 480, 30, 2)
+    assert (decimated.width, decimated.height, decimated.decimation) == (424, 240, 2)
+    assert decimated.fx == native.fx / 2 and decimated.depth_rms_per_m2 == native.depth_rms_per_m2
+    with pytest.raises(ValueError, match="decimation"):
+        CameraModel.d435(848, 480, 30, 3)  # 848 is not a multiple of 3
 
 
 def test_sidewalk_labels_the_paving_traversable_and_the_grass_and_posts_not() -> None:

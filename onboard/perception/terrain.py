@@ -7,7 +7,8 @@ ground (:class:`GeometricSegmenter`: near the RANSAC plane, not steep) within
 ``terrain_seed_range_m`` of the foot is taken to be what the robot stands on. The image,
 smoothed and in CIE Lab, is clustered (K-means, the segmenter's own seeded generator); the
 clusters that hold a good share of the seed pixels, or whose centre lies near the seed's
-colour (remembered over views), are the traversable colours. A pixel is then
+colour (remembered over views; lightness weighs less than hue, ``terrain_lightness_weight``), are
+the traversable colours. A pixel is then
 
 - ``TRAVERSABLE``: geometric ground of a traversable colour;
 - ``OCCUPIED``: an obstacle by geometry;
@@ -110,7 +111,8 @@ class ColorTerrainSegmenter:
         centres = kmeans(sample, p.terrain_clusters, self.rng)
         assign = nearest(lab, centres)
         share = np.bincount(assign[seed], minlength=p.terrain_clusters) / max(int(seed.sum()), 1)
-        close = np.linalg.norm(centres - self.seed_color, axis=1) <= p.terrain_color_distance
+        weight = np.array([p.terrain_lightness_weight, 1.0, 1.0])
+        close = np.linalg.norm((centres - self.seed_color) * weight, axis=1) <= p.terrain_color_distance
         good = ((share >= p.terrain_seed_share) | close) if trusted else close
         colour_ok = good[assign].reshape(cloud.valid.shape).astype(np.uint8)
         kernel = np.ones((3, 3), np.uint8)  # specks of the wrong cluster inside a surface are texture

@@ -49,6 +49,7 @@ from services.runtime.config import load_params
 # decimation: the deploy profile's 848 x 480 decimated by 2, at a quarter of the rays.
 SIL_CAMERA = {"width": 424, "height": 240, "fps": 30, "color": True, "color_width": 424, "color_height": 240,
               "color_fps": 30, "decimation": 1, "capture": "every", "source": "device"}
+SIL_DRAWN_DECIMATION = 2  # the drawing is that decimation, noise included (sim_twin.camera.CameraModel), not the SDK's
 # The emulated camera's frames reach the estimator up to 2.5 s after their capture on a loaded 2-core host
 # (capture_to_sdk_ms_p99, sidewalk seed 2): a VO displacement older than the odometry it is compared with is refused.
 SIL_ESTIMATOR = {"vo_history_s": 4.0}
@@ -257,7 +258,7 @@ def _rig_main(conn: Any, model_bytes: bytes, traversable: list[str], seed: int, 
         data = mujoco.MjData(model)
         params = load_params(config_path, ("camera", "estimator"))
         p = params["camera"]
-        lens = CameraModel.d435(p.width, p.height, p.fps)
+        lens = CameraModel.d435(p.width * SIL_DRAWN_DECIMATION, p.height * SIL_DRAWN_DECIMATION, p.fps, SIL_DRAWN_DECIMATION)
         camera = RgbdCamera(model, lens, traversable, seed=seed)
         emu = SoftwareD435(rs, stream_config(p), Intrinsics(lens.fx, lens.fy, lens.cx, lens.cy), global_time=True)
     except BaseException as exc:  # noqa: BLE001 (the twin reports it and the run fails)
