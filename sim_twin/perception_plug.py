@@ -56,10 +56,10 @@ class PerceivedGraphPlannerPlug(GraphPlannerPlug):
         if topic == "color":
             self._color = _expect(topic, msg, ColorImage)
         elif topic == "depth":
-            msg = _expect(topic, msg, DepthImage)
-            color = self._color.rgb if self._color is not None and self._color.stamp_ns == msg.stamp_ns else None
+            depth = _expect(topic, msg, DepthImage)
+            color = self._color.rgb if self._color is not None and self._color.stamp_ns == depth.stamp_ns else None
             self._color = None
-            if self.loop.feed(msg, self._xy, color) and color is not None:
+            if self.loop.feed(depth, self._xy, color) and color is not None:
                 self.views_with_color += 1
         else:
             super().feed(topic, msg)

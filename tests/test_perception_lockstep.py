@@ -38,3 +38,14 @@ def test_unknown_perception_or_planner_refused():
         make_planner("auto", "lidar", scenario, robot)
     with pytest.raises(ValueError, match="graph planner"):
         make_planner("scenario", "depth", scenario, robot)
+
+
+def test_a_camera_message_of_the_wrong_type_is_refused_by_name():
+    from robot_description import params as rd
+
+    scenario = LockstepRunner(RunConfig("forest", seed=0)).scenario
+    plug = make_planner("graph", "depth", scenario, rd.robot_params())
+    with pytest.raises(TypeError, match="depth: expected a DepthImage, got str"):
+        plug.feed("depth", "not a frame")
+    with pytest.raises(TypeError, match="color: expected a ColorImage"):
+        plug.feed("color", b"\x00" * 16)
