@@ -21,8 +21,8 @@ REQUIRED = ["scenario", "seed", "mode", "sim_time_s", "wall_time_s", "realtime_f
             "torque_saturation_fraction", "contract_violations"]
 REALTIME_SIM_TIMEOUT_S = 120.0  # an 8-16 s run: start-up and shutdown on a loaded machine
 # Blind-side with perception from depth in real time: with two busy loops beside it on the 2-core host the
-# first plan came 7-8 s into the run (the services' start, the perception's first views, the graph's build),
-# and fresh-clone CI runs got none in 8 s; 16 s gave 4 plans, 0 falls, 0 collisions under the same load
+# first plan came 7-8 s into the run (the services' start, the perception's first views, the graph's build);
+# 16 s gave 4 plans, 0 falls, 0 collisions under the same load
 DEPTH_PERCEPTION_RUN_S = 16
 
 
