@@ -95,6 +95,11 @@ class PerceptionService(Service):
         self.compute_ms = 0.0
         self.polygons = 0
         self._parked: dict[int, tuple[DepthImage, float]] = {}  # depth images waiting for their colour, by stamp
+        # Fusing a view runs in a worker thread, so that the loop keeps answering (status, the
+        # watchdog's pings) while a starved host takes seconds over it: Nice=10 beside the twin
+        # and the control loops on two cores missed the 5 s watchdog and was restarted. The lock
+        # keeps views fused one at a time, in order, and the map still while it is copied.
+        self._map_lock = asyncio.Lock()
         self._colors: dict[int, ColorImage] = {}  # colour images by stamp, not yet paired
         self.subscribe("depth", self.on_depth)
         if self.params["perception"].segmenter == "color":
@@ -125,9 +130,10 @@ class PerceptionService(Service):
         return (x, y)
 
     async def on_color(self, rgb: ColorImage) -> None:
-        if rgb.stamp_ns in self._parked:
+        parked = self._parked.pop(rgb.stamp_ns, None)
+        if parked is not None:
             await self._flush_before(rgb.stamp_ns)
-            await self._fuse(self._parked.pop(rgb.stamp_ns)[0], rgb)
+            await self._fuse(parked[0], rgb)
             return
         self._colors[rgb.stamp_ns] = rgb
         while len(self._colors) > COLOR_KEEP:
@@ -150,24 +156,26 @@ class PerceptionService(Service):
         """Fuse without colour the parked depth images stamped before ``stamp_ns`` (their colour is
         not coming: the camera sends colour in order) or waiting longer than ``older_than_s``."""
         now = time.monotonic()
-        for stamp in sorted(self._parked):
-            img, since = self._parked[stamp]
-            if stamp < stamp_ns or (older_than_s > 0.0 and now - since > older_than_s):
-                del self._parked[stamp]
-                self.count("depth_without_color")
-                await self._fuse(img, None)
+        due = [stamp for stamp, (_, since) in self._parked.items()
+               if stamp < stamp_ns or (older_than_s > 0.0 and now - since > older_than_s)]
+        images = [self._parked.pop(stamp)[0] for stamp in sorted(due)]  # taken before any await
+        for img in images:
+            self.count("depth_without_color")
+            await self._fuse(img, None)
 
     async def _fuse(self, img: DepthImage, rgb: ColorImage | None) -> None:
-        if img.stamp_ns <= self.last_depth_stamp:
-            self.count("rejected.depth_out_of_order")
-            return
-        try:
-            self.view.integrate(img, self._robot_xy(), rgb.rgb if rgb is not None else None)
-        except ValueError as exc:
-            self.count("rejected.depth")
-            self.fail(f"depth image: {exc}")
-            return
-        self.last_depth_stamp = img.stamp_ns
+        async with self._map_lock:
+            if img.stamp_ns <= self.last_depth_stamp:
+                self.count("rejected.depth_out_of_order")
+                return
+            robot = self._robot_xy()
+            try:
+                await asyncio.to_thread(self.view.integrate, img, robot, rgb.rgb if rgb is not None else None)
+            except ValueError as exc:
+                self.count("rejected.depth")
+                self.fail(f"depth image: {exc}")
+                return
+            self.last_depth_stamp = img.stamp_ns
         self.count("views")
         if rgb is not None:
             self.count("views_with_color")
@@ -179,7 +187,8 @@ class PerceptionService(Service):
             if self._rebuild:
                 self._rebuild = False
                 try:
-                    self.view = self._new_view()
+                    async with self._map_lock:
+                        self.view = self._new_view()
                     period = 1.0 / self.params["perception"].rate_hz
                 except ValueError as exc:
                     self.fail(str(exc))
@@ -202,7 +211,8 @@ class PerceptionService(Service):
         p = self.params["perception"]
         now = self.clock.now_ns()
         self.grid_seq += 1
-        grid = self.view.grid(now, self.grid_seq)  # a snapshot: fusing goes on meanwhile
+        async with self._map_lock:
+            grid = self.view.grid(now, self.grid_seq)  # a snapshot: fusing goes on meanwhile
         robot = self._robot_xy()
         cover: tuple[tuple[float, float], ...] = ()
         if robot is not None:
