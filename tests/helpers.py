@@ -15,6 +15,21 @@ from pathlib import Path
 
 DEFAULT_TIMEOUT_S = 30.0  # generous: the CI machine may be loaded
 POLL_S = 0.01
+# A whole real-time stack asks about two cores (`cpu_cores` 1.93-1.98 in a run's report here): on a
+# 2-core host the twin falls 25-40 % behind wall time, the nice-10 planner gets little, and whether
+# the robot stood, hopped or planned is the host's to say. Below this real-time factor a run's
+# plumbing is checked (services, restarts, messages) and its outcome is not judged.
+REALTIME_JUDGED_MIN = 0.9
+
+
+def judge_realtime_outcome(metrics: dict, unjudged: dict) -> None:
+    """Skip the rest of a real-time run's test, saying why and what it saw, when its twin lagged."""
+    import pytest
+
+    rtf = metrics["realtime_factor"]
+    if rtf < REALTIME_JUDGED_MIN:
+        pytest.skip(f"the twin kept {rtf} of real time (cpu_cores {metrics.get('cpu_cores')}): plumbing checked, "
+                    f"the outcome not judged ({json.dumps(unjudged)})")
 
 
 async def wait_for(predicate, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:

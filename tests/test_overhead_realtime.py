@@ -16,7 +16,7 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
-from helpers import run_watched
+from helpers import judge_realtime_outcome, run_watched
 
 from drivers.camera_overhead.emulator import MjpegServer
 from services.camera_overhead import is_live
@@ -112,10 +112,13 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     why = {k: metrics.get(k) for k in ("realtime_factor", "planner_plans", "planner_no_path", "service_failures", "cpu_cores")}
     why.update({k: cam.get(k) for k in ("messages", "latency_ms_p50", "world_to_plan_ms_p50")},
                planner=cam["camera"].get("planner_counters"), planner_error=cam["camera"].get("planner_last_error"))
-    assert metrics["planner_plans"] >= 1, json.dumps(why)
     assert metrics["collisions_by_robot"] == 0, json.dumps(why)
     assert len(run.children) >= 6  # router, estimator, control, planner, camera_overhead, the twin's camera
     assert run.left_running() == []
+    assert metrics["service_failures"] == [], json.dumps(why)
+    # a fresh-clone CI run here at RTF 0.73: 0 plans in 25 s (the planner refused 188 estimates as stale)
+    judge_realtime_outcome(metrics, why)
+    assert metrics["planner_plans"] >= 1, json.dumps(why)
 
 
 def test_archer_emulate_overhead_streams_the_twins_view_to_the_camera_pipeline() -> None:

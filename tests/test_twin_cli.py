@@ -9,6 +9,8 @@ import subprocess
 import sys
 
 import pytest
+
+from helpers import judge_realtime_outcome
 from mcap.reader import make_reader
 
 from onboard.contracts import messages as msgs
@@ -24,9 +26,6 @@ REALTIME_SIM_TIMEOUT_S = 120.0  # an 8-16 s run: start-up and shutdown on a load
 # first plan came 7-8 s into the run (the services' start, the perception's first views, the graph's build);
 # 16 s gave 4 plans, 0 falls, 0 collisions under the same load
 DEPTH_PERCEPTION_RUN_S = 16
-# Below this real-time factor the run is not judged: of 6 runs here at 03f3ec1, the three at 0.76-0.77
-# planned and stood, the three at 0.62-0.68 fell 4-12 s in, before a plan
-DEPTH_PERCEPTION_REALTIME_KEPT = 0.72
 
 
 def test_sim_json_plot_and_record(tmp_path, capsys) -> None:
@@ -106,12 +105,9 @@ def test_sim_realtime_with_depth_perception_runs_the_perception_service_and_wait
     # starved host (Nice=10 beside three real-time loops on two cores) slows it, not restarts it
     assert not any(metrics["service_restarts"].values()) and metrics["service_failures"] == [], metrics
     assert metrics["collisions"] == 0, metrics
-    if metrics["realtime_factor"] < DEPTH_PERCEPTION_REALTIME_KEPT:
-        # the stack asks about 2 cores of two (cpu_cores): the twin falls behind wall time and the
-        # nice-10 planner gets little; whether the robot stood and the planner saw is not this
-        # host's to say
-        pytest.skip(f"the twin kept {metrics['realtime_factor']} of real time (cpu_cores {metrics['cpu_cores']}, "
-                    f"falls {metrics['falls']}, plans {metrics['planner_plans']}): services checked, not the run")
+    # of 6 runs here at 03f3ec1 (RTF 0.62-0.77), the three at 0.76-0.77 planned and stood, the three at
+    # 0.62-0.68 fell 4-12 s in, before a plan
+    judge_realtime_outcome(metrics, {k: metrics[k] for k in ("falls", "planner_plans", "planner_unseen_holds")})
     assert metrics["planner_plans"] >= 1
     assert metrics["planner_unseen_holds"] >= 1, metrics  # held, turned toward the goal, until the camera saw the way
     assert metrics["falls"] == 0, (metrics, err[-4000:])
