@@ -212,7 +212,7 @@ class PerceptionService(Service):
         now = self.clock.now_ns()
         self.grid_seq += 1
         async with self._map_lock:
-            grid = self.view.grid(now, self.grid_seq)  # a snapshot: fusing goes on meanwhile
+            grid = self.view.grid(now, self.grid_seq)  # a copy: the next view waits only for this, not the polytopes
         robot = self._robot_xy()
         cover: tuple[tuple[float, float], ...] = ()
         if robot is not None:

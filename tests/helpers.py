@@ -22,12 +22,13 @@ POLL_S = 0.01
 REALTIME_JUDGED_MIN = 0.9
 
 
-def judge_realtime_outcome(metrics: dict, unjudged: dict) -> None:
-    """Skip the rest of a real-time run's test, saying why and what it saw, when its twin lagged."""
+def judge_realtime_outcome(metrics: dict, unjudged: dict, judged_min: float = REALTIME_JUDGED_MIN) -> None:
+    """Skip the rest of a real-time run's test, saying why and what it saw, when its twin kept less
+    than ``judged_min`` of real time."""
     import pytest
 
     rtf = metrics["realtime_factor"]
-    if rtf < REALTIME_JUDGED_MIN:
+    if rtf < judged_min:
         pytest.skip(f"the twin kept {rtf} of real time (cpu_cores {metrics.get('cpu_cores')}): plumbing checked, "
                     f"the outcome not judged ({json.dumps(unjudged)})")
 

@@ -43,7 +43,7 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
     assert board["setpoints"] > 0 and board["replies"] >= board["setpoints"]  # the control loop commanded it
     assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0
     assert m["natnet"]["frames"] > 0
-    # a fresh-clone CI run here: 4.0 s of the 6 simulated (RTF 0.67)
+    # a fresh-clone CI run here simulated 4.0 s of the 6
     judge_realtime_outcome(m, {k: m[k] for k in ("sim_time_s", "falls", "hops")} | {"setpoints": board["setpoints"]})
     # it hops, driven through the board's PD and the foot board's cycle, and does not fall
     assert m["falls"] == 0
