@@ -191,10 +191,12 @@ class StatusPoller:
 
     def poll(self, services: list[str]) -> None:
         for name in services:
+            # stamped when asked: a reply that comes after a fault, to a query sent before it, may
+            # hold a trip from before the fault (an estimate late on a loaded host) and is its baseline
+            t = time.monotonic_ns()
             st = query_status(self.session, self.ns, name)
             if st is None:
                 continue
-            t = time.monotonic_ns()
             values = {f"counters.{k}": float(v) for k, v in st.counters.items()}
             values.update({k: float(v) for k, v in st.extra.items()})
             self.observer.streams.statuses.append((t, name, values))

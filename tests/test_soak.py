@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
+import time
 import tomllib
 from array import array
 from collections import Counter
@@ -358,6 +360,63 @@ def test_armed_at_injection_goes_by_the_commands_stamps_not_their_late_receipt()
     quiet = _nominal()
     _torque(quiet, 0.0, 9.8, armed=True)
     assert not analyze(quiet, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)["armed_at_injection"]
+
+
+def test_armed_at_injection_follows_a_backlog_longer_than_a_second_and_holds_through_a_late_estimate() -> None:
+    """Soaks here received the commands 0.7-3.5 s late; and the control holds zero torque while
+    its estimate is late (30-80 ms, a few times a second on a starved host), still in control."""
+    kill = Fault("kill", 10.0, target="control")
+    backlog = _nominal()
+    _torque(backlog, 2.5, 40.0, armed=True, sent_before_ns=2500 * MS)
+    assert analyze(backlog, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)["armed_at_injection"]
+    blip = _nominal()
+    _torque(blip, 0.0, 9.97, armed=True)
+    _torque(blip, 9.97, 10.03, armed=False)
+    _torque(blip, 10.03, 40.0, armed=True)
+    out = analyze(blip, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)
+    assert out["armed_at_injection"] and out["zero_torque_by"] == "torque_cmd armed=false"
+    held = _nominal()  # zero torque for longer than the bound before the fault: not under control
+    _torque(held, 0.0, 9.9, armed=True)
+    _torque(held, 9.9, 40.0, armed=False)
+    assert not analyze(held, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)["armed_at_injection"]
+
+
+def test_a_status_is_stamped_when_asked_so_a_trip_from_before_a_fault_is_its_baseline(zenoh_router) -> None:
+    """A reply that arrives after the fault to a query sent before it holds the counters of then."""
+    from deploy.sil_soak import StatusPoller
+    from onboard.contracts.topics import status_key
+    from services.runtime.zenoh_session import open_session
+
+    ns = "archer/soakpoll"
+    answer_after_s = 0.3
+    server, client = open_session(zenoh_router, "peer"), open_session(zenoh_router, "peer")
+    answered: list[int] = []
+
+    def reply(query) -> None:
+        time.sleep(answer_after_s)  # a starved service, or a starved asker
+        answered.append(time.monotonic_ns())
+        status = m.ServiceStatus(service="control", state="running", uptime_s=1.0, rates_hz={}, counters={"trip.estimate_stale": 1})
+        query.reply(query.key_expr, m.encode(status))
+
+    queryable = server.declare_queryable(status_key(ns, "control"), reply)
+    try:
+        streams = Streams(torque_rx=array("q"), torque_armed=bytearray(), torque_sent=array("q"))
+        observer = type("ObserverLike", (), {"streams": streams, "live": {"control"}})()
+        deadline = time.monotonic() + 10.0
+        poller = None
+        with tempfile.TemporaryDirectory() as tmp:
+            poller = StatusPoller(client, ns, observer, Path(tmp) / "status.jsonl")  # type: ignore[arg-type]
+            while not streams.statuses and time.monotonic() < deadline:  # the queryable reaches the client
+                asked = time.monotonic_ns()
+                poller.poll(["control"])
+            poller.stop()
+        (stamp, service, values), = streams.statuses
+        assert service == "control" and values["counters.trip.estimate_stale"] == 1.0
+        assert asked <= stamp < answered[-1] - int(answer_after_s * 0.9 * 1e9)
+    finally:
+        queryable.undeclare()
+        server.close()
+        client.close()
 
 
 def test_losses_per_window_come_from_sequence_gaps_and_a_restart_is_no_loss() -> None:
