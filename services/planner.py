@@ -109,24 +109,6 @@ def robot_footprint_radius(variant: str = rd.DEFAULT_VARIANT) -> float:
 # --- the service ------------------------------------------------------------------------------
 
 
-def lower_priority(nice: int, log: Any) -> None:
-    """Every thread of this process to the normal scheduling policy (a real-time policy
-    inherited from whoever started it would let the planner starve the 1 kHz loops) with
-    its nice value raised by ``nice``. Linux keeps both per thread; threads started later
-    inherit their creator's."""
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = [0]
-    for tid in tids:
-        try:
-            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-            os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
-        except OSError as exc:
-            log.warning("could not lower a thread's priority", extra={"fields": {"tid": tid, "error": str(exc)}})
-
-
 def warm_up(params: PlannerParams, robot_radius: float) -> None:
     """Plan and refine once on a small throwaway scene (loads or compiles the numba kernels)."""
     small = gp.GraphPlanner(dataclasses.replace(params, nodes=WARM_NODES, rest_grid=0.0), robot_radius,
@@ -180,8 +162,6 @@ class PlannerService(Service):
         return self.params["planner"]
 
     async def setup(self) -> None:
-        if self.prm.nice > 0:
-            lower_priority(self.prm.nice, self.log)  # graph builds and the MPC yield to the hard-rate loops
         robot = rd.robot_params(self.prm.robot)
         radius = self._robot_radius
         if radius is None:

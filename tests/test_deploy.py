@@ -139,8 +139,8 @@ def test_locked_down_units_keep_what_each_service_needs():
         denied = {g for f in filters[1:] for g in f.removeprefix("~").split()}
         assert "@privileged" in denied
         raises_itself = service in ("control", "estimator", "hardware")
-        # sched_setscheduler / sched_setaffinity (the loops), setpriority (the planner's lower_priority)
-        assert ("@resources" in denied) == (not raises_itself and service != "planner"), service
+        # sched_setscheduler / sched_setaffinity (the loops raise themselves); the others' nice is their unit's
+        assert ("@resources" in denied) == (not raises_itself), service
         assert unit["CapabilityBoundingSet"][-1] == ("CAP_SYS_NICE" if raises_itself else "")
         assert ("PrivateUsers" in unit) == (not raises_itself)  # a user namespace voids the capability
         assert ("MemoryDenyWriteExecute" in unit) == (service not in ("planner", "perception")), service

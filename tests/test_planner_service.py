@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import os
 import time
 
 import numpy as np
@@ -22,10 +21,9 @@ from services.runtime.zenoh_session import open_session
 from helpers import wait_for, with_running_service
 
 NS = "archer/planner-test"
-# nice=0: run in the test's own process, the service's lower_priority would renice every thread of the test
 # session, and every process a later test starts would inherit it (test_twin_cli's real-time depth run then
 # made no plan at all in fresh-clone CI, and passed alone)
-PARAMS = PlannerParams(nodes=900, tube=0.05, nice=0)
+PARAMS = PlannerParams(nodes=900, tube=0.05)
 ROBOT_RADIUS = 0.13
 
 
@@ -300,13 +298,6 @@ def test_graph_cache_round_trip_and_corrupt_file(tmp_path):
 def test_footprint_radius_comes_from_the_mjcf():
     # The housing is a 0.13 m cylinder about the spine (robot_description/models/archer.xml).
     assert robot_footprint_radius() == pytest.approx(0.13)
-
-
-@pytest.fixture(autouse=True)
-def _session_priority_kept():
-    before = os.getpriority(os.PRIO_PROCESS, 0)
-    yield
-    assert os.getpriority(os.PRIO_PROCESS, 0) == before, "a planner service run in-process reniced the test session"
 
 
 # real time: loops at their rate, processes and Zenoh over loopback share two loaded cores

@@ -91,8 +91,8 @@ def test_unit_files_parse_into_the_policy_the_supervisor_applies():
     ordered = {s.name: s for s in sim_specs(["estimator", "control", "planner"], "tcp/127.0.0.1:1", "archer/x")}
     assert ordered["control"].after == ("estimator",)  # the router and hardware are not in a sim run
     assert ordered["planner"].after == ("control",)
-    nice = {name: spec_from_unit(name, ["true"]).nice for name in ("router", "control", "recorder", "perception")}
-    assert nice["router"] < nice["control"] == nice["recorder"] == 0 < nice["perception"]
+    nice = {name: spec_from_unit(name, ["true"]).nice for name in ("router", "control", "recorder", "perception", "planner")}
+    assert nice["router"] < nice["control"] == nice["recorder"] == 0 < nice["perception"] == nice["planner"]
     # the estimator and the twin run SCHED_FIFO as whole processes: above every niced unit
     assert spec_from_unit("estimator", ["true"]).fifo_priority > spec_from_unit("twin", ["true"]).fifo_priority > 0
     assert ordered["planner"].argv[-6:] == ("--endpoint", "tcp/127.0.0.1:1", "--namespace", "archer/x", "--log-level", "WARNING")
