@@ -177,7 +177,7 @@ def armed_at(s: Streams, t: int) -> bool:
     the robot stays under its control.
 
     By the commands' own stamps: on a loaded host the soak's subscriber receives them late and in
-    bursts, and a command sent just before ``t`` may arrive well after it (0.7-3.5 s after, in soaks
+    bursts, and a command sent just before ``t`` may arrive well after it (up to 3.5 s after, in soaks
     of the 2-core host beside the whole real-time stack)."""
     recent = int(ARMED_AT_INJECTION_S * NS)
     i = _first_at_or_after(s.torque_rx, t - recent)

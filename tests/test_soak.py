@@ -363,7 +363,7 @@ def test_armed_at_injection_goes_by_the_commands_stamps_not_their_late_receipt()
 
 
 def test_armed_at_injection_follows_a_backlog_longer_than_a_second_and_holds_through_a_late_estimate() -> None:
-    """Soaks here received the commands 0.7-3.5 s late; and the control holds zero torque while
+    """Soaks here received the commands up to 3.5 s late; and the control holds zero torque while
     its estimate is late (30-80 ms, a few times a second on a starved host), still in control."""
     kill = Fault("kill", 10.0, target="control")
     backlog = _nominal()
