@@ -610,7 +610,49 @@ class Sidewalk(Scenario):
             spec.geom(TERRAIN_PREFIX + name).rgba = rgba
 
     def world_summary(self) -> dict:
-        return {**super().world_summary(), "sidewalk_half_width_m": self.HALF_WIDTH, "kerb_m": list(self.KERB)}
+        return {**super().world_summary(), "sidewalk_half_width_m": self.HALF_WIDTH, "kerb_m": list(self.KERB),
+                "widest_way_m": round(widest_way(self.obstacles, -self.HALF_WIDTH, self.HALF_WIDTH), 3)}
+
+
+def _polygon_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between two disjoint convex polygons ``(N, 2)`` [m]: the nearest vertex-to-edge pair."""
+    def one_way(p: np.ndarray, q: np.ndarray) -> float:
+        return min(_segment_distance(tuple(v), tuple(q[i]), tuple(q[(i + 1) % len(q)])) for v in p for i in range(len(q)))
+    return min(one_way(a, b), one_way(b, a))
+
+
+def widest_way(obstacles: list[Obstacle], y_low: float, y_high: float) -> float:
+    """The width [m] of the widest way along a strip between ``y_low`` and ``y_high`` past disjoint
+    convex ``obstacles``: a disc that wide passes iff no chain of obstacles, each nearer than that to
+    the next, joins one side to the other. The widest way is then the minimax chain (Dijkstra with
+    the largest link for a path's length). What the scenario promises, and what a run's miss is
+    weighed against: the planner needs twice its robot radius plus its tube."""
+    polys = [np.asarray(ob.vertices, dtype=float) for ob in obstacles]
+    low, high = len(polys), len(polys) + 1
+
+    def gap(i: int, j: int) -> float:
+        if {i, j} == {low, high}:
+            return y_high - y_low
+        if i in (low, high):
+            i, j = j, i
+        if j == low:
+            return float(polys[i][:, 1].min() - y_low)
+        if j == high:
+            return float(y_high - polys[i][:, 1].max())
+        return _polygon_distance(polys[i], polys[j])
+
+    best = {low: 0.0}
+    todo = set(range(len(polys) + 2))
+    while todo:
+        node = min(todo, key=lambda k: best.get(k, math.inf))
+        if node == high:
+            return best[high]
+        todo.discard(node)
+        for other in todo:
+            width = max(best[node], gap(node, other))
+            if width < best.get(other, math.inf):
+                best[other] = width
+    return best[high]
 
 
 # the thesis's own terrains and worlds at its scale (issue 29), registered beside these

@@ -218,6 +218,35 @@ def test_the_sidewalks_grass_is_kept_off_all_round_the_paving() -> None:
         assert not kept_off(scn.start[0], y * 0.9) and not kept_off(scn.target()[0], y * 0.9)
 
 
+def test_the_widest_way_past_the_obstacles_is_the_narrowest_link_of_the_best_chain() -> None:
+    """Two staggered posts across a 2 m strip: beside each, on its own side, 0.55 m and 0.35 m; the way
+    goes between them, over the lower and under the upper, as wide as their diagonal gap."""
+    def post(x: float, y: float, half: float) -> sc.Obstacle:
+        return sc.Obstacle(np.array([[x - half, y - half], [x + half, y - half], [x + half, y + half], [x - half, y + half]]))
+
+    lower, upper = post(1.0, -0.4, 0.05), post(1.3, 0.5, 0.15)  # corners (1.05, -0.35) and (1.15, 0.35)
+    assert sc.widest_way([lower, upper], -1.0, 1.0) == pytest.approx(math.hypot(0.1, 0.7))
+    assert sc.widest_way([lower, post(1.3, 0.5, 0.3)], -1.0, 1.0) == pytest.approx(0.55)  # a larger upper post: 0.55 m between them too
+    assert sc.widest_way([], -1.0, 1.0) == pytest.approx(2.0)
+    # far apart along the strip: each post alone, its wider side
+    assert sc.widest_way([post(1.0, -0.4, 0.05), post(5.0, 0.5, 0.15)], -1.0, 1.0) == pytest.approx(
+        min(max(0.55, 1.35), max(1.35, 0.35)))
+
+
+def test_every_sidewalk_keeps_its_promise_of_a_way() -> None:
+    """The placement keeps GAP beside every obstacle on one side and between obstacles, so a way GAP
+    wide is left on every seed; a run's report carries its width (a miss on a narrow layout is told
+    from a miss on a wide one)."""
+    widths = []
+    for seed in range(60):
+        scn = sc.make("sidewalk", seed=seed)
+        w = scn.world_summary()["widest_way_m"]
+        assert w >= sc.Sidewalk.GAP - 1e-3, seed
+        assert w == pytest.approx(sc.widest_way(scn.obstacles, -sc.Sidewalk.HALF_WIDTH, sc.Sidewalk.HALF_WIDTH), abs=1e-3)
+        widths.append(w)
+    assert min(widths) < 0.7 < max(widths)  # the layouts differ: some tight, some open
+
+
 def test_touchdowns_on_the_grass_are_counted() -> None:
     """No geom marks the grass, so no contact does: the metrics count the touchdowns whose foot lands
     in the keep-out ground. The robot hopping in place on the verge: every one; on the paving: none."""
