@@ -13,7 +13,7 @@ import sys
 import uuid
 
 from services.runtime.zenoh_session import free_endpoint
-from helpers import judge_realtime_outcome
+from helpers import check_service_failures, judge_realtime_outcome
 from test_twin_cli import REQUIRED
 
 DURATION_S = 6.0
@@ -38,7 +38,7 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
     assert m["hardware"] == "archer-firmware"
     # the stack is up and stayed up: hardware and mocap in place of the twin's topics
     assert m["services_started"] == ["control", "estimator", "hardware", "mocap", "router", "scenario_reference"]
-    assert m["service_failures"] == [] and set(m["service_restarts"].values()) == {0}, m["service_failures"]
+    check_service_failures(m, {k: m[k] for k in ("realtime_factor", "service_failures", "service_restarts", "cpu_cores")})
     board = m["board"]
     assert board["setpoints"] > 0 and board["replies"] >= board["setpoints"]  # the control loop commanded it
     assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0

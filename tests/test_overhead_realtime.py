@@ -16,7 +16,7 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
-from helpers import judge_realtime_outcome, run_watched
+from helpers import check_service_failures, judge_realtime_outcome, run_watched
 
 from drivers.camera_overhead.emulator import MjpegServer
 from services.camera_overhead import is_live
@@ -115,7 +115,7 @@ def test_realtime_kicked_plans_around_what_the_overhead_camera_sees() -> None:
     assert metrics["collisions_by_robot"] == 0, json.dumps(why)
     assert len(run.children) >= 6  # router, estimator, control, planner, camera_overhead, the twin's camera
     assert run.left_running() == []
-    assert metrics["service_failures"] == [], json.dumps(why)
+    check_service_failures(metrics, why)
     # a fresh-clone CI run here at RTF 0.73: 0 plans in 25 s (the planner refused 188 estimates as stale)
     judge_realtime_outcome(metrics, why)
     assert metrics["planner_plans"] >= 1, json.dumps(why)
