@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import tempfile
 import time
 import tomllib
 from array import array
@@ -381,7 +380,7 @@ def test_armed_at_injection_follows_a_backlog_longer_than_a_second_and_holds_thr
     assert not analyze(held, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)["armed_at_injection"]
 
 
-def test_a_status_is_stamped_when_asked_so_a_trip_from_before_a_fault_is_its_baseline(zenoh_router) -> None:
+def test_a_status_is_stamped_when_asked_so_a_trip_from_before_a_fault_is_its_baseline(zenoh_router, tmp_path: Path) -> None:
     """A reply that arrives after the fault to a query sent before it holds the counters of then."""
     from deploy.sil_soak import StatusPoller
     from onboard.contracts.topics import status_key
@@ -403,13 +402,11 @@ def test_a_status_is_stamped_when_asked_so_a_trip_from_before_a_fault_is_its_bas
         streams = Streams(torque_rx=array("q"), torque_armed=bytearray(), torque_sent=array("q"))
         observer = type("ObserverLike", (), {"streams": streams, "live": {"control"}})()
         deadline = time.monotonic() + 10.0
-        poller = None
-        with tempfile.TemporaryDirectory() as tmp:
-            poller = StatusPoller(client, ns, observer, Path(tmp) / "status.jsonl")  # type: ignore[arg-type]
-            while not streams.statuses and time.monotonic() < deadline:  # the queryable reaches the client
-                asked = time.monotonic_ns()
-                poller.poll(["control"])
-            poller.stop()
+        poller = StatusPoller(client, ns, observer, tmp_path / "status.jsonl")  # type: ignore[arg-type]
+        while not streams.statuses and time.monotonic() < deadline:  # the queryable reaches the client
+            asked = time.monotonic_ns()
+            poller.poll(["control"])
+        poller.stop()
         (stamp, service, values), = streams.statuses
         assert service == "control" and values["counters.trip.estimate_stale"] == 1.0
         assert asked <= stamp < answered[-1] - int(answer_after_s * 0.9 * 1e9)
