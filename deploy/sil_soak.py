@@ -47,7 +47,7 @@ from typing import Any
 import zenoh
 
 from deploy import soak_faults as sf
-from deploy.soak_analysis import COMMANDER, TWIN, Injection, Streams, analyze, falls_by_window, window_losses
+from deploy.soak_analysis import COMMANDER, TWIN, Injection, Streams, analyze, falls_by_window, settle_windows, window_losses
 from deploy.soak_schedule import ROUTER, Fault, Schedule, ScheduleError, check_schedule, load_schedule, parse_kill, parse_shorthand
 from onboard.contracts import messages as m
 from onboard.contracts.topics import TOPICS, liveliness_key, topic_for_key
@@ -313,8 +313,7 @@ class Soak:
         finally:
             t_end = t_end or time.monotonic_ns()
             self._cleanup(sim, session, observer, poller, stdout, stderr)
-        for inj in self.injections:
-            inj.window_end_ns = min(inj.window_end_ns, t_end)
+        settle_windows(self.injections, t_end)
         return self._summarize(observer.streams, t0, rec_dir, wall_minus_mono)
 
     def _wait_armed(self, sim: subprocess.Popen, observer: Observer, deadline: float) -> None:

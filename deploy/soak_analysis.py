@@ -124,6 +124,16 @@ class Injection:
         return min(self.window_end_ns, self.end_ns + int(ATTRIBUTION_S * NS))
 
 
+def settle_windows(injections: Sequence[Injection], t_end_ns: int) -> None:
+    """Each fault is watched until the next one was actually carried out (not when it was due: a soak
+    process starved behind the real-time stack carried out a stall 3.8 s late, after the next fault's
+    time, and its window came out empty), and not past the end of the observation."""
+    for inj, after in zip(injections, injections[1:]):
+        inj.window_end_ns = max(inj.window_end_ns, after.start_ns)
+    for inj in injections:
+        inj.window_end_ns = min(inj.window_end_ns, t_end_ns)
+
+
 def _ms(t_ns: int | None, ref_ns: int) -> float | None:
     return None if t_ns is None else round((t_ns - ref_ns) / 1e6, 2)
 

@@ -17,7 +17,9 @@ import pytest
 
 from deploy import soak_faults as sf
 from deploy.sil_soak import DEFAULT_SCHEDULE, _totals, commanded_armed
-from deploy.soak_analysis import ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, twin_falls, window_losses
+from deploy.soak_analysis import (
+    ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, settle_windows, twin_falls, window_losses,
+)
 from deploy.soak_schedule import (
     FLOOD_RATE_HZ, KINDS, Fault, ScheduleError, check_schedule, load_schedule, parse_kill, parse_schedule, parse_shorthand,
 )
@@ -378,6 +380,23 @@ def test_armed_at_injection_follows_a_backlog_longer_than_a_second_and_holds_thr
     _torque(held, 0.0, 9.9, armed=True)
     _torque(held, 9.9, 40.0, armed=False)
     assert not analyze(held, Injection(kill, 10 * NS, 10 * NS, 30 * NS), t0_ns=0)["armed_at_injection"]
+
+
+def test_a_fault_carried_out_late_is_watched_until_the_next_one_was_carried_out() -> None:
+    """A CI soak's stall due at 4 s went in at 7.83 s, past the flood's 7.5 s, which went in at 8.08 s:
+    the stall's window ran to the flood's due time and came out empty (undetected, zero torque missing)."""
+    s = _nominal()
+    _torque(s, 0.0, 7.85, armed=True)  # the control loop stopped at 7.85 s ...
+    s.safety = [(int(7.86 * NS), "command_stale")]  # ... and the twin cut the torque
+    stall = Injection(Fault("stall", 4.0, target="control/child", duration_s=0.2), int(7.85 * NS), int(8.05 * NS), int(7.5 * NS))
+    flood = Injection(Fault("malformed_flood", 7.5, topics=("imu",), duration_s=1.5), int(8.08 * NS), int(9.6 * NS), int(11 * NS))
+    settle_windows([stall, flood], t_end_ns=int(10.5 * NS))
+    assert (stall.window_end_ns, flood.window_end_ns) == (flood.start_ns, int(10.5 * NS))
+    out = analyze(s, stall, t0_ns=0)
+    assert out["detected"] and out["detected_by"] == "safety:command_stale" and out["zero_torque_ms"] == pytest.approx(10.0)
+    on_time = Injection(Fault("stall", 4.0, target="control/child", duration_s=0.2), 4 * NS, int(4.2 * NS), int(7.5 * NS))
+    settle_windows([on_time, flood], t_end_ns=int(10.5 * NS))
+    assert on_time.window_end_ns == int(7.5 * NS) + 580 * MS  # the next one's actual start, later than due
 
 
 def test_a_status_is_stamped_when_asked_so_a_trip_from_before_a_fault_is_its_baseline(zenoh_router, tmp_path: Path) -> None:
