@@ -74,6 +74,7 @@ HELPER_GRACE_S = 15.0  # a hog or flood past its duration by this much is killed
 KILL_WATCH_S = 5.0  # how long a killed process's exit and reaping are watched
 PUT_BACK_SETTLE_S = 1.5  # after the put back (and again after the estimator rebuild) before arming
 SIM_STOP_TIMEOUT_S = 30.0
+FAULT_MIN_WATCH_S = 2.0  # a fault is watched this long at least before the next is carried out (a starved soak ran late)
 OBSERVE_END_S = 1.0  # observation ends this long before the run does (then the stack is stopped)
 CONTROL_LOOP_RUNNING_S = 0.2  # commands this recent: a control loop is there to take over after a put back
 
@@ -295,6 +296,8 @@ class Soak:
             for k, fault in enumerate(faults):
                 helper = helpers[k]
                 start = t0 + int(fault.at_s * 1e9)
+                if self.injections:  # a fault carried out late leaves the next its time to show and recover
+                    start = max(start, self.injections[-1].end_ns + int(FAULT_MIN_WATCH_S * 1e9))
                 self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
                 poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
                 self._wait_until(start, sim, session, poller, observer)
