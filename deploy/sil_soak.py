@@ -228,6 +228,14 @@ class StatusPoller:
         self._log.close()
 
 
+def fault_start_ns(t0_ns: int, at_s: float, previous_end_ns: int | None) -> int:
+    """When a fault due ``at_s`` after ``t0_ns`` is carried out: when due, or ``FAULT_MIN_WATCH_S`` after
+    the previous one's action ended, whichever is later (a starved soak carried a fault out late, and the
+    next one, due meanwhile, left it no time to show and recover)."""
+    due = t0_ns + int(at_s * 1e9)
+    return due if previous_end_ns is None else max(due, previous_end_ns + int(FAULT_MIN_WATCH_S * 1e9))
+
+
 def _sil_config(base: Path, rec_dir: Path) -> str:
     """``base`` with the recording going to ``rec_dir`` in 30 s files, as TOML."""
     tables = tomllib.loads(base.read_text())
@@ -295,9 +303,7 @@ class Soak:
             run_end = t0 + int(self.duration_s * 1e9)
             for k, fault in enumerate(faults):
                 helper = helpers[k]
-                start = t0 + int(fault.at_s * 1e9)
-                if self.injections:  # a fault carried out late leaves the next its time to show and recover
-                    start = max(start, self.injections[-1].end_ns + int(FAULT_MIN_WATCH_S * 1e9))
+                start = fault_start_ns(t0, fault.at_s, self.injections[-1].end_ns if self.injections else None)
                 self._wait_until(start - int(BASELINE_S * 1e9), sim, session, poller, observer)
                 poller.heat(time.monotonic() + BASELINE_S + fault.duration_s + HOT_AFTER_S)
                 self._wait_until(start, sim, session, poller, observer)

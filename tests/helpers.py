@@ -33,10 +33,10 @@ def judge_realtime_outcome(metrics: dict, unjudged: dict, judged_min: float = RE
                     f"the outcome not judged ({json.dumps(unjudged)})")
 
 
-def check_service_failures(metrics: dict, why: dict, judged_min: float = REALTIME_JUDGED_MIN) -> None:
+def check_service_failures(metrics: dict, why: dict) -> None:
     """A real-time run's units: every one that went down was restarted (its watchdog or exit followed by
     its scheduled restart; nothing given up or timed out), always; none went down, where the twin kept
-    ``judged_min`` of real time. Below it a unit at normal priority can wait seconds behind the
+    ``REALTIME_JUDGED_MIN`` of real time. Below it a unit at normal priority can wait seconds behind the
     SCHED_FIFO twin, estimator and control loop: a CI run here at RTF 0.78 aborted control's main
     process on its 2 s watchdog, its loop child ticking."""
     failures = metrics["service_failures"]
@@ -45,7 +45,7 @@ def check_service_failures(metrics: dict, why: dict, judged_min: float = REALTIM
         if f["what"] != "restart-scheduled":
             assert any(g["unit"] == f["unit"] and g["what"] == "restart-scheduled" and g["t_s"] >= f["t_s"]
                        for g in failures), json.dumps(why)
-    if metrics["realtime_factor"] >= judged_min:
+    if metrics["realtime_factor"] >= REALTIME_JUDGED_MIN:
         assert failures == [], json.dumps(why)
 
 

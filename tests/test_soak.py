@@ -16,7 +16,7 @@ import msgspec
 import pytest
 
 from deploy import soak_faults as sf
-from deploy.sil_soak import DEFAULT_SCHEDULE, _totals, commanded_armed
+from deploy.sil_soak import DEFAULT_SCHEDULE, FAULT_MIN_WATCH_S, _totals, commanded_armed, fault_start_ns
 from deploy.soak_analysis import (
     ARMED_HOLD_S, Injection, Streams, analyze, falls_by_window, settle_windows, twin_falls, window_losses,
 )
@@ -394,6 +394,9 @@ def test_a_fault_carried_out_late_is_watched_until_the_next_one_was_carried_out(
     assert (stall.window_end_ns, flood.window_end_ns) == (flood.start_ns, int(10.5 * NS))
     out = analyze(s, stall, t0_ns=0)
     assert out["detected"] and out["detected_by"] == "safety:command_stale" and out["zero_torque_ms"] == pytest.approx(10.0)
+    # and the next fault waits for it: due 7.5 s, carried out FAULT_MIN_WATCH_S after the late stall's action
+    assert fault_start_ns(0, 7.5, stall.end_ns) == stall.end_ns + int(FAULT_MIN_WATCH_S * NS) > int(7.5 * NS)
+    assert fault_start_ns(0, 7.5, int(4.2 * NS)) == int(7.5 * NS) and fault_start_ns(0, 4.0, None) == 4 * NS
     on_time = Injection(Fault("stall", 4.0, target="control/child", duration_s=0.2), 4 * NS, int(4.2 * NS), int(7.5 * NS))
     settle_windows([on_time, flood], t_end_ns=int(10.5 * NS))
     assert on_time.window_end_ns == int(7.5 * NS) + 580 * MS  # the next one's actual start, later than due
