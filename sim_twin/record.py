@@ -46,7 +46,9 @@ def write_mcap(path: str | Path, messages: Iterable[tuple[str, int, object]], ns
                 stamp = msg.stamp_ns
             else:
                 data = m.encode(msg)
-                stamp = getattr(msg, "stamp_ns", log_ns)
+                # an estimate published before the first IMU sample is stamped -1 (valid at no time):
+                # MCAP's publish time is unsigned, the message keeps its own stamp
+                stamp = max(0, getattr(msg, "stamp_ns", log_ns))
             writer.add_message(ch, log_time=int(log_ns), data=data, publish_time=int(stamp), sequence=count)
             count += 1
             for key, (name, encoding, schema_data, message_encoding), payload in (extra(topic, log_ns, msg) if extra else ()):
