@@ -1,5 +1,6 @@
 """The low level on the MuJoCo twin in lockstep: hundreds of hops in place, a 2 m setpoint
-with the onboard estimator on noisy sensors, and the stale-reference fallback.
+with the onboard estimator on noisy sensors, a moving reference tracked without a standing error,
+and the stale-reference fallback.
 
 Long runs (3000 hops, every scenario, the ZDP/LQR comparison) are for reports:
 ``archer sim --scenario NAME --json``.
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import math
 
-from onboard.contracts.params import SafetyLimits
+from onboard.contracts.params import ControlParams, SafetyLimits
 from sim_twin.lockstep import LockstepRunner, RunConfig, run
 
 LIMITS = SafetyLimits()
@@ -41,6 +42,17 @@ def test_setpoint_two_metres_with_the_kalman_estimator():
     assert to_go / runner.robot.hop_speed_max < m["time_to_goal_s"] <= m["sim_time_s"]
     assert m["max_wheel_speed_rad_s"] < LIMITS.wheel_speed_max
     assert m["rms_tracking_error_m"] < 0.10
+
+
+def test_the_cruise_lean_keeps_the_robot_on_a_moving_reference():
+    """The ZDP's error law alone leans back against the hop map's growing speed only from an error, so it
+    cruises off a moving reference; with the hop map's cruise lean fed forward the robot stays on it:
+    the square's RMS tracking 0.070 -> 0.043 m (seed 0, lockstep), the wheels no faster."""
+    runs = {ff: run(RunConfig(scenario="square", estimator="kalman", seed=0, control_params=ControlParams(cruise_feedforward=ff))).metrics
+            for ff in (0.0, 1.0)}
+    assert all(m["falls"] == 0 and m["goal_reached"] for m in runs.values())
+    assert runs[1.0]["rms_tracking_error_m"] < 0.8 * runs[0.0]["rms_tracking_error_m"]
+    assert runs[1.0]["max_wheel_speed_rad_s"] <= runs[0.0]["max_wheel_speed_rad_s"] * 1.05
 
 
 def test_dead_planner_falls_back_to_hopping_in_place():

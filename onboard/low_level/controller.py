@@ -232,6 +232,7 @@ class LowLevelController:
             self.momentum.configure(params.momentum_wheel_share_lo * limit, params.momentum_wheel_share_hi * limit, params.momentum_speed_min,
                                     params.momentum_lead_s, params.momentum_lookahead_hops, params.momentum_cap_rise)
         lin = self.design.linear
+        self._cruise_lean = params.cruise_feedforward * (1.0 - float(lin.a_zz[2, 2])) / float(lin.a_zeta[2, 0])  # [rad per m/s]
         if params.policy == "zdp":
             self._linear = zdp_policy.LinearPolicy.from_matrix(lin.s_eta, params.pos_err_max, params.vel_err_max, params.tilt_cmd_max)
         elif params.policy == "lqr":  # the plain gain, nothing clipped (thesis Fig. 5.22)
@@ -375,6 +376,7 @@ class LowLevelController:
         self.reference_at_impact = (rx, ry, rvx, rvy)
         ex, ey, gvx, gvy = self.momentum.target(xi - rx, yi - ry, rvx, rvy)
         ax, ay = self.policy(ex, ey, vx - gvx, vy - gvy)
+        ax, ay = ax + self._cruise_lean * gvx, ay + self._cruise_lean * gvy
         bx, by = self.balance.lean(yaw)
         ax, ay = zdp_policy.clip_norm(ax + bx, ay + by, math.sin(self.p.tilt_cmd_max) if self.p.tilt_cmd_max > 0.0 else 0.999)
         self.eta = (ax, ay)

@@ -66,6 +66,11 @@ class ControlParams(_Section, section="control"):
     raibert_kp: Annotated[float, within(0.0, 10.0)] = 0.25  # eq. 5.48 gains: tilt per position error [rad/m]
     raibert_kd: Annotated[float, within(0.0, 10.0)] = 0.30  # tilt per velocity error [rad s/m]
     tilt_cmd_max: Annotated[float, within(0.0, 0.5)] = 0.12  # clip on the commanded impact tilt [rad]
+    # the lean that holds the reduced model's hop map at the reference's speed (v = a v + b eta, so
+    # eta = (1 - a) v / b, against the motion: a > 1), added to the policy's. Its error law alone leans
+    # back only from an error, so it cruised ~5 cm ahead of a moving reference (setpoint), which the
+    # tube measures and the planner pays for (docs/model_error.md, the cruise lean)
+    cruise_feedforward: Annotated[float, within(0.0, 2.0)] = 1.0  # share of that lean (0: off)
     pos_err_max: Annotated[float, within(0.0, 10.0)] = 0.30  # clip on the position error the policy sees [m]
     vel_err_max: Annotated[float, within(0.0, 10.0)] = 0.60  # clip on the velocity error the policy sees [m/s]
     mlp_weights: Name = "zdp_mlp.npz"  # file under onboard/data/ for policy = "mlp"
