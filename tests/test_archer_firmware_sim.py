@@ -38,7 +38,7 @@ def test_the_stack_hops_in_place_on_the_emulated_boards_and_mocap() -> None:
     assert m["hardware"] == "archer-firmware"
     # the stack is up and stayed up: hardware and mocap in place of the twin's topics
     assert m["services_started"] == ["control", "estimator", "hardware", "mocap", "router", "scenario_reference"]
-    check_service_failures(m, {k: m[k] for k in ("realtime_factor", "service_failures", "service_restarts", "cpu_cores")})
+    check_service_failures(m)
     board = m["board"]
     assert board["setpoints"] > 0 and board["replies"] >= board["setpoints"]  # the control loop commanded it
     assert board["length"] == board["non_finite"] == board["quaternion"] == board["udp_foreign"] == 0

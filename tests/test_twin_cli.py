@@ -103,7 +103,7 @@ def test_sim_realtime_with_depth_perception_runs_the_perception_service_and_wait
     assert {"perception", "planner"} <= set(metrics["services_started"])
     # every service kept its watchdog where the twin kept up (below, every one that went down came back):
     # the perception service fuses views off its event loop, so a starved host slows it, not restarts it
-    check_service_failures(metrics, {k: metrics[k] for k in ("realtime_factor", "service_failures", "service_restarts", "cpu_cores")})
+    check_service_failures(metrics)
     assert metrics["collisions"] == 0, metrics
     # of 6 runs here at 03f3ec1 (RTF 0.62-0.77), the three at 0.76-0.77 planned and stood, the three at
     # 0.62-0.68 fell 4-12 s in, before a plan
